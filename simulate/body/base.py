@@ -1,0 +1,275 @@
+"""The body-model interface shared by every backend (anny default, SMPL-family files).
+
+Frame: metres, y up, the body faces +z, its left is +x (the SMPL convention).
+``shape`` and ``pose`` are plain arrays: ``shape`` has ``shape_size`` entries
+(backend-specific meaning, see ``shape_names``), ``pose`` has one axis-angle vector
+[rad] for each of the 20 posable joints in :data:`POSE_JOINTS` (flattened to 60
+numbers, or shaped (20, 3)), in the same order for every backend, so pose files and
+samplers carry over between anny and SMPL.
+"""
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from simulate.body import kinematics as kin
+
+#: Posable joints, in SMPL's order (SMPL's feet and hands are fixed here).
+POSE_JOINTS: tuple[str, ...] = (
+    "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",
+    "left_ankle", "right_ankle", "spine3", "neck", "left_collar", "right_collar", "head",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+)
+POSE_JOINT_COUNT = len(POSE_JOINTS)
+POSE_SIZE = 3 * POSE_JOINT_COUNT
+
+#: Default joint limits [rad] per axis (x, y, z) of the body frame, (min, max), used by
+#: pose samplers and range checks. x is the body's left, y up, z forward: flexing a hip
+#: forward is a negative x rotation, raising the left arm sideways a positive z rotation.
+JOINT_LIMITS: dict[str, tuple[tuple[float, float], tuple[float, float], tuple[float, float]]] = {
+    "pelvis": ((-0.3, 0.3), (-0.5, 0.5), (-0.2, 0.2)),
+    "left_hip": ((-1.6, 0.5), (-0.6, 0.6), (-0.2, 0.8)),
+    "right_hip": ((-1.6, 0.5), (-0.6, 0.6), (-0.8, 0.2)),
+    "spine1": ((-0.3, 0.5), (-0.3, 0.3), (-0.25, 0.25)),
+    "left_knee": ((0.0, 2.3), (-0.05, 0.05), (-0.05, 0.05)),
+    "right_knee": ((0.0, 2.3), (-0.05, 0.05), (-0.05, 0.05)),
+    "spine2": ((-0.3, 0.4), (-0.3, 0.3), (-0.25, 0.25)),
+    "left_ankle": ((-0.6, 0.6), (-0.3, 0.3), (-0.3, 0.3)),
+    "right_ankle": ((-0.6, 0.6), (-0.3, 0.3), (-0.3, 0.3)),
+    "spine3": ((-0.2, 0.3), (-0.3, 0.3), (-0.2, 0.2)),
+    "neck": ((-0.5, 0.6), (-0.7, 0.7), (-0.4, 0.4)),
+    "left_collar": ((-0.2, 0.2), (-0.3, 0.3), (-0.2, 0.4)),
+    "right_collar": ((-0.2, 0.2), (-0.3, 0.3), (-0.4, 0.2)),
+    "head": ((-0.5, 0.5), (-0.6, 0.6), (-0.4, 0.4)),
+    "left_shoulder": ((-1.2, 1.2), (-1.0, 1.0), (-0.9, 1.9)),
+    "right_shoulder": ((-1.2, 1.2), (-1.0, 1.0), (-1.9, 0.9)),
+    "left_elbow": ((-0.2, 0.2), (-2.3, 0.1), (-0.2, 0.2)),
+    "right_elbow": ((-0.2, 0.2), (-0.1, 2.3), (-0.2, 0.2)),
+    "left_wrist": ((-0.6, 0.6), (-0.4, 0.4), (-0.6, 0.6)),
+    "right_wrist": ((-0.6, 0.6), (-0.4, 0.4), (-0.6, 0.6)),
+}
+
+#: Body regions used to cull what a garment cannot touch.
+PARTS: tuple[str, ...] = ("torso", "arms", "legs", "head", "hands", "feet")
+
+
+@dataclass
+class PosedBody:
+    """A batch of posed bodies. Arrays are numpy or torch, matching the call.
+
+    Attributes:
+        vertices: posed vertices [m], shape (B, V, 3).
+        faces: triangles, shape (F, 3), int.
+        joints: posed joint positions [m], shape (B, J, 3) (all backend joints).
+        joint_transforms: joint-to-world transforms, shape (B, J, 4, 4).
+        skinning_transforms: rest-to-posed transforms, shape (B, J, 4, 4).
+        skinning_weights: per-vertex weights, shape (V, J).
+        rest_vertices: shaped, unposed vertices [m], shape (B, V, 3).
+        rest_joints: shaped, unposed joint positions [m], shape (B, J, 3).
+    """
+
+    vertices: np.ndarray | torch.Tensor
+    faces: np.ndarray
+    joints: np.ndarray | torch.Tensor
+    joint_transforms: np.ndarray | torch.Tensor
+    skinning_transforms: np.ndarray | torch.Tensor
+    skinning_weights: np.ndarray | torch.Tensor
+    rest_vertices: np.ndarray | torch.Tensor
+    rest_joints: np.ndarray | torch.Tensor
+
+
+class BodyModel(abc.ABC):
+    """A parametric body: rest(shape), pose(shape, pose), skinning of arbitrary points.
+
+    Subclasses set the attributes below in ``__init__`` and implement
+    :meth:`_rest_torch` (and may override :meth:`_pose_correctives`).
+
+    Attributes:
+        name: backend name used in configs ("anny", "smpl").
+        faces: triangles, shape (F, 3), int64.
+        joint_names: every joint of the backend's skeleton, length J.
+        joint_parents: parent index per joint, shape (J,), -1 for the root.
+        pose_joint_indices: skeleton index of each of :data:`POSE_JOINTS`, shape (20,).
+        shape_names: names of the shape parameters, length S.
+        shape_ranges: (min, max) of each shape parameter, shape (S, 2).
+        shape_default: the mean / neutral shape, shape (S,).
+        skinning_weights_t: per-vertex skinning weights (torch, float32), shape (V, J).
+        vertex_parts: index into :data:`PARTS` per vertex, shape (V,).
+        canonical_pose: the canonical (A-)pose garments are draped in, shape (60,).
+    """
+
+    name: str
+    faces: np.ndarray
+    joint_names: list[str]
+    joint_parents: np.ndarray
+    pose_joint_indices: np.ndarray
+    shape_names: list[str]
+    shape_ranges: np.ndarray
+    shape_default: np.ndarray
+    skinning_weights_t: torch.Tensor
+    vertex_parts: np.ndarray
+    canonical_pose: np.ndarray
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def vertex_count(self) -> int:
+        return int(self.skinning_weights_t.shape[0])
+
+    @property
+    def joint_count(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def shape_size(self) -> int:
+        return len(self.shape_names)
+
+    @property
+    def pose_size(self) -> int:
+        return POSE_SIZE
+
+    @property
+    def skinning_weights(self) -> np.ndarray:
+        """Per-vertex skinning weights, shape (V, J), float32."""
+        return self.skinning_weights_t.numpy()
+
+    # ------------------------------------------------------------ validation
+    def check_shape(self, shape, *, field: str = "shape") -> torch.Tensor:
+        """Returns shape as a float32 tensor (B, S); raises naming the expected length."""
+        t = kin.as_torch(shape) if not isinstance(shape, torch.Tensor) else shape.float()
+        if t.dim() == 1:
+            t = t[None]
+        if t.dim() != 2 or t.shape[-1] != self.shape_size:
+            raise ValueError(
+                f"{field} must have {self.shape_size} values ({', '.join(self.shape_names)}) "
+                f"per body, shape ({self.shape_size},) or (B, {self.shape_size}); got shape {tuple(t.shape)}"
+            )
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{field} contains non-finite values")
+        return t
+
+    def check_pose(self, pose, *, field: str = "pose") -> torch.Tensor:
+        """Returns pose as a float32 tensor (B, 20, 3); accepts (60,), (20,3), (B,60), (B,20,3)."""
+        t = kin.as_torch(pose) if not isinstance(pose, torch.Tensor) else pose.float()
+        if t.dim() == 1 or (t.dim() == 2 and t.shape == (POSE_JOINT_COUNT, 3)):
+            t = t[None]
+        if t.dim() == 2 and t.shape[-1] == POSE_SIZE:
+            t = t.reshape(t.shape[0], POSE_JOINT_COUNT, 3)
+        if t.dim() != 3 or t.shape[1:] != (POSE_JOINT_COUNT, 3):
+            raise ValueError(
+                f"{field} must be axis-angle rotations [rad] of the {POSE_JOINT_COUNT} joints "
+                f"{POSE_JOINTS[0]}..{POSE_JOINTS[-1]}: shape ({POSE_SIZE},), ({POSE_JOINT_COUNT}, 3), "
+                f"(B, {POSE_SIZE}) or (B, {POSE_JOINT_COUNT}, 3); got shape {tuple(t.shape)}"
+            )
+        if not torch.isfinite(t).all():
+            raise ValueError(f"{field} contains non-finite values")
+        return t
+
+    def pose_from_dict(self, rotations: dict[str, object]) -> np.ndarray:
+        """Builds a (60,) pose from {joint name: axis-angle (3,)}; unknown names raise."""
+        pose = np.zeros((POSE_JOINT_COUNT, 3), dtype=np.float32)
+        for name, value in rotations.items():
+            if name not in POSE_JOINTS:
+                raise ValueError(f"unknown joint name {name!r}; expected one of {', '.join(POSE_JOINTS)}")
+            vec = np.asarray(value, dtype=np.float32)
+            if vec.shape != (3,):
+                raise ValueError(f"rotation of joint {name!r} must be an axis-angle vector of 3 values, got shape {vec.shape}")
+            pose[POSE_JOINTS.index(name)] = vec
+        return pose.reshape(-1)
+
+    # ------------------------------------------------------------ torch core
+    @abc.abstractmethod
+    def _rest_torch(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Shaped rest vertices (B, V, 3) and joints (B, J, 3) [m] for shape (B, S)."""
+
+    def _pose_correctives(self, local_rotations: torch.Tensor) -> torch.Tensor | None:
+        """Pose-dependent vertex offsets (B, V, 3) added before skinning; None if none."""
+        return None
+
+    def rest_torch(self, shape) -> tuple[torch.Tensor, torch.Tensor]:
+        """Differentiable shaped rest mesh: vertices (B, V, 3) and joints (B, J, 3) [m]."""
+        return self._rest_torch(self.check_shape(shape))
+
+    def local_rotations_torch(self, pose) -> torch.Tensor:
+        """All-joint local rotations (B, J, 3, 3) from a posable-joint pose (identity elsewhere)."""
+        pose_t = self.check_pose(pose)
+        batch = pose_t.shape[0]
+        rot = torch.eye(3, dtype=pose_t.dtype, device=pose_t.device).repeat(batch, self.joint_count, 1, 1)
+        rot[:, torch.as_tensor(self.pose_joint_indices, device=pose_t.device)] = kin.axis_angle_to_matrix(pose_t)
+        return rot
+
+    def pose_torch(self, shape, pose, translation=None) -> PosedBody:
+        """Differentiable posing in torch; shape (B,S) or (S,), pose (B,60) or (60,) broadcast."""
+        shape_t = self.check_shape(shape)
+        pose_t = self.check_pose(pose)
+        batch = max(shape_t.shape[0], pose_t.shape[0])
+        if shape_t.shape[0] not in (1, batch) or pose_t.shape[0] not in (1, batch):
+            raise ValueError(f"shape batch ({shape_t.shape[0]}) and pose batch ({pose_t.shape[0]}) must match or be 1")
+        rest_vertices, rest_joints = self._rest_torch(shape_t)
+        rest_vertices = rest_vertices.expand(batch, -1, -1)
+        rest_joints = rest_joints.expand(batch, -1, -1)
+        rot = self.local_rotations_torch(pose_t.expand(batch, -1, -1))
+        trans = None
+        if translation is not None:
+            trans = kin.as_torch(translation, device=rot.device)
+            if trans.dim() == 1:
+                trans = trans[None]
+            if trans.shape[-1] != 3:
+                raise ValueError(f"translation must have 3 values [m] per body, got shape {tuple(trans.shape)}")
+            trans = trans.expand(batch, 3)
+        world, skin = kin.forward_kinematics(rot, rest_joints, self.joint_parents, translation=trans, levels=self._levels)
+        correctives = self._pose_correctives(rot)
+        shaped = rest_vertices if correctives is None else rest_vertices + correctives
+        vertices = kin.lbs(shaped, self.skinning_weights_t.to(shaped.device), skin)
+        return PosedBody(
+            vertices=vertices, faces=self.faces, joints=world[..., :3, 3], joint_transforms=world,
+            skinning_transforms=skin, skinning_weights=self.skinning_weights_t, rest_vertices=rest_vertices,
+            rest_joints=rest_joints,
+        )
+
+    def posed_joints(self, shape, pose, translation=None) -> np.ndarray:
+        """Posed joint positions only (no skinning; fast), shape (B, J, 3) [m], numpy."""
+        with torch.no_grad():
+            shape_t = self.check_shape(shape)
+            rot = self.local_rotations_torch(pose)
+            _, rest_joints = self._rest_torch(shape_t)
+            trans = None if translation is None else kin.as_torch(translation).reshape(-1, 3).expand(rot.shape[0], 3)
+            world, _ = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), self.joint_parents,
+                                              translation=trans, levels=self._levels)
+        return world[..., :3, 3].cpu().numpy()
+
+    # ------------------------------------------------------------ numpy API
+    def rest(self, shape) -> tuple[np.ndarray, np.ndarray]:
+        """Shaped rest vertices (B, V, 3) and joints (B, J, 3) [m], numpy float32."""
+        with torch.no_grad():
+            v, j = self.rest_torch(shape)
+        return v.cpu().numpy(), j.cpu().numpy()
+
+    def pose(self, shape, pose, translation=None) -> PosedBody:
+        """Poses a batch of bodies (numpy in, numpy out); see :meth:`pose_torch`."""
+        with torch.no_grad():
+            posed = self.pose_torch(shape, pose, translation)
+        return PosedBody(**{k: (v.cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in posed.__dict__.items()})
+
+    # --------------------------------------------------------- conveniences
+    @property
+    def _levels(self) -> list[np.ndarray]:
+        if getattr(self, "_levels_cache", None) is None:
+            self._levels_cache = kin.kinematic_levels(self.joint_parents)
+        return self._levels_cache
+
+    def part_vertex_mask(self, parts) -> np.ndarray:
+        """Boolean (V,) mask of the vertices in the named parts (see :data:`PARTS`)."""
+        wanted = []
+        for p in parts:
+            if p not in PARTS:
+                raise ValueError(f"unknown body part {p!r}; expected one of {', '.join(PARTS)}")
+            wanted.append(PARTS.index(p))
+        return np.isin(self.vertex_parts, wanted)
+
+    def part_faces(self, parts) -> np.ndarray:
+        """Faces (F', 3) whose three vertices all lie in the named parts (body culling)."""
+        mask = self.part_vertex_mask(parts)
+        return self.faces[mask[self.faces].all(axis=1)]
