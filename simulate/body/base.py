@@ -139,12 +139,13 @@ class BodyModel(abc.ABC):
     def check_shape(self, shape, *, field: str = "shape") -> torch.Tensor:
         """Returns shape as a float32 tensor (B, S); raises naming the expected length."""
         t = kin.as_torch(shape) if not isinstance(shape, torch.Tensor) else shape.float()
+        given = tuple(t.shape)
         if t.dim() == 1:
             t = t[None]
         if t.dim() != 2 or t.shape[-1] != self.shape_size:
             raise ValueError(
                 f"{field} must have {self.shape_size} values ({', '.join(self.shape_names)}) "
-                f"per body, shape ({self.shape_size},) or (B, {self.shape_size}); got shape {tuple(t.shape)}"
+                f"per body, shape ({self.shape_size},) or (B, {self.shape_size}); got shape {given}"
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")
@@ -153,6 +154,7 @@ class BodyModel(abc.ABC):
     def check_pose(self, pose, *, field: str = "pose") -> torch.Tensor:
         """Returns pose as a float32 tensor (B, 20, 3); accepts (60,), (20,3), (B,60), (B,20,3)."""
         t = kin.as_torch(pose) if not isinstance(pose, torch.Tensor) else pose.float()
+        given = tuple(t.shape)
         if t.dim() == 1 or (t.dim() == 2 and t.shape == (POSE_JOINT_COUNT, 3)):
             t = t[None]
         if t.dim() == 2 and t.shape[-1] == POSE_SIZE:
@@ -161,7 +163,7 @@ class BodyModel(abc.ABC):
             raise ValueError(
                 f"{field} must be axis-angle rotations [rad] of the {POSE_JOINT_COUNT} joints "
                 f"{POSE_JOINTS[0]}..{POSE_JOINTS[-1]}: shape ({POSE_SIZE},), ({POSE_JOINT_COUNT}, 3), "
-                f"(B, {POSE_SIZE}) or (B, {POSE_JOINT_COUNT}, 3); got shape {tuple(t.shape)}"
+                f"(B, {POSE_SIZE}) or (B, {POSE_JOINT_COUNT}, 3); got shape {given}"
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")

@@ -1,0 +1,23 @@
+"""Shared fixtures: devices to parametrize over and the (slow to build) default body."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("TQDM_DISABLE", "1")
+
+
+def available_devices() -> list[str]:
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    return ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+
+
+@pytest.fixture(scope="session")
+def anny_body():
+    from simulate.body import load_body_model
+
+    return load_body_model("anny")
