@@ -30,7 +30,7 @@ def collect() -> dict:
     }
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
     info["warp_devices"] = [str(d) for d in wp.get_devices()]
     info["warp_kernel_cache"] = wp.config.kernel_cache_dir

@@ -2,4 +2,4 @@
 import warp as _wp
 
 # Warp prints a banner on first init; a CLI that prints JSON should stay clean.
-_wp.config.quiet = True
+_wp.config.log_level = _wp.LOG_WARNING

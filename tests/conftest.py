@@ -11,7 +11,7 @@ os.environ.setdefault("TQDM_DISABLE", "1")
 def available_devices() -> list[str]:
     import warp as wp
 
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
     wp.init()
     return ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
