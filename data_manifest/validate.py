@@ -1,0 +1,302 @@
+"""Checking a dataset directory against its manifest, and summarizing it.
+
+``validate_dataset(root)`` checks the manifest schema and spec hash, that every listed shard
+exists with the listed size and sha256, that its HDF5 layout, attributes, template and frame
+count match the manifest, that split membership is consistent and that totals add up; it
+also lists orphans (``*.tmp`` files and unlisted ``*.h5`` shards). ``info(root)`` renders the
+summary table printed by ``drape dataset info``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import h5py
+
+from .manifest import Manifest, _parse_time
+from .schema import (
+    MANIFEST_NAME,
+    SHARD_SUFFIX,
+    TMP_SUFFIX,
+    ManifestSchemaError,
+    template_sha256,
+)
+from .shard import check_shard_layout, file_sha256, read_shard_attrs, read_template
+
+ERROR_KINDS = ("missing", "schema", "checksum", "size", "corrupt", "layout", "template",
+               "frame_count", "split", "totals", "pending")
+"""Kinds of problems that make a dataset invalid."""
+
+WARNING_KINDS = ("orphan_tmp", "orphan_shard")
+"""Kinds of problems reported but tolerated (readers never look at these files)."""
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One finding: ``kind`` (see ERROR_KINDS / WARNING_KINDS), ``where`` (a file path or a
+    JSON path), ``message`` (what is wrong and what was expected)."""
+
+    kind: str
+    where: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"[{self.kind}] {self.where}: {self.message}"
+
+
+@dataclass
+class Report:
+    """Outcome of ``validate_dataset``. ``ok`` is True when there are no errors."""
+
+    root: Path
+    errors: list[Problem] = field(default_factory=list)
+    warnings: list[Problem] = field(default_factory=list)
+    shards_checked: int = 0
+    frames_checked: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    def add(self, kind: str, where: str | os.PathLike[str], message: str) -> None:
+        problem = Problem(kind, str(where), message)
+        (self.warnings if kind in WARNING_KINDS else self.errors).append(problem)
+
+    def kinds(self) -> dict[str, int]:
+        """Number of findings per kind."""
+        counts: dict[str, int] = {}
+        for problem in self.errors + self.warnings:
+            counts[problem.kind] = counts.get(problem.kind, 0) + 1
+        return counts
+
+    def __str__(self) -> str:
+        status = "OK" if self.ok else "INVALID"
+        lines = [f"dataset {str(self.root)!r}: {status} ({self.shards_checked} shards, "
+                 f"{self.frames_checked} frames checked; {len(self.errors)} errors, "
+                 f"{len(self.warnings)} warnings)"]
+        lines += [f"  error   {problem}" for problem in self.errors]
+        lines += [f"  warning {problem}" for problem in self.warnings]
+        return "\n".join(lines)
+
+
+def check_shard_file(
+    root: str | os.PathLike[str],
+    entry: Mapping[str, Any],
+    *,
+    manifest: Manifest,
+    check_sha256: bool = True,
+) -> list[Problem]:
+    """Check one listed shard against its manifest entry: exists, size, sha256, opens as
+    HDF5, layout, attributes (task id, splits, precision, template hash, filter stats),
+    stored template hash, frame count. Returns the problems found (empty when sound)."""
+    report = Report(Path(root))
+    path = Path(root) / entry["path"]
+    task_id = entry["task_id"]
+    if not path.is_file():
+        report.add("missing", path, f"shard of task {task_id!r} is listed in the manifest but does not exist")
+        return report.errors
+    size = path.stat().st_size
+    if size != entry["bytes"]:
+        report.add("size", path, f"shard of task {task_id!r} has {size} bytes, the manifest lists {entry['bytes']}")
+    if check_sha256:
+        digest = file_sha256(path)
+        if digest != entry["sha256"]:
+            report.add("checksum", path, f"shard of task {task_id!r} has sha256 {digest}, the manifest lists "
+                                         f"{entry['sha256']} (the file is corrupt or was replaced)")
+    try:
+        with h5py.File(path, "r") as handle:
+            for message in check_shard_layout(handle):
+                report.add("layout", path, message)
+            try:
+                attrs = read_shard_attrs(handle)
+            except ValueError as error:
+                report.add("layout", path, str(error))
+                return report.errors
+            expectations = (
+                ("task_id", attrs["task_id"], task_id),
+                ("splits", sorted(attrs["splits"]), sorted(entry["splits"])),
+                ("precision", attrs["precision"], manifest.precision),
+                ("template_sha256", attrs["template_sha256"], manifest.template_sha256),
+                ("filter_stats", dict(sorted(attrs["filter_stats"].items())), dict(entry["filter_stats"])),
+            )
+            for name, found, expected in expectations:
+                if found != expected:
+                    kind = "template" if name == "template_sha256" else ("split" if name == "splits" else "layout")
+                    report.add(kind, path, f"attribute {name} is {found!r}, the manifest says {expected!r}")
+            try:
+                stored_hash = template_sha256(read_template(handle))
+            except (ValueError, OSError, KeyError) as error:
+                report.add("template", path, f"stored template cannot be read or is malformed: {error}")
+            else:
+                if stored_hash != attrs["template_sha256"]:
+                    report.add("template", path, f"stored template hashes to {stored_hash}, its attribute says "
+                                                 f"{attrs['template_sha256']}")
+            if "posed_vertices" in handle:
+                frames = handle["posed_vertices"].shape[0]
+                if frames != entry["frame_count"]:
+                    report.add("frame_count", path, f"shard holds {frames} frames, the manifest lists "
+                                                    f"{entry['frame_count']}")
+    except OSError as error:
+        report.add("corrupt", path, f"shard of task {task_id!r} cannot be read as HDF5: {error}")
+    return report.errors
+
+
+def validate_dataset(root: str | os.PathLike[str], *, check_sha256: bool = True) -> Report:
+    """Check a dataset directory; see the module docstring. Never raises on a bad dataset:
+    every finding is in the returned Report."""
+    root = Path(root)
+    report = Report(root)
+    if not root.is_dir():
+        report.add("missing", root, "dataset directory does not exist")
+        return report
+    manifest_path = root / MANIFEST_NAME
+    if not manifest_path.is_file():
+        report.add("missing", manifest_path, "manifest does not exist")
+        _find_orphans(root, set(), report)
+        return report
+    try:
+        raw = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        report.add("schema", manifest_path, f"manifest is not valid JSON: {error}")
+        return report
+    try:
+        manifest = Manifest.from_dict(raw, root=root, source=str(manifest_path))
+    except ManifestSchemaError as error:
+        for schema_error in error.errors:
+            report.add("schema", f"{manifest_path}:{schema_error.path}", str(schema_error).split(": ", 1)[1])
+        return report
+
+    # Split membership, from the raw JSON (loading the manifest would add missing members).
+    entries = {entry["task_id"]: entry for entry in raw["shards"]}
+    for index, entry in enumerate(raw["shards"]):
+        for split in entry["splits"]:
+            if entry["task_id"] not in raw["splits"].get(split, []):
+                report.add("split", f"{manifest_path}:$.shards[{index}].splits",
+                           f"task {entry['task_id']!r} says it is in split {split!r}, but $.splits.{split} "
+                           f"does not list it")
+    for split, task_ids in raw["splits"].items():
+        for task_id in task_ids:
+            entry = entries.get(task_id)
+            if entry is None:
+                report.add("pending", f"{manifest_path}:$.splits.{split}",
+                           f"task {task_id!r} of split {split!r} has no shard listed (generation unfinished?)")
+            elif split not in entry["splits"]:
+                report.add("split", f"{manifest_path}:$.splits.{split}",
+                           f"task {task_id!r} is listed in split {split!r} but its shard entry has splits "
+                           f"{entry['splits']}")
+
+    totals = manifest.totals
+    for key in ("shards", "bytes", "frames_kept", "frames_dropped"):
+        if raw["totals"][key] != totals[key]:
+            report.add("totals", f"{manifest_path}:$.totals.{key}",
+                       f"is {raw['totals'][key]!r}, the shard entries add up to {totals[key]!r}")
+
+    for entry in manifest.shards:
+        for problem in check_shard_file(root, entry, manifest=manifest, check_sha256=check_sha256):
+            report.errors.append(problem)
+        report.shards_checked += 1
+        report.frames_checked += entry["frame_count"]
+
+    listed = {(root / entry["path"]).resolve() for entry in manifest.shards}
+    _find_orphans(root, listed, report)
+    return report
+
+
+def _find_orphans(root: Path, listed: set[Path], report: Report) -> None:
+    for path in sorted(root.rglob("*")):
+        if not path.is_file():
+            continue
+        if path.name.endswith(TMP_SUFFIX):
+            report.add("orphan_tmp", path, "temporary file of an unfinished write (ignored by readers; safe to "
+                                           "delete when no job is writing)")
+        elif path.suffix == SHARD_SUFFIX and path.resolve() not in listed:
+            report.add("orphan_shard", path, "shard not listed in the manifest (ignored by readers; a resumed "
+                                             "job rewrites it)")
+
+
+# ---------------------------------------------------------------------------------------
+# Summary
+# ---------------------------------------------------------------------------------------
+
+
+def format_table(headers: list[str], rows: list[list[Any]]) -> str:
+    """Plain-text table, first column left-aligned and the others right-aligned."""
+    cells = [[str(h) for h in headers]] + [[str(c) for c in row] for row in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(headers))]
+
+    def line(row: list[str]) -> str:
+        return "  ".join(cell.ljust(widths[i]) if i == 0 else cell.rjust(widths[i]) for i, cell in enumerate(row))
+
+    rule = "  ".join("-" * width for width in widths)
+    return "\n".join([line(cells[0]), rule] + [line(row) for row in cells[1:]])
+
+
+def _size(count: int) -> str:
+    value = float(count)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if value < 1024 or unit == "GiB":
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{value:.1f} TiB"
+
+
+def info(root: str | os.PathLike[str]) -> str:
+    """Summary of a dataset from its manifest: identity and provenance, tasks and frames per
+    split, frames kept and dropped by reason, size, precision, timings. Raises
+    FileNotFoundError / ValueError like ``Manifest.load``."""
+    manifest = Manifest.load(root)
+    totals = manifest.totals
+    provenance = manifest.provenance
+    shards = manifest.shards
+    lines = [
+        f"dataset {manifest.name}  (schema {manifest.to_dict()['schema_version']}, precision "
+        f"{manifest.precision}, {totals['shards']} shards, {_size(totals['bytes'])})",
+        f"spec sha256 {manifest.spec_sha256[:16]}  template sha256 {manifest.template_sha256[:16]}",
+        f"code {provenance['code_version']}  device {provenance['device']}  host {provenance['hostname']}",
+    ]
+    wall_s: float | None = None
+    if provenance.get("end_time"):
+        wall_s = (_parse_time(provenance["end_time"]) - _parse_time(provenance["start_time"])).total_seconds()
+    lines.append(f"time {provenance['start_time']} -> {provenance.get('end_time') or 'running'}"
+                 + (f"  (wall {wall_s:.1f} s)" if wall_s is not None else ""))
+    lines.append("")
+
+    split_rows = []
+    for split, task_ids in manifest.splits.items():
+        done = [entry for entry in shards if split in entry["splits"]]
+        split_rows.append([split, len(task_ids), len(done), sum(entry["frame_count"] for entry in done)])
+    split_rows.append(["all", len({t for ids in manifest.splits.values() for t in ids} | set(manifest.task_ids)),
+                       totals["shards"], totals["frames_kept"]])
+    lines.append(format_table(["split", "tasks", "shards", "frames"], split_rows))
+    lines.append("")
+
+    dropped = totals["frames_dropped"]
+    seen = totals["frames_kept"] + sum(dropped.values())
+
+    def share(count: int) -> str:
+        return f"{100.0 * count / seen:.1f} %" if seen else "-"
+
+    frame_rows = [["kept", totals["frames_kept"], share(totals["frames_kept"])]]
+    frame_rows += [[f"dropped: {reason}", count, share(count)] for reason, count in dropped.items()]
+    frame_rows.append(["total simulated", seen, share(seen)])
+    lines.append(format_table(["frames", "count", "share"], frame_rows))
+    lines.append("")
+
+    timing_totals: dict[str, float] = {}
+    for entry in shards:
+        for key, seconds in entry["timings"].items():
+            timing_totals[key] = timing_totals.get(key, 0.0) + seconds
+    timing_rows = [[key, f"{seconds:.2f}", f"{seconds / max(1, totals['shards']):.3f}"]
+                   for key, seconds in sorted(timing_totals.items())]
+    if timing_rows:
+        lines.append(format_table(["timing", "total s", "per shard s"], timing_rows))
+    if wall_s:
+        lines.append(f"throughput: {totals['frames_kept'] / wall_s:.2f} kept frames/s, "
+                     f"{seen / wall_s:.2f} simulated frames/s over {wall_s:.1f} s wall")
+    if manifest.audit is not None:
+        lines.append(f"audit: {', '.join(sorted(manifest.audit)) or '(empty)'}")
+    return "\n".join(lines).rstrip() + "\n"
