@@ -321,8 +321,12 @@ class Field:
     items: "Field | None" = None
     unique: bool = False
     key_pattern: re.Pattern[str] | None = None
+    text: str | None = None
+    """Overrides the generated description of what is expected."""
 
     def expected(self) -> str:
+        if self.text is not None:
+            return self.text
         base = {
             "str": "a string",
             "null_or_str": "a string or null",
@@ -413,7 +417,9 @@ _SHA = Field("str", "sha256 hex digest", pattern=SHA256_PATTERN)
 _COUNT = Field("int", minimum=0)
 _SECONDS = Field("number", minimum=0)
 _RELATIVE_PATH = Field("str", "POSIX path relative to the dataset directory, no '..'",
-                       pattern=re.compile(r"^(?!/)(?!.*(^|/)\.\.(/|$))[^\\]+$"))
+                       pattern=re.compile(r"^(?!/)(?!.*(^|/)\.\.(/|$))[^\\]+$"),
+                       text="a relative POSIX path inside the dataset directory (no leading '/', no '..', "
+                            "no backslash)")
 
 SHARD_ENTRY_SCHEMA = Field("object", "one finished shard", fields={
     "task_id": (_TASK_ID, True),
