@@ -1,0 +1,59 @@
+"""Glue from a body model to the learners' posing callables (torch, differentiable).
+
+The learners pose garments through injected callables so that they (and their tests)
+never load a body model. This module builds those callables from a
+``simulate.body`` model and the garment template: the unposed body vertex under each
+garment vertex (TailorNet's I T(beta)), skinning of the displaced unposed garment with
+the template's skinning weights (Eq. 4), and the posed body for collision metrics.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def garment_posing_functions(
+    body_model: Any,
+    body_vertex_index: np.ndarray,
+    skinning_weights: np.ndarray,
+) -> tuple[
+    Callable[[torch.Tensor], torch.Tensor],
+    Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+    Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+]:
+    """(unposed_body, garment_poser, posed_body) for one garment template.
+
+    Args:
+        body_model: a ``simulate.body`` model with ``rest_torch(shape)`` and
+            ``pose_torch(shape, pose)`` (returning ``.vertices`` and ``.skinning_transforms``).
+        body_vertex_index: body vertex under each garment vertex, shape (V,).
+        skinning_weights: garment skinning weights, shape (V, J).
+    Returns callables: shape (B, S) -> (B, V, 3); (unposed garment (B, V, 3), pose (B, P),
+    shape (B, S)) -> posed garment (B, V, 3); (pose, shape) -> posed body (B, Vb, 3).
+    """
+    from simulate.body.skinning import lbs
+
+    index = torch.as_tensor(np.asarray(body_vertex_index), dtype=torch.int64)
+    weights = torch.as_tensor(np.asarray(skinning_weights), dtype=torch.float32)
+    if weights.ndim != 2 or weights.shape[0] != index.shape[0]:
+        raise ValueError(
+            f"skinning_weights must have shape ({index.shape[0]}, J) to match body_vertex_index, "
+            f"got {tuple(weights.shape)}"
+        )
+
+    def unposed_body(shape: torch.Tensor) -> torch.Tensor:
+        vertices, _ = body_model.rest_torch(shape)  # (B, Vb, 3)
+        return vertices[:, index.to(vertices.device)]  # (B, V, 3)
+
+    def garment_poser(unposed: torch.Tensor, pose: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        transforms = body_model.pose_torch(shape, pose).skinning_transforms  # (B, J, 4, 4)
+        return lbs(unposed, weights.to(unposed.device), transforms)
+
+    def posed_body(pose: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        return body_model.pose_torch(shape, pose).vertices
+
+    return unposed_body, garment_poser, posed_body
