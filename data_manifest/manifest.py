@@ -28,7 +28,6 @@ from .schema import (
     TMP_SUFFIX,
     ManifestSchemaError,
     SchemaError,
-    canonical_json,
     check_task_id,
     spec_sha256,
     validate_manifest_dict,
@@ -199,6 +198,49 @@ class Manifest:
             raise ValueError(f"precision must be one of {PRECISIONS} (got {precision!r})")
         return cls(name=name, spec=spec, template_sha256=template_sha256, precision=precision,
                    provenance=provenance, splits=splits, root=root)
+
+    @classmethod
+    def load_or_create(
+        cls,
+        root: str | os.PathLike[str],
+        *,
+        name: str,
+        spec: Mapping[str, Any],
+        template_sha256: str,
+        precision: str,
+        provenance: Mapping[str, Any],
+        splits: Mapping[str, Iterable[str]] | None = None,
+    ) -> "Manifest":
+        """Resume-or-start: load ``root``'s manifest when there is one, else ``create``.
+
+        A loaded manifest must describe the same dataset: name, spec (by sha256), template
+        and precision must match, else ValueError naming the field (rerun into a new
+        directory instead). On resume the provenance becomes ``provenance`` except that the
+        original ``start_time`` is kept and this run's start is appended to ``resumed``;
+        ``splits`` are added to the planned ones. Listed shards are kept: check each with
+        ``is_complete`` before skipping its task.
+        """
+        if not (Path(root) / MANIFEST_NAME).is_file():
+            return cls.create(root, name=name, spec=spec, template_sha256=template_sha256, precision=precision,
+                              provenance=provenance, splits=splits)
+        manifest = cls.load(root)
+        wanted = {"name": name, "spec_sha256": spec_sha256(_json_value(dict(spec), where="spec")),
+                  "template_sha256": template_sha256, "precision": precision}
+        for field_name, value in wanted.items():
+            if getattr(manifest, field_name) != value:
+                raise ValueError(
+                    f"dataset {str(root)!r} was made with {field_name} {getattr(manifest, field_name)!r}, this run "
+                    f"has {value!r}; resume only with the same spec, template and precision, or write to a new "
+                    f"directory")
+        previous = manifest.provenance
+        updated = _json_value(dict(provenance), where="provenance")
+        updated["resumed"] = list(previous.get("resumed", [])) + [updated["start_time"]]
+        updated["start_time"] = previous["start_time"]
+        updated["end_time"] = None
+        manifest.provenance = updated
+        for split, task_ids in (splits or {}).items():
+            manifest.plan_split(split, task_ids)
+        return manifest
 
     @classmethod
     def from_dict(cls, data: Any, *, root: str | os.PathLike[str] | None = None,

@@ -441,6 +441,7 @@ PROVENANCE_SCHEMA = Field("object", "where and how the dataset was made", fields
     "seeds": (Field("any", "seeds used (spec seed, per-task seeds, ...)"), True),
     "start_time": (Field("str", "ISO 8601 UTC"), True),
     "end_time": (Field("null_or_str", "ISO 8601 UTC, null while running"), True),
+    "resumed": (Field("array", "start times of the runs that resumed this dataset", items=Field("str")), False),
     "hostname": (Field("str"), True),
     "hostnames": (Field("array", items=Field("str"), unique=True), False),
     "python": (Field("str"), False),

@@ -210,3 +210,28 @@ def test_manifest_save_survives_sigkill(tmp_path):
             child.wait(timeout=30)
     loaded = Manifest.load(tmp_path)  # must parse: the old or the new content, never a partial file
     assert loaded.totals["shards"] == 3
+
+
+def test_load_or_create_resumes_only_the_same_dataset(tmp_path):
+    template_hash = template_sha256(tube_template())
+    kwargs = dict(name="unit", spec=SPEC, template_sha256=template_hash, precision="float32")
+    first = Manifest.load_or_create(
+        tmp_path, **kwargs, splits={"train": ["a", "b"]},
+        provenance=collect_provenance(device="cpu", seeds=[3], start_time="2026-01-01T10:00:00+00:00"))
+    first.add_shard(write_task(tmp_path, "a", "train"))
+    first.save()
+    resumed = Manifest.load_or_create(
+        tmp_path, **kwargs, splits={"train": ["a", "b"]},
+        provenance=collect_provenance(device="cuda:0", seeds=[3], start_time="2026-01-01T12:00:00+00:00"))
+    assert resumed.task_ids == ["a"] and resumed.is_complete("a") and not resumed.is_complete("b")
+    assert resumed.provenance["start_time"] == "2026-01-01T10:00:00+00:00"
+    assert resumed.provenance["resumed"] == ["2026-01-01T12:00:00+00:00"]
+    assert resumed.provenance["device"] == "cuda:0" and resumed.provenance["end_time"] is None
+    resumed.save()
+    assert Manifest.load(tmp_path).provenance["resumed"] == ["2026-01-01T12:00:00+00:00"]
+    with pytest.raises(ValueError, match="was made with spec_sha256"):
+        Manifest.load_or_create(tmp_path, **{**kwargs, "spec": {**SPEC, "seed": 9}},
+                                provenance=collect_provenance(device="cpu", seeds=[9]))
+    with pytest.raises(ValueError, match="was made with precision 'float32', this run has 'float16'"):
+        Manifest.load_or_create(tmp_path, **{**kwargs, "precision": "float16"},
+                                provenance=collect_provenance(device="cpu", seeds=[3]))
