@@ -1,0 +1,127 @@
+"""K prototype high-frequency models D_HF_k(pose), evaluated together.
+
+Each prototype style-shape has its own pose MLP (trained alone, see
+:func:`learn.tailornet.train.train_hf`). For inference the K MLPs are stacked into
+batched weight tensors so all prototypes run in three batched contractions instead of a
+Python loop over K; the mixture sum is folded into the last layer:
+sum_k w_k (h_k W3_k + b3_k) = [w_1 h_1, ..., w_K h_K] @ [W3_1; ...; W3_K] + w @ b3,
+one (B, K H) @ (K H, 3V) matmul.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+from learn.tailornet.lf import DisplacementMLP
+
+
+def high_frequency_model(
+    vertex_count: int,
+    pose_indices: Sequence[int],
+    *,
+    hidden_size: int = 1024,
+    dropout: float = 0.2,
+) -> DisplacementMLP:
+    """One prototype's D_HF(pose) -> high-frequency displacements [m], (B, V, 3)."""
+    return DisplacementMLP(
+        vertex_count, pose_indices=pose_indices, hidden_size=hidden_size, dropout=dropout
+    )
+
+
+class HighFrequencyPrototypes(nn.Module):
+    """K stacked pose MLPs (inference only: dropout is off; train them one by one).
+
+    Args:
+        prototype_count: K.
+        vertex_count: V.
+        pose_indices: pose entries read by every prototype.
+        hidden_size: hidden width H of each MLP.
+    """
+
+    def __init__(
+        self, prototype_count: int, vertex_count: int, pose_indices: Sequence[int], *, hidden_size: int = 1024
+    ) -> None:
+        super().__init__()
+        if prototype_count < 1:
+            raise ValueError(f"prototype_count must be >= 1, got {prototype_count}")
+        pose_index = torch.as_tensor(list(pose_indices), dtype=torch.int64)
+        if pose_index.numel() == 0:
+            raise ValueError("HighFrequencyPrototypes needs pose_indices, got none")
+        k, h, p, out = prototype_count, hidden_size, pose_index.numel(), 3 * vertex_count
+        self.prototype_count = int(k)
+        self.vertex_count = int(vertex_count)
+        self.hidden_size = int(h)
+        self.register_buffer("pose_indices", pose_index)
+        self.weight1 = nn.Parameter(torch.zeros(k, p, h))
+        self.bias1 = nn.Parameter(torch.zeros(k, h))
+        self.weight2 = nn.Parameter(torch.zeros(k, h, h))
+        self.bias2 = nn.Parameter(torch.zeros(k, h))
+        self.weight3 = nn.Parameter(torch.zeros(k * h, out))
+        self.bias3 = nn.Parameter(torch.zeros(k, out))
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return {
+            "prototype_count": self.prototype_count,
+            "vertex_count": self.vertex_count,
+            "pose_indices": self.pose_indices.tolist(),
+            "hidden_size": self.hidden_size,
+        }
+
+    @classmethod
+    def from_mlps(cls, models: Sequence[DisplacementMLP]) -> HighFrequencyPrototypes:
+        """Stack K trained pose-only :class:`DisplacementMLP`s (same inputs and width)."""
+        if not models:
+            raise ValueError("from_mlps needs at least one model, got 0")
+        first = models[0]
+        for i, m in enumerate(models):
+            if (
+                m.shape_components
+                or m.style_components
+                or not torch.equal(m.pose_indices.cpu(), first.pose_indices.cpu())
+                or m.mlp.hidden_size != first.mlp.hidden_size
+                or m.vertex_count != first.vertex_count
+            ):
+                raise ValueError(
+                    f"prototype model {i} differs from model 0 in inputs, width or vertex count"
+                )
+        stacked = cls(
+            len(models), first.vertex_count, first.pose_indices.tolist(), hidden_size=first.mlp.hidden_size
+        )
+        layers = [(m.mlp.layers[0], m.mlp.layers[3], m.mlp.layers[5]) for m in models]
+        with torch.no_grad():
+            stacked.weight1.copy_(torch.stack([l1.weight.T for l1, _, _ in layers]))
+            stacked.bias1.copy_(torch.stack([l1.bias for l1, _, _ in layers]))
+            stacked.weight2.copy_(torch.stack([l2.weight.T for _, l2, _ in layers]))
+            stacked.bias2.copy_(torch.stack([l2.bias for _, l2, _ in layers]))
+            stacked.weight3.copy_(torch.cat([l3.weight.T for _, _, l3 in layers], dim=0))
+            stacked.bias3.copy_(torch.stack([l3.bias for _, _, l3 in layers]))
+        return stacked.to(first.pose_indices.device)
+
+    def _hidden(self, pose: torch.Tensor) -> torch.Tensor:
+        x = pose[:, self.pose_indices]  # (B, P')
+        h1 = torch.relu(torch.einsum("bp,kph->bkh", x, self.weight1) + self.bias1)  # (B, K, H)
+        return torch.relu(torch.einsum("bkh,khj->bkj", h1, self.weight2) + self.bias2)  # (B, K, H)
+
+    def forward(self, pose: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Mixture sum_k w_k D_HF_k(pose): pose (B, P), weights (B, K) -> [m], (B, V, 3)."""
+        if weights.ndim != 2 or weights.shape[1] != self.prototype_count or weights.shape[0] != pose.shape[0]:
+            raise ValueError(
+                f"weights must have shape ({pose.shape[0]}, {self.prototype_count}), got "
+                f"{tuple(weights.shape)}"
+            )
+        h2 = self._hidden(pose)  # (B, K, H)
+        mixed = (h2 * weights[..., None]).reshape(pose.shape[0], -1)  # (B, K H)
+        out = mixed @ self.weight3 + weights @ self.bias3  # (B, 3V)
+        return out.reshape(-1, self.vertex_count, 3)
+
+    def forward_all(self, pose: torch.Tensor) -> torch.Tensor:
+        """Every prototype's prediction: pose (B, P) -> [m], (B, K, V, 3)."""
+        h2 = self._hidden(pose)  # (B, K, H)
+        w3 = self.weight3.reshape(self.prototype_count, self.hidden_size, -1)  # (K, H, 3V)
+        out = torch.einsum("bkh,kho->bko", h2, w3) + self.bias3  # (B, K, 3V)
+        return out.reshape(pose.shape[0], self.prototype_count, self.vertex_count, 3)
