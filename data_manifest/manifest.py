@@ -15,6 +15,7 @@ import importlib.metadata
 import json
 import os
 import platform
+import secrets
 import socket
 import subprocess
 from pathlib import Path, PurePosixPath
@@ -121,7 +122,7 @@ def atomic_write_text(path: str | os.PathLike[str], text: str) -> None:
     """Write ``text`` to ``path`` via a temporary file in the same directory, fsync, rename:
     readers see the old content or the new, never a partial file."""
     path = Path(path)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}{TMP_SUFFIX}")
+    tmp = path.with_name(f"{path.name}.{os.getpid()}-{secrets.token_hex(4)}{TMP_SUFFIX}")
     try:
         with open(tmp, "w", encoding="utf-8") as handle:
             handle.write(text)

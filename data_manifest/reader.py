@@ -271,6 +271,8 @@ class DatasetReader:
         parts: dict[str, list[np.ndarray]] = {}
         keys: set[str] | None = None
         for number in self._split_shards(split):
+            if self._entries[number]["frame_count"] == 0:
+                continue  # a task whose frames were all filtered out: nothing to stack
             arrays = self._read_shard(number)
             metrics = sorted(key for key in arrays if key.startswith(f"{QUALITY_GROUP}/"))
             if keys is not None:

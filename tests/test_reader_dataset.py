@@ -144,3 +144,26 @@ def test_reader_pickles_without_handles_and_works_in_forked_workers(tmp_path):
     posed = torch.cat([batch[0] for batch in loader]).numpy()
     np.testing.assert_array_equal(posed, parent["posed_vertices"], err_msg="forked workers read different data")
     assert len(reader._handles) <= 1, "LRU of open files exceeded max_open_files"
+
+
+def test_task_with_every_frame_dropped(tmp_path):
+    template = tube_template()
+    manifest = Manifest.create(tmp_path, name="zero", spec={}, template_sha256=template_sha256(template),
+                               precision="float16", provenance=collect_provenance(device="cpu", seeds=0))
+    rng = np.random.default_rng(0)
+    for task_id, frames in (("a", 0), ("b", 2), ("c", 0)):
+        task = {"task_id": task_id, "garment": "tube", "splits": ["train"], "seed": 0,
+                "shape": np.zeros(4), "style": np.zeros(2)}
+        with ShardWriter(shard_path(tmp_path, task_id), template=template, task=task, precision="float16") as writer:
+            for _ in range(frames):
+                writer.write_frame(**synthetic_frame(template, rng, translation_m=np.zeros(3)))
+            writer.record_dropped("not_converged", 3)
+        manifest.add_shard(writer.record)
+    manifest.save()
+    reader = DatasetReader(tmp_path, verify=True)
+    assert reader.num_frames("train") == 2
+    np.testing.assert_array_equal(reader.index("train"), [[1, 0], [1, 1]])
+    loaded = reader.load_split("train")
+    assert loaded["posed_vertices"].shape == (2, 50, 3) and loaded["pose"].shape == (2, 6)
+    assert reader.load_task("a")["posed_vertices"].shape == (0, 50, 3)
+    assert manifest.totals["frames_dropped"] == {"not_converged": 9}

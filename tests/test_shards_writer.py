@@ -26,7 +26,10 @@ from data_manifest.shard import (
     remove_orphan_temporaries,
     shard_path,
 )
-from data_manifest.synthetic import synthetic_frame, tube_template
+from data_manifest.manifest import Manifest
+from data_manifest.reader import DatasetReader
+from data_manifest.synthetic import synthetic_frame, tube_template, write_synthetic_dataset
+from data_manifest.validate import validate_dataset
 
 BODY_GARMENT_FLOAT16_TOL_M = 2.0**-12
 """float16 round-trip bound [m] (0.244 mm) for vertices within 1 m of their origin."""
@@ -224,6 +227,7 @@ CHILD = textwrap.dedent("""
 
 
 def test_sigkill_mid_write_leaves_no_trusted_shard(tmp_path):
+    write_synthetic_dataset(tmp_path, splits={"train": 1})  # a finished dataset the child adds a task to
     child = subprocess.Popen([sys.executable, "-c", CHILD, str(tmp_path)], stdout=subprocess.PIPE, text=True,
                              cwd=Path(__file__).resolve().parent.parent)
     try:
@@ -240,6 +244,13 @@ def test_sigkill_mid_write_leaves_no_trusted_shard(tmp_path):
     final = shard_path(tmp_path, "killed")
     assert not final.exists(), "a killed writer left a file at the final shard path"
     leftovers = list(final.parent.iterdir())
+    leftovers = [p for p in leftovers if p.name != "train-000.h5"]
     assert len(leftovers) == 1 and leftovers[0].name.endswith(TMP_SUFFIX), f"leftovers {leftovers}"
+    report = validate_dataset(tmp_path)
+    assert report.ok and [p.kind for p in report.warnings] == ["orphan_tmp"], str(report)
+    assert not Manifest.load(tmp_path).is_complete("killed"), "a killed task must be redone on resume"
+    reader = DatasetReader(tmp_path)
+    assert [e["task_id"] for e in reader.shard_entries] == ["train-000"], "reader trusts the killed shard"
+    assert reader.load_split("train")["posed_vertices"].shape == (4, 50, 3)
     removed = remove_orphan_temporaries(tmp_path)
-    assert removed == leftovers and not any(final.parent.iterdir())
+    assert removed == leftovers and sorted(p.name for p in final.parent.iterdir()) == ["train-000.h5"]
