@@ -1,0 +1,190 @@
+"""Pose sources for datasets: a procedural sampler with per-joint limits (seed 001,
+appendix D.3), pruning of self-intersecting poses, pose files, the greedy
+nearest-pose visiting order and slerp interpolation between poses (seed 000, 5.3).
+
+Poses are (N, 60) float32 arrays: axis-angle [rad] of :data:`POSE_JOINTS`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from simulate.body.base import JOINT_LIMITS, POSE_JOINTS, POSE_SIZE, BodyModel
+from simulate.body.kinematics import axis_angle_to_matrix, matrix_to_axis_angle
+
+#: Joints on the body's centre line: each axis from a mixture of two half-normals.
+CENTRE_JOINTS = ("spine1", "spine2", "spine3", "neck", "head")
+#: Limb joints: x uniform, z uniform in sin-space, y uniform, applied in x, z, y order.
+LIMB_JOINTS = ("left_collar", "right_collar", "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+               "left_wrist", "right_wrist", "left_hip", "right_hip", "left_knee", "right_knee",
+               "left_ankle", "right_ankle")
+#: Joints sampled by default for each garment type (others stay at the canonical pose).
+GARMENT_POSE_JOINTS: dict[str, tuple[str, ...]] = {
+    "upper": ("spine1", "spine2", "spine3", "neck", "left_collar", "right_collar", "left_shoulder", "right_shoulder",
+              "left_elbow", "right_elbow"),
+    "lower": ("spine1", "spine2", "left_hip", "right_hip", "left_knee", "right_knee"),
+    "all": tuple(j for j in POSE_JOINTS if j != "pelvis"),
+}
+
+
+@dataclass
+class PoseSampler:
+    """Samples poses joint by joint inside :data:`JOINT_LIMITS` scaled by ``range_scale``.
+
+    Args:
+        joints: joints to sample (others are copied from ``base_pose``).
+        range_scale: factor in (0, 1] on every limit (smaller = milder poses).
+        base_pose: pose the unsampled joints keep, shape (60,) (default zeros).
+        half_normal_sigma: sigma of the centre-line half-normals as a fraction of the limit.
+    """
+
+    joints: tuple[str, ...] = GARMENT_POSE_JOINTS["upper"]
+    range_scale: float = 1.0
+    base_pose: np.ndarray | None = None
+    half_normal_sigma: float = 0.5
+
+    def __post_init__(self) -> None:
+        unknown = [j for j in self.joints if j not in POSE_JOINTS]
+        if unknown:
+            raise ValueError(f"poses.joints: unknown joint(s) {unknown}; expected names from {', '.join(POSE_JOINTS)}")
+        if not 0.0 < self.range_scale <= 1.0:
+            raise ValueError(f"poses.range_scale must be in (0, 1], got {self.range_scale}")
+
+    def sample(self, count: int, rng: np.random.Generator) -> np.ndarray:
+        """Draws ``count`` poses, shape (count, 60)."""
+        base = np.zeros(POSE_SIZE, np.float32) if self.base_pose is None else np.asarray(self.base_pose, np.float32)
+        poses = np.tile(base.reshape(len(POSE_JOINTS), 3), (count, 1, 1)).astype(np.float64)
+        for joint in self.joints:
+            limits = np.asarray(JOINT_LIMITS[joint], dtype=np.float64) * self.range_scale  # (3, 2)
+            k = POSE_JOINTS.index(joint)
+            if joint in CENTRE_JOINTS or joint == "pelvis":
+                # one half-normal per direction, the direction picked with equal odds
+                side = rng.random((count, 3)) < 0.5
+                mag = np.abs(rng.normal(0.0, 1.0, (count, 3))) * self.half_normal_sigma
+                angles = np.where(side, mag * limits[:, 1], mag * limits[:, 0])  # limits[:, 0] <= 0
+                angles = np.clip(angles, limits[:, 0], limits[:, 1])
+                poses[:, k] = angles
+            else:
+                ax = rng.uniform(limits[0, 0], limits[0, 1], count)
+                lo, hi = np.sin(np.clip(limits[2], -np.pi / 2, np.pi / 2))
+                az = np.arcsin(rng.uniform(lo, hi, count))  # uniform in sin-space: even over the sphere
+                ay = rng.uniform(limits[1, 0], limits[1, 1], count)
+                rx = axis_angle_to_matrix(torch.as_tensor(np.stack([ax, 0 * ax, 0 * ax], 1)))
+                rz = axis_angle_to_matrix(torch.as_tensor(np.stack([0 * az, 0 * az, az], 1)))
+                ry = axis_angle_to_matrix(torch.as_tensor(np.stack([0 * ay, ay, 0 * ay], 1)))
+                poses[:, k] = matrix_to_axis_angle(ry @ rz @ rx).numpy()  # x first, then z, then y
+        return poses.reshape(count, POSE_SIZE).astype(np.float32)
+
+
+def sample_poses(
+    body: BodyModel, shape: np.ndarray, count: int, sampler: PoseSampler, rng: np.random.Generator,
+    *, prune: bool = True, margin: float = 0.01, max_rounds: int = 50,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``count`` valid poses, pruning self-intersecting ones.
+
+    Returns:
+        (poses (count, 60), pruned (M, 60): the rejected poses, recorded for provenance).
+    """
+    from simulate.body.mesh_utils import SelfIntersectionChecker
+
+    checker = SelfIntersectionChecker(body, shape, margin=margin) if prune else None
+    kept, pruned = [], []
+    have = 0
+    for _ in range(max_rounds):
+        if have >= count:
+            break
+        batch = sampler.sample(max(2 * (count - have), 16), rng)
+        if checker is not None:
+            bad, _ = checker.check(batch)
+            pruned.append(batch[bad])
+            batch = batch[~bad]
+        kept.append(batch)
+        have += len(batch)
+    poses = np.concatenate(kept)[:count] if kept else np.zeros((0, POSE_SIZE), np.float32)
+    if len(poses) < count:
+        raise ValueError(f"poses: only {len(poses)} of {count} sampled poses survived self-intersection pruning; "
+                         "lower poses.range_scale or the count")
+    return poses, (np.concatenate(pruned) if pruned else np.zeros((0, POSE_SIZE), np.float32))
+
+
+def load_pose_file(path: str | Path, *, key: str = "poses") -> np.ndarray:
+    """Reads poses from an .npz: ``poses`` of shape (N, 60) or (N, 20, 3), axis-angle [rad]."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"poses.path: pose file not found: {path}")
+    try:
+        with np.load(path) as data:
+            if key not in data.files:
+                raise ValueError(f"poses.path: {path} has no array {key!r} (found {data.files}); expected (N, {POSE_SIZE}) axis-angle poses")
+            poses = np.asarray(data[key], dtype=np.float32)
+    except (OSError, EOFError) as exc:
+        raise ValueError(f"poses.path: {path} is not a readable .npz file ({exc})") from exc
+    if poses.ndim == 3 and poses.shape[1:] == (len(POSE_JOINTS), 3):
+        poses = poses.reshape(len(poses), POSE_SIZE)
+    if poses.ndim != 2 or poses.shape[1] != POSE_SIZE or len(poses) == 0:
+        raise ValueError(f"poses.path: {path}:{key} must have shape (N, {POSE_SIZE}) or (N, 20, 3), got {poses.shape}")
+    if not np.isfinite(poses).all():
+        raise ValueError(f"poses.path: {path}:{key} contains non-finite values")
+    return poses
+
+
+def joint_angle_change(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-joint rotation angle [rad] between poses a and b, shapes (..., 60) -> (..., 20)."""
+    ra = axis_angle_to_matrix(torch.as_tensor(np.asarray(a, np.float64).reshape(*np.shape(a)[:-1], len(POSE_JOINTS), 3)))
+    rb = axis_angle_to_matrix(torch.as_tensor(np.asarray(b, np.float64).reshape(*np.shape(b)[:-1], len(POSE_JOINTS), 3)))
+    rel = ra.transpose(-1, -2) @ rb
+    trace = rel[..., 0, 0] + rel[..., 1, 1] + rel[..., 2, 2]
+    return torch.acos(((trace - 1) / 2).clamp(-1, 1)).numpy()
+
+
+def greedy_order(poses: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Visiting order: from ``start``, repeatedly the nearest unvisited pose (largest
+    per-joint angle change as the distance, as the interpolation criterion uses)."""
+    remaining = list(range(len(poses)))
+    order = []
+    current = np.asarray(start, np.float32)
+    while remaining:
+        d = joint_angle_change(np.broadcast_to(current, (len(remaining), POSE_SIZE)), poses[remaining]).max(axis=1)
+        nxt = remaining.pop(int(np.argmin(d)))
+        order.append(nxt)
+        current = poses[nxt]
+    return np.asarray(order, dtype=np.int64)
+
+
+def slerp_poses(a: np.ndarray, b: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """Per-joint spherical interpolation from pose a to b, shapes (60,), (60,), (T,) -> (T, 60)."""
+    ra = axis_angle_to_matrix(torch.as_tensor(np.asarray(a, np.float64).reshape(len(POSE_JOINTS), 3)))
+    rb = axis_angle_to_matrix(torch.as_tensor(np.asarray(b, np.float64).reshape(len(POSE_JOINTS), 3)))
+    rel = matrix_to_axis_angle(ra.transpose(-1, -2) @ rb)  # (20, 3): rotation taking a to b, per joint
+    f = torch.as_tensor(np.asarray(fractions, np.float64))[:, None, None]
+    steps = ra[None] @ axis_angle_to_matrix(rel[None] * f)  # (T, 20, 3, 3)
+    return matrix_to_axis_angle(steps).reshape(len(fractions), POSE_SIZE).numpy().astype(np.float32)
+
+
+def interpolate_sequence(keys: np.ndarray, start: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inserts slerp'ed poses wherever consecutive poses differ by more than ``threshold`` [rad] at any joint.
+
+    Args:
+        keys: target poses in visiting order, shape (N, 60).
+        start: the pose before the first key, shape (60,).
+        threshold: largest allowed per-joint angle change between consecutive poses [rad].
+    Returns:
+        (poses (M, 60), key_index (M,): index into ``keys`` for target poses, -1 for inserted ones).
+    """
+    if threshold <= 0:
+        raise ValueError(f"simulation.interpolation_threshold must be > 0 rad, got {threshold}")
+    out, index = [], []
+    prev = np.asarray(start, np.float32)
+    for i, key in enumerate(keys):
+        change = float(joint_angle_change(prev, key).max())
+        n = int(np.ceil(change / threshold))
+        if n > 1:
+            out.append(slerp_poses(prev, key, np.arange(1, n) / n))
+            index.extend([-1] * (n - 1))
+        out.append(np.asarray(key, np.float32)[None])
+        index.append(i)
+        prev = key
+    return np.concatenate(out), np.asarray(index, dtype=np.int64)
