@@ -212,7 +212,7 @@ class ShardWriter:
         task: Mapping[str, Any],
         precision: str = "float32",
         compression: str = "gzip",
-        compression_level: int = 4,
+        compression_level: int = 1,
     ):
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be one of {PRECISIONS} (got {precision!r})")
@@ -383,9 +383,7 @@ class ShardWriter:
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"{name} of {where} contains NaN or inf; filter such frames before writing")
         pose_array = _vector(pose, where=f"pose of {where}")
-        if self._pose_size is None:
-            self._pose_size = pose_array.shape[0]
-        elif pose_array.shape[0] != self._pose_size:
+        if self._pose_size is not None and pose_array.shape[0] != self._pose_size:
             raise ValueError(f"pose of {where} must have length {self._pose_size} like earlier frames "
                              f"(got {pose_array.shape[0]})")
         if not isinstance(quality, Mapping):
@@ -393,7 +391,6 @@ class ShardWriter:
         if row == 0:
             for name in quality:
                 _check_name(name, where=f"quality metric name of {where}")
-            self._quality = {name: [] for name in sorted(quality)}
         elif set(quality) != set(self._quality):
             raise ValueError(f"quality of {where} must have the metrics {sorted(self._quality)} like earlier "
                              f"frames (got {sorted(quality)})")
@@ -420,30 +417,31 @@ class ShardWriter:
             translation = _vector(body_translation, where=f"body_translation of {where}")
             if translation.shape != (3,):
                 raise ValueError(f"body_translation of {where} must have shape (3,) (got {translation.shape})")
+        extra_shapes = dict(self._extra_shapes)
         if row == 0:
             for name, value in extra.items():
                 _check_name(name, where=f"extra field name of {where}")
                 if np.size(value) == 0:
                     raise ValueError(f"extra field {name!r} of {where} must not be empty (got shape {np.shape(value)})")
-                self._extra_shapes[name] = np.shape(value)
-        elif set(extra) != set(self._extra_shapes):
+                extra_shapes[name] = np.shape(value)
+        elif set(extra) != set(extra_shapes):
             raise ValueError(f"extra fields of {where} must be {sorted(self._extra_shapes)} like earlier frames "
                              f"(got {sorted(extra)})")
         extra_arrays: dict[str, np.ndarray] = {}
         for name, value in extra.items():
             array = np.asarray(value, dtype=np.float32)
-            if array.shape != self._extra_shapes[name]:
-                raise ValueError(f"extra field {name!r} of {where} must have shape {self._extra_shapes[name]} "
+            if array.shape != extra_shapes[name]:
+                raise ValueError(f"extra field {name!r} of {where} must have shape {extra_shapes[name]} "
                                  f"(got {array.shape})")
             extra_arrays[name] = array
 
         if self.precision == "float16":
+            # The body root when known, else the garment's bounding-box centre: either keeps
+            # every relative coordinate within the garment's extent of zero.
             if translation is not None:
                 origin = translation
-                self._set_origin_rule(handle, "body_translation")
             else:
                 origin = 0.5 * (posed.min(axis=0) + posed.max(axis=0))
-                self._set_origin_rule(handle, "bbox_center")
             origin32 = origin.astype(np.float32)
             relative = posed - origin32.astype(np.float64)
             for name, array in (("posed_vertices relative to the origin", relative),
@@ -455,12 +453,18 @@ class ShardWriter:
                         f"{FLOAT16_MAX_ABS_M} m to keep sub-millimetre precision (use precision='float32')")
             posed_stored = relative.astype(np.float16)
             unposed_stored = unposed.astype(np.float16)
-            self._origin.append(origin32)
         else:
+            origin32 = None
             posed_stored = posed.astype(np.float32)
             unposed_stored = unposed.astype(np.float32)
 
-        # All checks passed: nothing below can fail on bad input.
+        # All checks passed: only now does the writer's state change.
+        if row == 0:
+            self._pose_size = pose_array.shape[0]
+            self._quality = {name: [] for name in sorted(quality_values)}
+            self._extra_shapes = extra_shapes
+            if self.precision == "float16":
+                handle.attrs["position_origin_rule"] = "body_translation" if translation is not None else "bbox_center"
         if row == 0 and extra_arrays:
             group = handle.create_group(EXTRA_GROUP)
             for name, array in sorted(extra_arrays.items()):
@@ -478,13 +482,10 @@ class ShardWriter:
             self._quality[name].append(value)
         if translation is not None:
             self._body_translation.append(translation.astype(np.float32))
+        if origin32 is not None:
+            self._origin.append(origin32)
         self.frame_count = row + 1
         return row
-
-    def _set_origin_rule(self, handle: h5py.File, rule: str) -> None:
-        current = handle.attrs["position_origin_rule"]
-        if current == "none":
-            handle.attrs["position_origin_rule"] = rule
 
     # -- finish ---------------------------------------------------------------------------
 

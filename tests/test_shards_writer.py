@@ -254,3 +254,19 @@ def test_sigkill_mid_write_leaves_no_trusted_shard(tmp_path):
     assert reader.load_split("train")["posed_vertices"].shape == (4, 50, 3)
     removed = remove_orphan_temporaries(tmp_path)
     assert removed == leftovers and sorted(p.name for p in final.parent.iterdir()) == ["train-000.h5"]
+
+
+def test_rejected_first_frame_does_not_fix_the_layout(tmp_path):
+    """A frame refused with ValueError leaves the writer as it was: the next frame may use
+    another pose length and other metrics."""
+    template = tube_template()
+    frame = frames_for(1)[0]
+    with ShardWriter(tmp_path / "s.h5", template=template, task=make_task(), precision="float16") as writer:
+        with pytest.raises(ValueError, match="float16 shards need"):
+            writer.write_frame(frame["posed_vertices"] * 10, frame["unposed_displacements"], np.zeros(9),
+                               {"bad": 1.0}, frame_index=0)
+        writer.write_frame(**frame, frame_index=0)
+    with h5py.File(tmp_path / "s.h5", "r") as handle:
+        assert check_shard_layout(handle) == []
+        assert handle["pose"].shape == (1, 6) and sorted(handle["quality"]) == sorted(frame["quality"])
+        assert handle.attrs["position_origin_rule"] == "body_translation"
