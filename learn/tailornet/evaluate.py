@@ -1,0 +1,187 @@
+"""Evaluation of a trained learner on one split: errors, collisions, inference time.
+
+Metrics follow the paper and REFERENCE.md: mean per-vertex Euclidean error [mm] on the
+unposed displacements (what TailorNet reports) and on the posed garment; collision
+rate (fraction of garment vertices more than 1 mm inside the body along the nearest
+body face normal) of the posed prediction, without and with the Laplacian-preserving
+post-process; inference time per frame at batch 1 and batched.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from learn.common.collision import COLLISION_THRESHOLD_M, collision_mask
+from learn.common.losses import per_vertex_error_mm
+from learn.common.postprocess import remove_body_penetration_batch
+from learn.tailornet.model import GarmentPoser, UnposedBody, pose_displacements
+from learn.tailornet.train import FrameArrays
+
+# (pose (B, P), shape (B, S)) -> posed body vertices [m], (B, Vb, 3).
+PosedBodyFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass
+class PosingContext:
+    """What posed metrics need, all as injected callables (no body model import here).
+
+    unposed_body: shape -> unposed body vertex under each garment vertex, (B, V, 3).
+    garment_poser: (unposed garment vertices, pose, shape) -> posed garment, (B, V, 3).
+    posed_body: (pose, shape) -> posed body vertices, (B, Vb, 3).
+    body_faces: body triangles, shape (Fb, 3).
+    garment_faces: garment triangles, shape (F, 3).
+    """
+
+    unposed_body: UnposedBody
+    garment_poser: GarmentPoser
+    posed_body: PosedBodyFn
+    body_faces: np.ndarray
+    garment_faces: np.ndarray
+
+
+@torch.no_grad()
+def predict_displacements(
+    model: torch.nn.Module,
+    pose: np.ndarray,
+    shape: np.ndarray,
+    style: np.ndarray,
+    *,
+    batch_size: int = 256,
+    device: str = "cpu",
+) -> np.ndarray:
+    """Unposed displacements [m], shape (N, V, 3), for N frames (model in eval mode)."""
+    model = model.to(device).eval()
+    out = []
+    for start in range(0, pose.shape[0], batch_size):
+        stop = start + batch_size
+        out.append(
+            model(
+                torch.as_tensor(pose[start:stop], dtype=torch.float32, device=device),
+                torch.as_tensor(shape[start:stop], dtype=torch.float32, device=device),
+                torch.as_tensor(style[start:stop], dtype=torch.float32, device=device),
+            ).cpu().numpy()
+        )
+    return np.concatenate(out, axis=0)
+
+
+def evaluate_split(
+    model: torch.nn.Module,
+    data: FrameArrays,
+    *,
+    posing: PosingContext | None = None,
+    postprocess: bool = True,
+    batch_size: int = 256,
+    device: str = "cpu",
+    collision_device: str | None = None,
+    threshold: float = COLLISION_THRESHOLD_M,
+) -> dict[str, Any]:
+    """Metrics of ``model`` on the frames of one split.
+
+    Returns a dict with ``frames``, ``unposed_error_mm`` (mean over frames of the mean
+    per-vertex error), and with ``posing`` given: ``posed_error_mm`` (when
+    ``data.posed_vertices`` is set), ``collision_rate`` of predictions and of the ground
+    truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
+    ``postprocessed_posed_error_mm``.
+    """
+    if data.frame_count == 0:
+        raise ValueError("evaluate_split: the split has no frames")
+    predicted = predict_displacements(
+        model, data.pose, data.shape, data.style, batch_size=batch_size, device=device
+    )
+    if predicted.shape != data.displacements.shape:
+        raise ValueError(
+            f"model predicts {predicted.shape[1]} vertices but the data has {data.vertex_count}"
+        )
+    errors = per_vertex_error_mm(torch.from_numpy(predicted), torch.from_numpy(data.displacements))
+    result: dict[str, Any] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
+    if posing is None:
+        return result
+    posed_errors, posed_pp_errors = [], []
+    colliding = colliding_pp = colliding_truth = 0
+    vertex_total = 0
+    with torch.no_grad():
+        for start in range(0, data.frame_count, batch_size):
+            stop = start + batch_size
+            pose = torch.as_tensor(data.pose[start:stop], dtype=torch.float32, device=device)
+            shape = torch.as_tensor(data.shape[start:stop], dtype=torch.float32, device=device)
+            displacements = torch.as_tensor(predicted[start:stop], device=device)
+            posed = pose_displacements(
+                displacements, pose, shape, garment_poser=posing.garment_poser, unposed_body=posing.unposed_body
+            ).cpu().numpy()
+            body = posing.posed_body(pose, shape).cpu().numpy()
+            colliding += int(collision_mask(posed, body, posing.body_faces, threshold=threshold, device=collision_device).sum())
+            vertex_total += posed.shape[0] * posed.shape[1]
+            if data.posed_vertices is not None:
+                truth = data.posed_vertices[start:stop]
+                posed_errors.append(per_vertex_error_mm(torch.from_numpy(posed), torch.from_numpy(truth)).numpy())
+                colliding_truth += int(
+                    collision_mask(truth, body, posing.body_faces, threshold=threshold, device=collision_device).sum()
+                )
+            if postprocess:
+                fixed, _, after = remove_body_penetration_batch(
+                    posed, posing.garment_faces, body, posing.body_faces, device=collision_device, threshold=threshold
+                )
+                colliding_pp += int(after.sum())
+                if data.posed_vertices is not None:
+                    posed_pp_errors.append(
+                        per_vertex_error_mm(torch.from_numpy(fixed), torch.from_numpy(data.posed_vertices[start:stop])).numpy()
+                    )
+    result["collision_rate"] = colliding / vertex_total
+    if data.posed_vertices is not None:
+        result["posed_error_mm"] = float(np.concatenate(posed_errors).mean())
+        result["ground_truth_collision_rate"] = colliding_truth / vertex_total
+    if postprocess:
+        result["collision_rate_postprocessed"] = colliding_pp / vertex_total
+        if posed_pp_errors:
+            result["postprocessed_posed_error_mm"] = float(np.concatenate(posed_pp_errors).mean())
+    return result
+
+
+def _synchronize(device: str) -> None:
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize(device)
+
+
+@torch.no_grad()
+def time_inference(
+    model: torch.nn.Module,
+    pose: np.ndarray,
+    shape: np.ndarray,
+    style: np.ndarray,
+    *,
+    batch_sizes: tuple[int, ...] = (1, 32),
+    device: str = "cpu",
+    repeats: int = 20,
+    warmup: int = 3,
+) -> dict[str, float]:
+    """Inference time [ms per frame] of the unposed prediction at each batch size.
+
+    Frames are cycled from the given arrays (N >= 1); the median over ``repeats`` timed
+    calls is reported as ``ms_per_frame_batch_<b>``.
+    """
+    if pose.shape[0] == 0:
+        raise ValueError("time_inference needs at least one frame")
+    model = model.to(device).eval()
+    result: dict[str, float] = {}
+    for batch in batch_sizes:
+        if batch < 1:
+            raise ValueError(f"batch sizes must be >= 1, got {batch}")
+        index = np.arange(batch) % pose.shape[0]
+        inputs = [torch.as_tensor(a[index], dtype=torch.float32, device=device) for a in (pose, shape, style)]
+        for _ in range(warmup):
+            model(*inputs)
+        _synchronize(device)
+        times = []
+        for _ in range(repeats):
+            started = time.perf_counter()
+            model(*inputs)
+            _synchronize(device)
+            times.append(time.perf_counter() - started)
+        result[f"ms_per_frame_batch_{batch}"] = float(np.median(times) * 1000.0 / batch)
+    return result

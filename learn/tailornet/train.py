@@ -1,0 +1,690 @@
+"""Training of TailorNet's networks and of the baseline, as library functions.
+
+Each stage (``shape_style``, ``lf``, ``hf_00`` ... ``hf_{K-1}``, ``baseline``) is trained
+with Adam on an L1 displacement loss, with the authors' hyper-parameters as defaults
+(:data:`DEFAULT_HYPERPARAMETERS`, overridable per stage by a dict). A stage saves a
+checkpoint after every epoch (model, optimizer, epoch, RNG states, dataset fingerprint)
+to ``<run_dir>/<stage>.pt``; calling it again resumes where it stopped and, with the same
+seed, reproduces the uninterrupted run exactly. Losses go to ``<run_dir>/<stage>_loss.csv``
+and a tqdm bar shows progress.
+
+Checkpoints record the dataset manifest's and the garment template's sha256; resuming or
+loading against a different dataset raises :class:`DatasetMismatchError`.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import hashlib
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from learn.common.losses import l1_displacement_loss
+from learn.common.smoothing import LaplacianSmoother, split_frequencies
+from learn.tailornet.baseline import baseline_model
+from learn.tailornet.hf import HighFrequencyPrototypes, high_frequency_model
+from learn.tailornet.lf import DisplacementMLP, low_frequency_model
+from learn.tailornet.mixture import DEFAULT_SIGMA
+from learn.tailornet.model import TailorNet
+from learn.tailornet.pose_mask import garment_pose_joints, pose_feature_indices
+from learn.tailornet.prototypes import canonical_frame_per_pair, choose_prototypes
+from learn.tailornet.shape_style import ShapeStyleModel
+
+CHECKPOINT_FORMAT = 1
+
+# The authors' settings (REFERENCE.md): Adam, batch 32, L1 loss.
+DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    "lf": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2},
+    "hf": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 800, "hidden_size": 1024, "dropout": 0.2},
+    "shape_style": {"lr": 1e-3, "weight_decay": 1e-5, "batch_size": 32, "epochs": 400, "hidden_size": 128, "dropout": 0.2},
+    "baseline": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2},
+    "model": {
+        "prototype_count": 20,
+        "sigma": DEFAULT_SIGMA,
+        "shape_components": 2,
+        "style_components": 2,
+        "min_joint_weight_sum": 1.0,
+        "smoothing_iterations": 80,
+        "smoothing_lambda": 0.15,
+    },
+}
+
+
+class DatasetMismatchError(ValueError):
+    """A checkpoint was trained on another dataset manifest or garment template."""
+
+
+@dataclass(frozen=True)
+class DatasetFingerprint:
+    """sha256 of the dataset manifest file and of the garment template arrays."""
+
+    dataset_manifest_sha256: str
+    template_sha256: str
+
+    def as_dict(self) -> dict[str, str]:
+        return {
+            "dataset_manifest_sha256": self.dataset_manifest_sha256,
+            "template_sha256": self.template_sha256,
+        }
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """sha256 hex digest of a file's bytes (e.g. the dataset manifest)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"cannot hash {path}: no such file")
+    digest = hashlib.sha256()
+    with path.open("rb") as handle:
+        for chunk in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+TEMPLATE_FIELDS = ("faces", "rest_vertices", "skinning_weights", "body_vertex_index")
+
+
+def template_sha256(template: Any) -> str:
+    """sha256 over the template's faces, rest vertices, skinning weights and body index.
+
+    ``template`` is a mapping or an object with those attributes (missing ones are
+    skipped, so a template without skinning still hashes its topology and rest shape).
+    """
+    digest = hashlib.sha256()
+    found = 0
+    for name in TEMPLATE_FIELDS:
+        value = template.get(name) if isinstance(template, Mapping) else getattr(template, name, None)
+        if value is None:
+            continue
+        array = np.ascontiguousarray(np.asarray(value))
+        digest.update(name.encode())
+        digest.update(str(array.dtype).encode() + str(array.shape).encode())
+        digest.update(array.tobytes())
+        found += 1
+    if found == 0 or (
+        (template.get("faces") if isinstance(template, Mapping) else getattr(template, "faces", None)) is None
+    ):
+        raise ValueError(f"template must provide at least 'faces' among {TEMPLATE_FIELDS}")
+    return digest.hexdigest()
+
+
+def check_fingerprint(
+    saved: Mapping[str, str] | None,
+    expected: DatasetFingerprint | None,
+    *,
+    source: str,
+    require_same_manifest: bool = True,
+) -> None:
+    """Raise :class:`DatasetMismatchError` when a checkpoint's fingerprint differs."""
+    if expected is None:
+        return
+    if saved is None:
+        raise DatasetMismatchError(f"{source} records no dataset fingerprint; cannot check it")
+    if saved.get("template_sha256") != expected.template_sha256:
+        raise DatasetMismatchError(
+            f"{source} was trained on garment template sha256 {saved.get('template_sha256')}, "
+            f"but this dataset's template has sha256 {expected.template_sha256}: use a run "
+            "trained on this dataset (different garment topology or skinning)"
+        )
+    if require_same_manifest and saved.get("dataset_manifest_sha256") != expected.dataset_manifest_sha256:
+        raise DatasetMismatchError(
+            f"{source} was trained on dataset manifest sha256 {saved.get('dataset_manifest_sha256')}, "
+            f"but this dataset's manifest has sha256 {expected.dataset_manifest_sha256}: "
+            "train into a new run directory, or point --data at the original dataset"
+        )
+
+
+@dataclass
+class FrameArrays:
+    """Frames of one split, as arrays.
+
+    pose: axis-angle pose, shape (N, P); shape: (N, S); style: (N, G);
+    displacements: unposed displacements [m], shape (N, V, 3);
+    pair_id: style-shape pair of each frame, 0..X-1, shape (N,);
+    low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
+    posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
+    """
+
+    pose: np.ndarray
+    shape: np.ndarray
+    style: np.ndarray
+    displacements: np.ndarray
+    pair_id: np.ndarray
+    low_frequency: np.ndarray | None = None
+    posed_vertices: np.ndarray | None = None
+    extras: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = self.pose.shape[0]
+        for name in ("shape", "style", "displacements", "pair_id"):
+            if getattr(self, name).shape[0] != n:
+                raise ValueError(
+                    f"FrameArrays.{name} has {getattr(self, name).shape[0]} frames, pose has {n}"
+                )
+        if self.displacements.ndim != 3 or self.displacements.shape[-1] != 3:
+            raise ValueError(
+                f"FrameArrays.displacements must have shape (N, V, 3), got {self.displacements.shape}"
+            )
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.pose.shape[0])
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.displacements.shape[1])
+
+    def subset(self, frames: np.ndarray) -> FrameArrays:
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[frames]
+
+        return FrameArrays(
+            pose=self.pose[frames],
+            shape=self.shape[frames],
+            style=self.style[frames],
+            displacements=self.displacements[frames],
+            pair_id=self.pair_id[frames],
+            low_frequency=pick(self.low_frequency),
+            posed_vertices=pick(self.posed_vertices),
+        )
+
+
+def frame_arrays_from_split(arrays: Mapping[str, np.ndarray]) -> FrameArrays:
+    """Build :class:`FrameArrays` from ``DatasetReader.load_split`` output.
+
+    Frames are grouped into style-shape pairs by their (shape, style) values, so pairs
+    are found even when one pair spans several tasks or shards.
+    """
+    for name in ("pose", "shape", "style", "unposed_displacements"):
+        if name not in arrays:
+            raise ValueError(f"split arrays lack '{name}'; got keys {sorted(arrays)}")
+    shape = np.asarray(arrays["shape"], dtype=np.float32)
+    style = np.asarray(arrays["style"], dtype=np.float32)
+    _, pair_id = np.unique(np.concatenate([shape, style], axis=1), axis=0, return_inverse=True)
+    return FrameArrays(
+        pose=np.asarray(arrays["pose"], dtype=np.float32),
+        shape=shape,
+        style=style,
+        displacements=np.asarray(arrays["unposed_displacements"], dtype=np.float32),
+        pair_id=pair_id.reshape(-1).astype(np.int64),
+        posed_vertices=(
+            None if arrays.get("posed_vertices") is None else np.asarray(arrays["posed_vertices"], dtype=np.float32)
+        ),
+    )
+
+
+def add_low_frequency(
+    data: FrameArrays,
+    faces: np.ndarray,
+    *,
+    smoothness: float = 0.15,
+    iterations: int = 80,
+    chunk: int = 256,
+    device: str = "cpu",
+) -> FrameArrays:
+    """Fill ``data.low_frequency`` by boundary-aware smoothing of the displacements."""
+    smoother = LaplacianSmoother(faces, data.vertex_count, smoothness=smoothness, iterations=iterations)
+    out = np.empty_like(data.displacements)
+    for start in range(0, data.frame_count, chunk):
+        block = torch.from_numpy(data.displacements[start : start + chunk]).to(device)
+        low, _ = split_frequencies(block, smoother)
+        out[start : start + chunk] = low.cpu().numpy()
+    data.low_frequency = out
+    return data
+
+
+def merged_hyperparameters(overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
+    """Defaults updated stage by stage from ``overrides`` (unknown keys raise)."""
+    merged = copy.deepcopy(DEFAULT_HYPERPARAMETERS)
+    for stage, values in (overrides or {}).items():
+        if stage not in merged:
+            raise ValueError(f"unknown training stage '{stage}' in overrides; expected one of {sorted(merged)}")
+        for key, value in values.items():
+            if key not in merged[stage]:
+                raise ValueError(
+                    f"unknown hyper-parameter '{stage}.{key}'; expected one of {sorted(merged[stage])}"
+                )
+            merged[stage][key] = value
+    return merged
+
+
+def _rng_state(generator: torch.Generator) -> dict[str, Any]:
+    state = {"torch": torch.get_rng_state(), "shuffle": generator.get_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def _set_rng_state(state: Mapping[str, Any], generator: torch.Generator) -> None:
+    torch.set_rng_state(state["torch"])
+    generator.set_state(state["shuffle"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | os.PathLike[str], *, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Read a checkpoint written by this module."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    return torch.load(path, map_location=map_location, weights_only=False)
+
+
+def train_stage(
+    stage: str,
+    model: DisplacementMLP,
+    data: FrameArrays,
+    target: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Any],
+    fingerprint: DatasetFingerprint | None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> DisplacementMLP:
+    """Train ``model`` to map (data.pose, data.shape, data.style) to ``target`` (N, V, 3).
+
+    Resumes from ``<run_dir>/<stage>.pt`` when present (after checking the fingerprint and
+    the model configuration). Returns the trained model in eval mode.
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    checkpoint_path = run_dir / f"{stage}.pt"
+    log_path = run_dir / f"{stage}_loss.csv"
+    epochs = int(hyperparameters["epochs"])
+    batch_size = int(hyperparameters["batch_size"])
+    if epochs < 0 or batch_size < 1:
+        raise ValueError(f"{stage}: epochs must be >= 0 and batch_size >= 1, got {epochs}, {batch_size}")
+    if target.shape != (data.frame_count, model.vertex_count, 3):
+        raise ValueError(
+            f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
+        )
+    if data.frame_count == 0:
+        raise ValueError(f"{stage}: no training frames")
+
+    torch.manual_seed(seed)
+    generator = torch.Generator().manual_seed(seed)
+    model = model.to(device)
+    optimizer = torch.optim.Adam(
+        model.parameters(), lr=float(hyperparameters["lr"]), weight_decay=float(hyperparameters["weight_decay"])
+    )
+    start_epoch = 0
+    if checkpoint_path.exists():
+        checkpoint = load_checkpoint(checkpoint_path, map_location=device)
+        check_fingerprint(checkpoint.get("fingerprint"), fingerprint, source=str(checkpoint_path))
+        if checkpoint["model_config"] != model.config:
+            raise ValueError(
+                f"{checkpoint_path} holds a model configured as {checkpoint['model_config']}, "
+                f"not {model.config}: use a new run directory for a new configuration"
+            )
+        model.load_state_dict(checkpoint["model_state"])
+        optimizer.load_state_dict(checkpoint["optimizer_state"])
+        _set_rng_state(checkpoint["rng_state"], generator)
+        start_epoch = int(checkpoint["epoch"])
+    if start_epoch > epochs:
+        raise ValueError(f"{checkpoint_path} already holds {start_epoch} epochs, more than epochs={epochs}")
+
+    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
+    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
+    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
+    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
+
+    # Keep the log consistent with the checkpoint: drop rows of epochs never checkpointed.
+    rows: list[list[str]] = []
+    if log_path.exists() and start_epoch > 0:
+        with log_path.open() as handle:
+            rows = [r for r in csv.reader(handle)][1:]
+        rows = [r for r in rows if r and int(r[0]) <= start_epoch]
+    with log_path.open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["epoch", "train_l1_m", "seconds"])
+        writer.writerows(rows)
+
+    bar = tqdm(
+        range(start_epoch, epochs), desc=stage, initial=start_epoch, total=epochs, disable=not progress, leave=False
+    )
+    for epoch in bar:
+        model.train()
+        started = time.perf_counter()
+        order = torch.randperm(data.frame_count, generator=generator).to(device)
+        total, count = 0.0, 0
+        for begin in range(0, data.frame_count, batch_size):
+            batch = order[begin : begin + batch_size]
+            prediction = model(pose[batch], shape[batch], style[batch])
+            loss = l1_displacement_loss(prediction, target_t[batch])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += float(loss.detach()) * batch.numel()
+            count += batch.numel()
+        mean_loss = total / count
+        _atomic_save(
+            {
+                "format": CHECKPOINT_FORMAT,
+                "stage": stage,
+                "epoch": epoch + 1,
+                "epochs": epochs,
+                "model_config": model.config,
+                "model_state": model.state_dict(),
+                "optimizer_state": optimizer.state_dict(),
+                "rng_state": _rng_state(generator),
+                "hyperparameters": dict(hyperparameters),
+                "seed": seed,
+                "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
+                "train_l1_m": mean_loss,
+            },
+            checkpoint_path,
+        )
+        with log_path.open("a", newline="") as handle:
+            csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
+        bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}")
+    bar.close()
+    return model.eval()
+
+
+def _stage_hyper(hyper: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: hyper[k] for k in ("lr", "weight_decay", "batch_size", "epochs")}
+
+
+def _components(data: FrameArrays, model_hyper: Mapping[str, Any]) -> tuple[int, int]:
+    shape_components = min(int(model_hyper["shape_components"]), data.shape.shape[1])
+    style_components = min(int(model_hyper["style_components"]), data.style.shape[1])
+    if shape_components + style_components == 0:
+        raise ValueError("shape_components and style_components are both 0 (or the data has none)")
+    return shape_components, style_components
+
+
+def train_shape_style(
+    data: FrameArrays,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    canonical_pose: np.ndarray | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> ShapeStyleModel:
+    """Train g(shape, style) on each pair's frame closest to ``canonical_pose`` (default 0)."""
+    hyper = merged_hyperparameters(hyperparameters)
+    shape_components, style_components = _components(data, hyper["model"])
+    canonical = data.subset(canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose))
+    torch.manual_seed(seed)  # deterministic initial weights
+    model = ShapeStyleModel(
+        data.vertex_count,
+        shape_components=shape_components,
+        style_components=style_components,
+        hidden_size=int(hyper["shape_style"]["hidden_size"]),
+        dropout=float(hyper["shape_style"]["dropout"]),
+    )
+    return train_stage(
+        "shape_style", model, canonical, canonical.displacements, run_dir=run_dir,
+        hyperparameters=_stage_hyper(hyper["shape_style"]), fingerprint=fingerprint,
+        device=device, seed=seed, progress=progress,
+    )
+
+
+def train_lf(
+    data: FrameArrays,
+    pose_indices: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> DisplacementMLP:
+    """Train D_LF(pose, shape, style) on the smoothed displacements (``data.low_frequency``)."""
+    if data.low_frequency is None:
+        raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
+    hyper = merged_hyperparameters(hyperparameters)
+    shape_components, style_components = _components(data, hyper["model"])
+    torch.manual_seed(seed)  # deterministic initial weights
+    model = low_frequency_model(
+        data.vertex_count, pose_indices, shape_components=shape_components, style_components=style_components,
+        hidden_size=int(hyper["lf"]["hidden_size"]), dropout=float(hyper["lf"]["dropout"]),
+    )
+    return train_stage(
+        "lf", model, data, data.low_frequency, run_dir=run_dir, hyperparameters=_stage_hyper(hyper["lf"]),
+        fingerprint=fingerprint, device=device, seed=seed, progress=progress,
+    )
+
+
+def train_hf(
+    data: FrameArrays,
+    pose_indices: np.ndarray,
+    prototype_pairs: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> HighFrequencyPrototypes:
+    """Train one D_HF(pose) per prototype pair on that pair's frames, target D - D_LF.
+
+    Stages are named ``hf_00``, ``hf_01``, ... in prototype order; returns them stacked.
+    """
+    if data.low_frequency is None:
+        raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
+    hyper = merged_hyperparameters(hyperparameters)
+    models = []
+    for k, pair in enumerate(np.asarray(prototype_pairs).reshape(-1)):
+        frames = np.flatnonzero(data.pair_id == pair)
+        if frames.size == 0:
+            raise ValueError(f"prototype pair {pair} has no frames in the training data")
+        subset = data.subset(frames)
+        torch.manual_seed(seed + 1 + k)  # deterministic initial weights
+        model = high_frequency_model(
+            data.vertex_count, pose_indices, hidden_size=int(hyper["hf"]["hidden_size"]),
+            dropout=float(hyper["hf"]["dropout"]),
+        )
+        models.append(
+            train_stage(
+                f"hf_{k:02d}", model, subset, subset.displacements - subset.low_frequency, run_dir=run_dir,
+                hyperparameters=_stage_hyper(hyper["hf"]), fingerprint=fingerprint, device=device,
+                seed=seed + 1 + k, progress=progress,
+            )
+        )
+    return HighFrequencyPrototypes.from_mlps(models).eval()
+
+
+def train_baseline(
+    data: FrameArrays,
+    pose_indices: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> DisplacementMLP:
+    """Train the baseline MLP(pose, shape, style) on the full displacements; saves baseline.pt too."""
+    hyper = merged_hyperparameters(hyperparameters)
+    shape_components, style_components = _components(data, hyper["model"])
+    torch.manual_seed(seed)  # deterministic initial weights
+    model = baseline_model(
+        data.vertex_count, pose_indices, shape_components=shape_components, style_components=style_components,
+        hidden_size=int(hyper["baseline"]["hidden_size"]), dropout=float(hyper["baseline"]["dropout"]),
+    )
+    model = train_stage(
+        "baseline", model, data, data.displacements, run_dir=run_dir,
+        hyperparameters=_stage_hyper(hyper["baseline"]), fingerprint=fingerprint, device=device, seed=seed,
+        progress=progress,
+    )
+    save_learner(model, "baseline", Path(run_dir) / "baseline_model.pt", fingerprint=fingerprint, extra={"hyperparameters": hyper})
+    return model
+
+
+def garment_pose_indices(
+    skinning_weights: np.ndarray,
+    pose_size: int,
+    *,
+    parents: np.ndarray | None = None,
+    posable_joints: np.ndarray | None = None,
+    min_weight_sum: float = 1.0,
+) -> np.ndarray:
+    """Pose entries that move the garment (see :mod:`learn.tailornet.pose_mask`)."""
+    joints = garment_pose_joints(skinning_weights, parents=parents, min_weight_sum=min_weight_sum)
+    return pose_feature_indices(joints, pose_size, posable_joints=posable_joints)
+
+
+def fit_tailornet(
+    data: FrameArrays,
+    faces: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    pose_indices: np.ndarray | None = None,
+    canonical_pose: np.ndarray | None = None,
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> TailorNet:
+    """Train every TailorNet stage on the training split and save ``tailornet.pt``.
+
+    Args:
+        data: training frames (train style-shapes x train poses).
+        faces: garment triangles, shape (F, 3), for the frequency split.
+        run_dir: where stage checkpoints, loss logs and the final model go.
+        pose_indices: pose entries fed to the networks (default: all); see
+            :func:`garment_pose_indices`.
+        canonical_pose: the pose garments are draped in (body model's canonical A-pose),
+            shape (P,); each pair's frame closest to it trains g and picks prototypes.
+        hyperparameters: per-stage overrides of :data:`DEFAULT_HYPERPARAMETERS`.
+    Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
+    on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
+    """
+    import json
+
+    hyper = merged_hyperparameters(hyperparameters)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if pose_indices is None:
+        pose_indices = np.arange(data.pose.shape[1])
+    if data.low_frequency is None:
+        add_low_frequency(
+            data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
+            iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
+        )
+    canonical_frames = canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose)
+    pair_count = canonical_frames.shape[0]
+    prototype_count = min(int(hyper["model"]["prototype_count"]), pair_count)
+    choice = choose_prototypes(data.displacements[canonical_frames], prototype_count)
+    (run_dir / "prototypes.json").write_text(
+        json.dumps(
+            {
+                "pair_ids": choice.indices.tolist(),
+                "mean_error_mm_vs_k": [None if np.isnan(e) else e for e in choice.mean_error_mm.tolist()],
+                "max_error_mm_vs_k": [None if np.isnan(e) else e for e in choice.max_error_mm.tolist()],
+            },
+            indent=2,
+        )
+    )
+    common = dict(run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint, device=device, progress=progress)
+    shape_style = train_shape_style(data, canonical_pose=canonical_pose, seed=seed, **common)
+    low = train_lf(data, pose_indices, seed=seed + 1000, **common)
+    high = train_hf(data, pose_indices, choice.indices, seed=seed + 2000, **common)
+    prototype_frames = canonical_frames[choice.indices]
+    model = TailorNet(
+        low, high, shape_style,
+        torch.as_tensor(data.shape[prototype_frames]), torch.as_tensor(data.style[prototype_frames]),
+        sigma=float(hyper["model"]["sigma"]),
+    ).to(device).eval()
+    save_learner(model, "tailornet", run_dir / "tailornet_model.pt", fingerprint=fingerprint, extra={"hyperparameters": hyper})
+    return model
+
+
+def fit_baseline(
+    data: FrameArrays,
+    faces: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    pose_indices: np.ndarray | None = None,
+    canonical_pose: np.ndarray | None = None,
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> DisplacementMLP:
+    """Registry-shaped wrapper of :func:`train_baseline` (the baseline needs neither
+    ``faces`` nor ``canonical_pose``; they are accepted so every learner fits alike)."""
+    del faces, canonical_pose
+    if pose_indices is None:
+        pose_indices = np.arange(data.pose.shape[1])
+    return train_baseline(
+        data, pose_indices, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
+        device=device, seed=seed, progress=progress,
+    )
+
+
+def save_learner(
+    model: TailorNet | DisplacementMLP,
+    learner: str,
+    path: str | os.PathLike[str],
+    *,
+    fingerprint: DatasetFingerprint | None,
+    extra: Mapping[str, Any] | None = None,
+) -> Path:
+    """Save a trained model with its configuration and dataset fingerprint."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "learner": learner,
+            "model_config": model.config,
+            "model_state": model.state_dict(),
+            "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
+            **dict(extra or {}),
+        },
+        path,
+    )
+    return path
+
+
+def load_learner(
+    path: str | os.PathLike[str],
+    *,
+    fingerprint: DatasetFingerprint | None = None,
+    require_same_manifest: bool = True,
+    device: str = "cpu",
+) -> TailorNet | DisplacementMLP:
+    """Load a model saved by :func:`save_learner`, checking the dataset fingerprint.
+
+    The template must always match ``fingerprint``; the manifest too unless
+    ``require_same_manifest`` is False (e.g. evaluating on a regenerated dataset).
+    """
+    checkpoint = load_checkpoint(path, map_location=device)
+    check_fingerprint(
+        checkpoint.get("fingerprint"), fingerprint, source=str(path), require_same_manifest=require_same_manifest
+    )
+    learner = checkpoint.get("learner")
+    if learner == "tailornet":
+        model: TailorNet | DisplacementMLP = TailorNet.from_config(checkpoint["model_config"])
+    elif learner == "baseline":
+        model = DisplacementMLP(**checkpoint["model_config"])
+    else:
+        raise ValueError(f"{path} holds learner '{learner}', expected 'tailornet' or 'baseline'")
+    model.load_state_dict(checkpoint["model_state"])
+    return model.to(device).eval()

@@ -1,0 +1,223 @@
+"""Training, checkpoints, fingerprints and evaluation of TailorNet on a tiny synthetic dataset.
+
+The synthetic "simulator": a 7 x 7 grid garment whose unposed displacements are a smooth
+nonlinear function of pose, shape and style plus a pose- and style-dependent
+high-frequency ripple, so both the low- and high-frequency parts have to be learned.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from learn.common.mesh import grid_mesh
+from learn.registry import LEARNERS, get_learner
+from learn.tailornet.evaluate import PosingContext, evaluate_split, predict_displacements, time_inference
+from learn.tailornet.lf import low_frequency_model
+from learn.tailornet.model import TailorNet
+from learn.tailornet.train import (
+    DatasetFingerprint,
+    DatasetMismatchError,
+    FrameArrays,
+    add_low_frequency,
+    file_sha256,
+    fit_baseline,
+    fit_tailornet,
+    frame_arrays_from_split,
+    load_learner,
+    merged_hyperparameters,
+    template_sha256,
+    train_stage,
+)
+
+torch.set_num_threads(1)
+
+POSE_SIZE = 6
+GRID = 7
+# A few epochs must bring the test error below this fraction of the error of
+# predicting the training mean displacement.
+MEAN_BASELINE_MARGIN = 0.6
+FINGERPRINT = DatasetFingerprint("a" * 64, "b" * 64)
+HYPER = {
+    "lf": {"lr": 2e-3, "epochs": 30, "hidden_size": 64, "batch_size": 16},
+    "hf": {"lr": 2e-3, "epochs": 60, "hidden_size": 64, "batch_size": 8},
+    "shape_style": {"lr": 3e-3, "epochs": 150, "hidden_size": 32, "batch_size": 8},
+    "baseline": {"lr": 2e-3, "epochs": 30, "hidden_size": 64, "batch_size": 16},
+    "model": {"prototype_count": 4},
+}
+
+
+def _pairs() -> list[tuple[np.ndarray, np.ndarray]]:
+    return [(np.array([s, 0.3]), np.array([g, -0.2])) for s in (-1.0, 1.0) for g in (-1.0, 1.0)]
+
+
+def make_frames(seed: int, poses_per_pair: int, pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[FrameArrays, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    vertices, faces = grid_mesh(GRID, GRID, spacing=0.05)
+    x, y = vertices[:, 0], vertices[:, 1]
+    poses, shapes, styles, displacements, ids = [], [], [], [], []
+    for pair_id, (shape, style) in enumerate(pairs):
+        for pose in rng.uniform(-1.0, 1.0, size=(poses_per_pair, POSE_SIZE)):
+            dz = (0.02 * (1 + 0.4 * shape[0]) * np.sin(3 * x + pose[0])
+                  + 0.01 * style[0] * np.cos(4 * y + pose[1] * pose[2])
+                  + 0.004 * np.sin(25 * x) * (pose[3] + style[0]))
+            dx = 0.01 * shape[0] * y * pose[4] + 0.005 * np.tanh(pose[5]) * x
+            displacements.append(np.stack([dx, np.full_like(dx, 0.003 * style[0]), dz], axis=-1))
+            poses.append(pose)
+            shapes.append(shape)
+            styles.append(style)
+            ids.append(pair_id)
+    frames = FrameArrays(
+        pose=np.asarray(poses, np.float32), shape=np.asarray(shapes, np.float32),
+        style=np.asarray(styles, np.float32), displacements=np.asarray(displacements, np.float32),
+        pair_id=np.asarray(ids, np.int64),
+    )
+    return frames, faces
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    run_dir = tmp_path_factory.mktemp("run")
+    train, faces = make_frames(0, 24, _pairs())
+    test, _ = make_frames(1, 12, _pairs())
+    tailornet = fit_tailornet(train, faces, run_dir=run_dir, hyperparameters=HYPER, fingerprint=FINGERPRINT,
+                              progress=False)
+    baseline = fit_baseline(train, faces, run_dir=run_dir, hyperparameters=HYPER, fingerprint=FINGERPRINT,
+                            progress=False)
+    return {"run_dir": run_dir, "train": train, "test": test, "faces": faces,
+            "tailornet": tailornet, "baseline": baseline}
+
+
+def test_training_beats_predicting_the_mean(trained: dict) -> None:
+    train, test = trained["train"], trained["test"]
+    mean = train.displacements.mean(axis=0, keepdims=True)
+    mean_error = float(np.linalg.norm(test.displacements - mean, axis=-1).mean() * 1000.0)
+    for name in ("tailornet", "baseline"):
+        error = evaluate_split(trained[name], test)["unposed_error_mm"]
+        assert error < MEAN_BASELINE_MARGIN * mean_error, (
+            f"{name}: test error {error:.2f} mm not below {MEAN_BASELINE_MARGIN} x mean-prediction error "
+            f"{mean_error:.2f} mm"
+        )
+    run_dir = trained["run_dir"]
+    stages = ["shape_style", "lf", "hf_00", "hf_01", "hf_02", "hf_03", "baseline"]
+    for stage in stages:
+        rows = (run_dir / f"{stage}_loss.csv").read_text().strip().splitlines()
+        epochs = merged_hyperparameters(HYPER)["hf" if stage.startswith("hf") else stage]["epochs"]
+        assert len(rows) == epochs + 1, f"{stage}: {len(rows) - 1} logged epochs, expected {epochs}"
+        first, last = float(rows[1].split(",")[1]), float(rows[-1].split(",")[1])
+        assert last < first, f"{stage}: training loss did not decrease ({first} -> {last})"
+
+
+def test_checkpoint_round_trip_gives_identical_predictions(trained: dict) -> None:
+    test = trained["test"]
+    for name in ("tailornet", "baseline"):
+        entry = get_learner(name)
+        loaded = entry.load(trained["run_dir"] / entry.model_file, fingerprint=FINGERPRINT)
+        assert isinstance(loaded, TailorNet) == (name == "tailornet")
+        expected = predict_displacements(trained[name], test.pose, test.shape, test.style)
+        np.testing.assert_array_equal(predict_displacements(loaded, test.pose, test.shape, test.style), expected,
+                                      err_msg=f"{name}: reloaded model predicts differently")
+
+
+def test_mismatched_dataset_raises_clear_error(trained: dict) -> None:
+    path = trained["run_dir"] / "tailornet_model.pt"
+    other_template = DatasetFingerprint(FINGERPRINT.dataset_manifest_sha256, "c" * 64)
+    with pytest.raises(DatasetMismatchError, match="garment template sha256"):
+        load_learner(path, fingerprint=other_template)
+    other_manifest = DatasetFingerprint("d" * 64, FINGERPRINT.template_sha256)
+    with pytest.raises(DatasetMismatchError, match="dataset manifest sha256"):
+        load_learner(path, fingerprint=other_manifest)
+    load_learner(path, fingerprint=other_manifest, require_same_manifest=False)
+    # Resuming a stage against another dataset is refused too.
+    with pytest.raises(DatasetMismatchError, match="template"):
+        fit_baseline(trained["train"], trained["faces"], run_dir=trained["run_dir"], hyperparameters=HYPER,
+                     fingerprint=other_template, progress=False)
+
+
+def test_resume_reproduces_uninterrupted_training(tmp_path: Path) -> None:
+    data, faces = make_frames(2, 10, _pairs()[:2])
+    add_low_frequency(data, faces, iterations=10)
+    hyper = {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 8, "epochs": 4}
+
+    def model() -> torch.nn.Module:
+        torch.manual_seed(5)
+        return low_frequency_model(data.vertex_count, list(range(POSE_SIZE)), hidden_size=16)
+
+    whole = train_stage("lf", model(), data, data.low_frequency, run_dir=tmp_path / "whole", hyperparameters=hyper,
+                        fingerprint=FINGERPRINT, seed=3, progress=False)
+    train_stage("lf", model(), data, data.low_frequency, run_dir=tmp_path / "split",
+                hyperparameters={**hyper, "epochs": 2}, fingerprint=FINGERPRINT, seed=3, progress=False)
+    resumed = train_stage("lf", model(), data, data.low_frequency, run_dir=tmp_path / "split",
+                          hyperparameters=hyper, fingerprint=FINGERPRINT, seed=3, progress=False)
+    for (name, a), b in zip(whole.state_dict().items(), resumed.state_dict().values()):
+        assert torch.equal(a, b), f"parameter {name} differs between resumed and uninterrupted training"
+    log = (tmp_path / "split" / "lf_loss.csv").read_text().strip().splitlines()
+    assert [row.split(",")[0] for row in log[1:]] == ["1", "2", "3", "4"], log
+    with pytest.raises(ValueError, match="configured"):
+        train_stage("lf", low_frequency_model(data.vertex_count, [0, 1, 2], hidden_size=16), data,
+                    data.low_frequency, run_dir=tmp_path / "split", hyperparameters=hyper,
+                    fingerprint=FINGERPRINT, progress=False)
+
+
+def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    body_vertices = torch.as_tensor(np.asarray(sphere.vertices), dtype=torch.float32)
+    grid, faces = grid_mesh(GRID, GRID, spacing=0.05)
+    # The unposed body under the garment: a sheet through the sphere's top, so the
+    # predicted garments partly penetrate it.
+    under = torch.as_tensor(grid - grid.mean(axis=0) + np.array([0.0, 0.0, 0.19]), dtype=torch.float32)
+    test = trained["test"].subset(np.arange(6))
+    posing = PosingContext(
+        unposed_body=lambda shape: under.expand(shape.shape[0], -1, -1),
+        garment_poser=lambda unposed, pose, shape: unposed + 0.01 * pose[:, None, :3],
+        posed_body=lambda pose, shape: body_vertices + 0.01 * pose[:, None, :3],
+        body_faces=np.asarray(sphere.faces), garment_faces=faces,
+    )
+    test.posed_vertices = (posing.garment_poser(under + torch.as_tensor(test.displacements),
+                                                torch.as_tensor(test.pose), None)).numpy()
+    metrics = evaluate_split(trained["tailornet"], test, posing=posing)
+    assert 0.0 < metrics["collision_rate"] <= 1.0, metrics
+    assert metrics["collision_rate_postprocessed"] < metrics["collision_rate"], metrics
+    # Posing is a translation here, so posed and unposed errors coincide.
+    assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 1e-3, metrics
+    timing = time_inference(trained["tailornet"], test.pose, test.shape, test.style, batch_sizes=(1, 4), repeats=3)
+    assert set(timing) == {"ms_per_frame_batch_1", "ms_per_frame_batch_4"} and min(timing.values()) > 0
+
+
+def test_fingerprint_helpers_and_overrides(tmp_path: Path) -> None:
+    _, faces = grid_mesh(3, 3)
+    template = {"faces": faces, "rest_vertices": np.zeros((9, 3), np.float32)}
+    digest = template_sha256(template)
+    assert digest == template_sha256(dict(template)), "template hash is not deterministic"
+    assert digest != template_sha256({**template, "faces": faces[::-1]}), "face order change not detected"
+    with pytest.raises(ValueError, match="faces"):
+        template_sha256({"rest_vertices": np.zeros((9, 3))})
+    manifest = tmp_path / "manifest.json"
+    manifest.write_text("{}")
+    assert file_sha256(manifest) == "44136fa355b3678a1146ad16f7e8649e94fb4fc21fe77e8310c060f61caaff8a"
+    with pytest.raises(FileNotFoundError):
+        file_sha256(tmp_path / "missing.json")
+    with pytest.raises(ValueError, match="lf.learning_rate"):
+        merged_hyperparameters({"lf": {"learning_rate": 1.0}})
+    with pytest.raises(ValueError, match="unknown learner"):
+        get_learner("nope")
+    assert set(LEARNERS) == {"tailornet", "baseline"}
+
+
+def test_frame_arrays_from_reader_split_groups_pairs() -> None:
+    rng = np.random.default_rng(0)
+    shape = np.repeat(np.array([[0.0, 1.0], [1.0, 0.0]], np.float32), 3, axis=0)
+    arrays = {
+        "pose": rng.normal(size=(6, POSE_SIZE)).astype(np.float32),
+        "shape": shape,
+        "style": np.zeros((6, 2), np.float32),
+        "unposed_displacements": np.zeros((6, 4, 3), np.float32),
+    }
+    frames = frame_arrays_from_split(arrays)
+    assert frames.pair_id.tolist() == [0, 0, 0, 1, 1, 1]
+    with pytest.raises(ValueError, match="unposed_displacements"):
+        frame_arrays_from_split({k: v for k, v in arrays.items() if k != "unposed_displacements"})
