@@ -60,6 +60,7 @@ from .schema import (
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-")
 _SMALL_CHUNK_ROWS = 256  # rows per chunk of the small per-frame arrays (pose, quality, ...)
 _HASH_BLOCK_BYTES = 1 << 20
+_MAX_TASK_JSON_BYTES = 32 * 1024  # HDF5 compact attributes must stay below 64 KiB
 
 
 def shard_path(root: str | os.PathLike[str], task_id: str) -> Path:
@@ -228,6 +229,16 @@ class ShardWriter:
         self.compression_level = compression_level
         self.task = _check_task(task)
         self.task_id: str = self.task["task_id"]
+        metadata = {k: v for k, v in self.task.items() if k not in ("shape", "style")}
+        try:
+            self._task_json = canonical_json(_json_safe(metadata))
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"task {self.task_id!r}: the task dict must be JSON-serializable apart from "
+                             f"shape and style ({error})") from None
+        if len(self._task_json) > _MAX_TASK_JSON_BYTES:
+            raise ValueError(f"task {self.task_id!r}: the task dict is {len(self._task_json)} bytes as JSON, more "
+                             f"than {_MAX_TASK_JSON_BYTES} (HDF5 attributes are small); keep per-frame arrays such "
+                             f"as pose lists out of it and write them with write_frame")
         self.template = canonical_template(template)
         self.template_sha256 = template_sha256(self.template)
         self.vertex_count = int(self.template["rest_vertices"].shape[0])
@@ -297,8 +308,7 @@ class ShardWriter:
             attrs["compression"] = self.compression
             attrs["template_sha256"] = self.template_sha256
             attrs["position_origin_rule"] = "none"
-            metadata = {k: v for k, v in self.task.items() if k not in ("shape", "style")}
-            attrs["task_json"] = canonical_json(_json_safe(metadata))
+            attrs["task_json"] = self._task_json
             attrs["filter_stats_json"] = "{}"
             options = self._dataset_options()
             handle.create_dataset(SHAPE, data=self.task["shape"].astype(np.float32), **options)

@@ -188,6 +188,8 @@ def test_bad_frames_raise_and_leave_nothing(tmp_path, case, match):
     ("splits", "train", "task.splits must be a list"),
     ("seed", -1, "task.seed must be a non-negative integer"),
     ("shape", [[1.0]], "task.shape must be a 1-D array"),
+    ("poses", np.zeros((2600, 72)), "keep per-frame arrays such as pose lists out of it"),
+    ("fabric", object(), "must be JSON-serializable"),
 ])
 def test_bad_task_fields_are_named(tmp_path, field, value, match):
     task = make_task()
