@@ -1,0 +1,234 @@
+"""The dataset spec: a YAML file describing one `generate-dataset` run.
+
+The spec is validated completely before anything runs; each problem names its field
+path, the value found and what was expected, e.g.
+``spec.poses.train_count must be an integer >= 1 (got 0) in quickstart.yaml``.
+Defaults are filled in, and the resolved spec (with defaults) is what the manifest
+records and hashes. Schema (every key optional unless marked required)::
+
+    name: str (required)                dataset name
+    seed: int = 0                       seeds every RNG of the run
+    garment:
+      type: tshirt|shirt|pants|shorts|skirt (required)
+      resolution: int = 1500            target garment vertex count
+      fabric: cotton|silk|denim|leather = cotton
+    body:
+      backend: anny|smpl = anny
+      path: str | null                  SMPL-family file for backend smpl
+    styles:                             garment style parameters (CLOTH3D-like)
+      train: int | list[dict]           count to sample, or explicit {param: value} dicts
+      test:  int | list[dict]
+      space: str | null                 style-space .npz: styles are then PCA gammas
+    shapes:
+      train: tailornet9 | int | list[list[float]]   the 9 TailorNet shapes, a sampled count, or explicit
+      test:  int | list[list[float]]
+    pairs:                              style-shape pairs (TailorNet: 20 train, 20 test)
+      train: int                        drawn from styles.train x shapes.train
+      test: int                         drawn from styles.test x shapes.test
+    poses:
+      source: sampled|file = sampled
+      path: str | null                  .npz with `poses` (N, 60) for source=file
+      joints: upper|lower|all|list = garment default
+      range_scale: float in (0, 1] = 1.0
+      train_count: int                  poses of the training pose set
+      test_count: int                   unseen poses
+    splits:                             poses per pair in each TailorNet split
+      train_train: int | all = all      train pairs x train poses
+      train_test: int | all = all       train pairs x unseen poses
+      test_train: int                   test pairs x a subset of train poses
+      test_test: int                    test pairs x a subset of unseen poses
+    simulation:
+      solver: xpbd|mass_spring = xpbd
+      device: auto|cpu|cuda[:N] = auto
+      worlds: int = 64                  tasks simulated together (one world each)
+      frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
+      shape_transition_frames: int = 10
+      interpolation_threshold: float [rad] = 0.1
+      min_hold_frames: int = 2          frames each target pose is held at least
+      contact: {thickness [m], friction, self_contact: bool}
+    filters:
+      max_area_shrink: 0.75  max_area_growth: 1.0  collision_depth [m]: 0.001
+      max_penetration_fraction: 0.01    max_self_intersections: 0  require_converged: true
+    output: {precision: float32|float16, compression: gzip|lzf}
+    audit: {samples: int = 4, tolerance_factor: float = 0.1}
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+GARMENT_TYPES = ("tshirt", "shirt", "pants", "shorts", "skirt")
+FABRIC_NAMES = ("cotton", "silk", "denim", "leather")
+SPLITS = ("train_train", "train_test", "test_train", "test_test")
+
+DEFAULTS: dict[str, Any] = {
+    "seed": 0,
+    "garment": {"resolution": 1500, "fabric": "cotton"},
+    "body": {"backend": "anny", "path": None},
+    "styles": {"train": 2, "test": 1, "space": None},
+    "shapes": {"train": 2, "test": 1},
+    "pairs": {"train": 2, "test": 1},
+    "poses": {"source": "sampled", "path": None, "joints": None, "range_scale": 1.0, "train_count": 8, "test_count": 4},
+    "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
+    "simulation": {
+        "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
+        "xpbd_mode": "gauss_seidel", "tolerance": 0.01, "patience": 3, "max_relax_frames": 120,
+        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2,
+        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
+    },
+    "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "collision_depth": 0.001,
+                "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
+    "output": {"precision": "float32", "compression": "gzip"},
+    "audit": {"samples": 4, "tolerance_factor": 0.1},
+}
+
+
+class SpecError(ValueError):
+    """A spec problem; the message names the field path, the value and what was expected."""
+
+
+def _merge(defaults: dict, given: dict) -> dict:
+    out = copy.deepcopy(defaults)
+    for key, value in given.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+class _Checker:
+    def __init__(self, spec: dict, source: str) -> None:
+        self.spec, self.source, self.errors = spec, source, []
+
+    def get(self, path: str) -> Any:
+        node: Any = self.spec
+        for part in path.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        return node
+
+    def fail(self, path: str, expected: str) -> None:
+        self.errors.append(f"spec.{path} must be {expected} (got {self.get(path)!r}) in {self.source}")
+
+    def integer(self, path: str, minimum: int = 0, *, allow: tuple = ()) -> None:
+        v = self.get(path)
+        if v in allow and not isinstance(v, bool):
+            return
+        if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+            self.fail(path, f"an integer >= {minimum}" + (f" or one of {allow}" if allow else ""))
+
+    def number(self, path: str, lo: float, hi: float | None = None, *, lo_open: bool = False) -> None:
+        v = self.get(path)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (v > lo if lo_open else v >= lo) and (hi is None or v <= hi)
+        if not ok:
+            self.fail(path, f"a number {'>' if lo_open else '>='} {lo}" + (f" and <= {hi}" if hi is not None else ""))
+
+    def choice(self, path: str, options: tuple) -> None:
+        if self.get(path) not in options:
+            self.fail(path, f"one of {', '.join(map(str, options))}")
+
+
+def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
+    """Validates a spec dict and returns it with defaults filled in; raises SpecError listing every problem."""
+    if not isinstance(raw, dict):
+        raise SpecError(f"the spec in {source} must be a YAML mapping (got {type(raw).__name__})")
+    unknown = sorted(set(raw) - set(DEFAULTS) - {"name", "garment"})
+    spec = _merge(DEFAULTS, raw)
+    c = _Checker(spec, source)
+    for key in unknown:
+        c.errors.append(f"spec.{key} is not a known field (expected one of {', '.join(sorted(set(DEFAULTS) | {'name'}))}) in {source}")
+    if not isinstance(spec.get("name"), str) or not spec["name"]:
+        c.fail("name", "a non-empty string")
+    c.integer("seed", 0)
+    c.choice("garment.type", GARMENT_TYPES)
+    c.integer("garment.resolution", 50)
+    c.choice("garment.fabric", FABRIC_NAMES)
+    c.choice("body.backend", ("anny", "smpl"))
+    if spec["body"]["backend"] == "smpl" and not spec["body"].get("path"):
+        c.fail("body.path", "the path of an SMPL-family model file when body.backend is smpl")
+    for group in ("train", "test"):
+        styles = spec["styles"][group]
+        if isinstance(styles, list):
+            if not styles or not all(isinstance(s, dict) for s in styles):
+                c.fail(f"styles.{group}", "a count >= 1 or a non-empty list of {param: value} mappings")
+        else:
+            c.integer(f"styles.{group}", 1)
+        shapes = spec["shapes"][group]
+        if isinstance(shapes, list):
+            if not shapes or not all(isinstance(s, list) and all(isinstance(x, (int, float)) for x in s) for s in shapes):
+                c.fail(f"shapes.{group}", "a count, 'tailornet9' (train only) or a list of shape vectors")
+        elif not (group == "train" and shapes == "tailornet9"):
+            c.integer(f"shapes.{group}", 1)
+        c.integer(f"pairs.{group}", 0 if group == "test" else 1)
+    c.choice("poses.source", ("sampled", "file"))
+    if spec["poses"]["source"] == "file" and not spec["poses"].get("path"):
+        c.fail("poses.path", "a .npz pose file when poses.source is file")
+    joints = spec["poses"]["joints"]
+    if joints is not None and not (joints in ("upper", "lower", "all") or (isinstance(joints, list) and joints)):
+        c.fail("poses.joints", "upper, lower, all or a list of joint names")
+    c.number("poses.range_scale", 0.0, 1.0, lo_open=True)
+    c.integer("poses.train_count", 1)
+    c.integer("poses.test_count", 0)
+    for split in SPLITS:
+        c.integer(f"splits.{split}", 0, allow=("all",))
+    sim = "simulation"
+    c.choice(f"{sim}.solver", ("xpbd", "mass_spring"))
+    device = spec[sim]["device"]
+    if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
+        c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")
+    c.choice(f"{sim}.xpbd_mode", ("gauss_seidel", "jacobi"))
+    c.integer(f"{sim}.worlds", 1)
+    c.number(f"{sim}.frame_dt", 0.0, 1.0, lo_open=True)
+    c.integer(f"{sim}.substeps", 1)
+    c.integer(f"{sim}.iterations", 1)
+    c.number(f"{sim}.tolerance", 0.0, lo_open=True)
+    c.integer(f"{sim}.patience", 1)
+    c.integer(f"{sim}.max_relax_frames", 1)
+    c.integer(f"{sim}.shape_transition_frames", 1)
+    c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
+    c.integer(f"{sim}.min_hold_frames", 1)
+    c.number(f"{sim}.contact.thickness", 0.0, 0.05)
+    c.number(f"{sim}.contact.friction", 0.0, 2.0)
+    if not isinstance(spec[sim]["contact"]["self_contact"], bool):
+        c.fail(f"{sim}.contact.self_contact", "true or false")
+    c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
+    c.number("filters.max_area_growth", 0.0, lo_open=True)
+    c.number("filters.collision_depth", 0.0)
+    c.number("filters.max_penetration_fraction", 0.0, 1.0)
+    c.integer("filters.max_self_intersections", 0)
+    if not isinstance(spec["filters"]["require_converged"], bool):
+        c.fail("filters.require_converged", "true or false")
+    c.choice("output.precision", ("float32", "float16"))
+    c.choice("output.compression", ("gzip", "lzf"))
+    c.integer("audit.samples", 0)
+    c.number("audit.tolerance_factor", 0.0, 1.0, lo_open=True)
+    if spec["pairs"]["test"] == 0 and (spec["splits"]["test_train"] or spec["splits"]["test_test"]):
+        spec["splits"]["test_train"] = spec["splits"]["test_test"] = 0
+    if c.errors:
+        raise SpecError("invalid dataset spec:\n  " + "\n  ".join(c.errors))
+    return spec
+
+
+def load_spec(path: str | Path) -> dict[str, Any]:
+    """Reads and validates a spec file; a bare name like ``quickstart`` means a shipped config."""
+    p = Path(path)
+    if not p.exists() and not p.suffix:
+        p = Path(__file__).parent / "configs" / f"{path}.yaml"
+    if not p.is_file():
+        shipped = sorted(q.stem for q in (Path(__file__).parent / "configs").glob("*.yaml"))
+        raise FileNotFoundError(f"dataset spec not found: {path} (shipped specs: {', '.join(shipped)})")
+    try:
+        raw = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise SpecError(f"{p.name} is not valid YAML: {exc}") from exc
+    return validate_spec(raw, source=p.name)
+
+
+def spec_hash(spec: dict[str, Any]) -> str:
+    """sha256 of the resolved spec's canonical JSON."""
+    return hashlib.sha256(json.dumps(spec, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
