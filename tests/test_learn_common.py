@@ -195,3 +195,37 @@ def test_postprocess_removes_collisions_and_keeps_laplacian(device: str) -> None
     assert change_ls < 0.5 * change_naive, (
         f"least-squares Laplacian change {change_ls:.2e} m not well below naive projection's {change_naive:.2e} m"
     )
+
+
+def test_garment_posing_functions_with_fake_body_model() -> None:
+    from types import SimpleNamespace
+
+    from learn.common.skinning import garment_posing_functions
+
+    class FakeBody:
+        """Four body vertices shifted by shape[0]; posing translates every joint by pose[:3]."""
+
+        def rest_torch(self, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            vertices = torch.arange(12, dtype=torch.float32).reshape(1, 4, 3) + shape[:, :1, None]
+            return vertices, torch.zeros(shape.shape[0], 2, 3)
+
+        def pose_torch(self, shape: torch.Tensor, pose: torch.Tensor) -> SimpleNamespace:
+            transforms = torch.eye(4).repeat(pose.shape[0], 2, 1, 1)
+            transforms[:, :, :3, 3] = pose[:, None, :3]
+            vertices, _ = self.rest_torch(shape)
+            return SimpleNamespace(skinning_transforms=transforms, vertices=vertices + pose[:, None, :3])
+
+    rest = np.full((3, 3), 7.0, dtype=np.float32)
+    weights = np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0]], dtype=np.float32)
+    with pytest.raises(ValueError, match="rest_vertices"):
+        garment_posing_functions(FakeBody(), np.array([2, 0, -1]), weights)
+    unposed_body, poser, posed_body = garment_posing_functions(
+        FakeBody(), np.array([2, 0, -1]), weights, rest_vertices=rest
+    )
+    shape = torch.tensor([[1.0, 0.0]])
+    under = unposed_body(shape)
+    expected = torch.tensor([[[7.0, 8.0, 9.0], [1.0, 2.0, 3.0], [7.0, 7.0, 7.0]]])
+    torch.testing.assert_close(under, expected, msg="body vertex under the garment / -1 fallback wrong")
+    pose = torch.tensor([[0.1, 0.2, 0.3, 0.0, 0.0, 0.0]])
+    torch.testing.assert_close(poser(under, pose, shape), under + pose[:, None, :3])
+    assert posed_body(pose, shape).shape == (1, 4, 3)

@@ -20,6 +20,8 @@ def garment_posing_functions(
     body_model: Any,
     body_vertex_index: np.ndarray,
     skinning_weights: np.ndarray,
+    *,
+    rest_vertices: np.ndarray | None = None,
 ) -> tuple[
     Callable[[torch.Tensor], torch.Tensor],
     Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
@@ -30,8 +32,12 @@ def garment_posing_functions(
     Args:
         body_model: a ``simulate.body`` model with ``rest_torch(shape)`` and
             ``pose_torch(shape, pose)`` (returning ``.vertices`` and ``.skinning_transforms``).
-        body_vertex_index: body vertex under each garment vertex, shape (V,).
+        body_vertex_index: body vertex under each garment vertex, shape (V,); -1 where the
+            garment vertex has no body vertex (a skirt's hem).
         skinning_weights: garment skinning weights, shape (V, J).
+        rest_vertices: template rest vertices [m], shape (V, 3); the base of the vertices
+            without a body vertex (TailorNet's skirt is attached to the root this way).
+            Required when ``body_vertex_index`` has -1 entries.
     Returns callables: shape (B, S) -> (B, V, 3); (unposed garment (B, V, 3), pose (B, P),
     shape (B, S)) -> posed garment (B, V, 3); (pose, shape) -> posed body (B, Vb, 3).
     """
@@ -44,10 +50,20 @@ def garment_posing_functions(
             f"skinning_weights must have shape ({index.shape[0]}, J) to match body_vertex_index, "
             f"got {tuple(weights.shape)}"
         )
+    unattached = index < 0
+    if unattached.any() and rest_vertices is None:
+        raise ValueError(
+            f"body_vertex_index has {int(unattached.sum())} entries of -1; pass rest_vertices "
+            "(the template's) as their base"
+        )
+    base = None if rest_vertices is None else torch.as_tensor(np.asarray(rest_vertices), dtype=torch.float32)
 
     def unposed_body(shape: torch.Tensor) -> torch.Tensor:
         vertices, _ = body_model.rest_torch(shape)  # (B, Vb, 3)
-        return vertices[:, index.to(vertices.device)]  # (B, V, 3)
+        under = vertices[:, index.clamp_min(0).to(vertices.device)]  # (B, V, 3)
+        if unattached.any():
+            under = torch.where(unattached.to(vertices.device)[None, :, None], base.to(under), under)
+        return under
 
     def garment_poser(unposed: torch.Tensor, pose: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
         transforms = body_model.pose_torch(shape, pose).skinning_transforms  # (B, J, 4, 4)

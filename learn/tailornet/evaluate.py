@@ -87,7 +87,8 @@ def evaluate_split(
     per-vertex error), and with ``posing`` given: ``posed_error_mm`` (when
     ``data.posed_vertices`` is set), ``collision_rate`` of predictions and of the ground
     truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
-    ``postprocessed_posed_error_mm``.
+    ``postprocessed_posed_error_mm``. ``data.translation`` (when set) is added to the
+    posed garment and body.
     """
     if data.frame_count == 0:
         raise ValueError("evaluate_split: the split has no frames")
@@ -115,6 +116,10 @@ def evaluate_split(
                 displacements, pose, shape, garment_poser=posing.garment_poser, unposed_body=posing.unposed_body
             ).cpu().numpy()
             body = posing.posed_body(pose, shape).cpu().numpy()
+            if data.translation is not None:
+                # A root translation moves body and garment rigidly, after skinning.
+                shift = data.translation[start:stop, None, :]
+                posed, body = posed + shift, body + shift
             colliding += int(collision_mask(posed, body, posing.body_faces, threshold=threshold, device=collision_device).sum())
             vertex_total += posed.shape[0] * posed.shape[1]
             if data.posed_vertices is not None:

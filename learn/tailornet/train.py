@@ -20,7 +20,7 @@ import hashlib
 import os
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -89,31 +89,30 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return digest.hexdigest()
 
 
-TEMPLATE_FIELDS = ("faces", "rest_vertices", "skinning_weights", "body_vertex_index")
+MANIFEST_FILE = "manifest.json"
 
 
-def template_sha256(template: Any) -> str:
-    """sha256 over the template's faces, rest vertices, skinning weights and body index.
+def template_sha256(template: Mapping[str, Any]) -> str:
+    """The garment template's sha256, computed as the dataset manifest records it.
 
-    ``template`` is a mapping or an object with those attributes (missing ones are
-    skipped, so a template without skinning still hashes its topology and rest shape).
+    ``template``: mapping with ``faces``, ``rest_vertices``, ``skinning_weights``,
+    ``body_vertex_index`` (and optional ``uv``), e.g. ``DatasetReader(root).template``.
     """
-    digest = hashlib.sha256()
-    found = 0
-    for name in TEMPLATE_FIELDS:
-        value = template.get(name) if isinstance(template, Mapping) else getattr(template, name, None)
-        if value is None:
-            continue
-        array = np.ascontiguousarray(np.asarray(value))
-        digest.update(name.encode())
-        digest.update(str(array.dtype).encode() + str(array.shape).encode())
-        digest.update(array.tobytes())
-        found += 1
-    if found == 0 or (
-        (template.get("faces") if isinstance(template, Mapping) else getattr(template, "faces", None)) is None
-    ):
-        raise ValueError(f"template must provide at least 'faces' among {TEMPLATE_FIELDS}")
-    return digest.hexdigest()
+    from data_manifest.schema import template_sha256 as manifest_template_sha256
+
+    if not isinstance(template, Mapping) or "faces" not in template:
+        raise ValueError(
+            f"template must be a mapping with 'faces' (and rest_vertices, skinning_weights, "
+            f"body_vertex_index), got {type(template).__name__} with keys "
+            f"{sorted(template) if isinstance(template, Mapping) else 'none'}"
+        )
+    return manifest_template_sha256(template)
+
+
+def dataset_fingerprint(root: str | os.PathLike[str], template: Mapping[str, Any]) -> DatasetFingerprint:
+    """Fingerprint of the dataset at ``root``: sha256 of ``root/manifest.json`` and of
+    ``template`` (pass ``DatasetReader(root).template``)."""
+    return DatasetFingerprint(file_sha256(Path(root) / MANIFEST_FILE), template_sha256(template))
 
 
 def check_fingerprint(
@@ -151,6 +150,7 @@ class FrameArrays:
     pair_id: style-shape pair of each frame, 0..X-1, shape (N,);
     low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
     posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
+    translation: body root translation [m] added after skinning, shape (N, 3), optional.
     """
 
     pose: np.ndarray
@@ -160,7 +160,7 @@ class FrameArrays:
     pair_id: np.ndarray
     low_frequency: np.ndarray | None = None
     posed_vertices: np.ndarray | None = None
-    extras: dict[str, Any] = field(default_factory=dict)
+    translation: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.pose.shape[0]
@@ -194,6 +194,7 @@ class FrameArrays:
             pair_id=self.pair_id[frames],
             low_frequency=pick(self.low_frequency),
             posed_vertices=pick(self.posed_vertices),
+            translation=pick(self.translation),
         )
 
 
@@ -217,6 +218,10 @@ def frame_arrays_from_split(arrays: Mapping[str, np.ndarray]) -> FrameArrays:
         pair_id=pair_id.reshape(-1).astype(np.int64),
         posed_vertices=(
             None if arrays.get("posed_vertices") is None else np.asarray(arrays["posed_vertices"], dtype=np.float32)
+        ),
+        translation=(
+            None if arrays.get("body_translation") is None
+            else np.asarray(arrays["body_translation"], dtype=np.float32)
         ),
     )
 
