@@ -1,0 +1,188 @@
+"""Cloth model (static, packed over worlds), state (positions, velocities) and control.
+
+Every per-particle array is packed over worlds: particles of world ``w`` occupy the range
+``world_particle_start[w] : world_particle_start[w] + world_particle_count[w]`` and
+``particle_world[i]`` names the world of particle ``i``.  Triangles and bending elements are
+packed the same way and sorted by graph colour, so one kernel launch advances all worlds and
+the Gauss-Seidel sweep can run colour by colour.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import warp as wp
+
+from simulate.cloth.fabric import Fabric
+
+if TYPE_CHECKING:
+    from simulate.contact.body_collider import BodyCollider
+
+__all__ = ["Features", "ClothModel", "ClothState", "ClothControl"]
+
+
+@dataclasses.dataclass
+class Features:
+    """Physics switched on for a scene, fixed at build time (kernels are specialized on it)."""
+
+    bending: bool = True
+    """Dihedral bending constraints; when off, no bending kernel launches."""
+    friction: bool = True
+    """Coulomb friction against the body."""
+    self_contact: bool = False
+    """Vertex-triangle self-contact (costly; off by default)."""
+    attachments: bool | None = None
+    """Soft attachment constraints; ``None`` = on iff the builder received attached vertices."""
+    body_contact: bool = True
+    """Contact with the body collider (forced off when the driver gets no collider)."""
+
+
+class ClothState:
+    """Time-varying cloth state."""
+
+    def __init__(self, particle_q: wp.array, particle_qd: wp.array) -> None:
+        self.particle_q = particle_q
+        """Particle positions [m], shape (particle_count,), dtype vec3."""
+        self.particle_qd = particle_qd
+        """Particle velocities [m/s], shape (particle_count,), dtype vec3."""
+
+    def assign(self, other: ClothState) -> None:
+        """Copy ``other`` into this state's buffers (no allocation)."""
+        wp.copy(self.particle_q, other.particle_q)
+        wp.copy(self.particle_qd, other.particle_qd)
+
+
+class ClothControl:
+    """Inputs the caller drives between frames: attachment targets and the body collider."""
+
+    def __init__(self, model: ClothModel) -> None:
+        device = model.device
+        count = max(model.attachment_count, 1)
+        targets = np.zeros((count, 3), dtype=np.float32)
+        if model.attachment_count:
+            targets[:] = model.particle_q_rest[model.attachment_particle_np]
+        self.attachment_target = wp.array(targets, dtype=wp.vec3, device=device)
+        """Attachment target positions [m], shape (max(attachment_count, 1),); entry ``a`` pulls
+        particle ``model.attachment_particle[a]``."""
+        self.world_attachment_stiffness = wp.array(
+            np.full(model.world_count, model.default_attachment_stiffness, dtype=np.float32), device=device
+        )
+        """Attachment spring stiffness per world [N/m per attached particle], shape (world_count,)."""
+        self.world_attachment_enabled = wp.array(np.ones(model.world_count, dtype=np.int32), device=device)
+        """1 where a world's attachments act, 0 once released; shape (world_count,)."""
+        self.world_active = wp.array(np.ones(model.world_count, dtype=np.int32), device=device)
+        """1 where a world is integrated, 0 where it is frozen (converged or exploded); (world_count,)."""
+        self.collider: BodyCollider | None = None
+        """Body collider (positions interpolated per substep by the driver), or None."""
+        self._model = model
+
+    def set_attachment_targets(self, targets: np.ndarray) -> None:
+        """Set attachment target positions [m], shape (attachment_count, 3)."""
+        targets = np.asarray(targets, dtype=np.float32)
+        expected = (self._model.attachment_count, 3)
+        if targets.shape != expected:
+            raise ValueError(f"attachment targets must have shape {expected} (got {targets.shape})")
+        if not np.all(np.isfinite(targets)):
+            raise ValueError("attachment targets must be finite (got NaN or inf)")
+        if self._model.attachment_count:
+            self.attachment_target.assign(targets)
+
+    def release_attachments(self, worlds: np.ndarray | list[int] | None = None) -> None:
+        """Switch attachments off for ``worlds`` (all worlds when None)."""
+        enabled = self.world_attachment_enabled.numpy()
+        enabled[self._world_index(worlds)] = 0
+        self.world_attachment_enabled.assign(enabled)
+
+    def enable_attachments(self, worlds: np.ndarray | list[int] | None = None) -> None:
+        """Switch attachments back on for ``worlds`` (all worlds when None)."""
+        enabled = self.world_attachment_enabled.numpy()
+        enabled[self._world_index(worlds)] = 1
+        self.world_attachment_enabled.assign(enabled)
+
+    def _world_index(self, worlds: Any) -> np.ndarray:
+        count = self._model.world_count
+        if worlds is None:
+            return np.arange(count)
+        index = np.asarray(worlds, dtype=np.int64).reshape(-1)
+        if index.size and (index.min() < 0 or index.max() >= count):
+            raise ValueError(f"worlds must be indices in [0, {count}) (got {index.tolist()})")
+        return index
+
+
+class ClothModel:
+    """Static cloth description for ``world_count`` worlds, created by ``ClothBuilder.finalize``.
+
+    Arrays (device ``device``):
+
+    * ``particle_q_rest`` vec3 (particle_count,) rest/initial positions [m]
+    * ``particle_mass`` float (particle_count,) lumped masses [kg]
+    * ``particle_inv_mass`` float (particle_count,) inverse masses [1/kg], 0 for pinned
+    * ``particle_world`` int32 (particle_count,) world of each particle
+    * ``particle_radius`` float (particle_count,) half fabric thickness [m]
+    * ``particle_attachment`` int32 (particle_count,) attachment index or -1
+    * ``particle_adj_start`` int32 (particle_count + 1,), ``particle_adj_slot`` int32: CSR list
+      of the element slots (``3 t + k`` for triangle corners, ``3 T + 4 b + k`` for bending
+      corners) touching each particle, used by the Jacobi gather and mass-spring forces
+    * ``tri_indices`` int32 (tri_count, 3), ``tri_dm_inv`` mat22 (tri_count,) inverse rest
+      frame matrix [1/m], ``tri_area`` float [m^2], ``tri_compliance`` vec3 (1/(Y A), 1/(Y A),
+      1/(G A)) [1/N m], ``tri_world`` int32, ``tri_jacobi_scale`` float (1 / most elements at
+      a corner; the Jacobi multiplier share)
+    * ``bend_indices`` int32 (bend_count, 4) (opposite 0, opposite 1, edge 0, edge 1),
+      ``bend_rest_angle`` float [rad], ``bend_compliance`` float [1/(N m)], ``bend_world`` int32,
+      ``bend_jacobi_scale`` float
+    * ``world_damping`` float (world_count,) [1/s], ``world_friction`` float (world_count,)
+    * ``attachment_particle`` int32 (attachment_count,)
+
+    Host metadata: ``tri_colour_offsets`` / ``bend_colour_offsets`` (colour c spans
+    ``offsets[c]:offsets[c+1]``), ``world_particle_start`` / ``world_particle_count`` (numpy),
+    ``fabrics`` (per world), ``skinning_weights`` (per world, (V_w, J) or None).
+    """
+
+    def __init__(self) -> None:
+        self.device: wp.Device | None = None
+        self.world_count = 0
+        self.particle_count = 0
+        self.tri_count = 0
+        self.bend_count = 0
+        self.attachment_count = 0
+        self.features = Features()
+        self.gravity = (0.0, -9.81, 0.0)
+        """Gravity acceleration [m/s^2] (y is up)."""
+        self.default_attachment_stiffness = 1.0e3
+        self.fabrics: list[Fabric] = []
+        self.skinning_weights: list[np.ndarray | None] = []
+        self.world_particle_start = np.zeros(0, dtype=np.int64)
+        self.world_particle_count = np.zeros(0, dtype=np.int64)
+        self.world_faces: list[np.ndarray] = []
+        """Per world, the triangle indices local to the world (F_w, 3) as given to add_garment."""
+        self.tri_colour_offsets: list[int] = [0]
+        self.bend_colour_offsets: list[int] = [0]
+        self.particle_q_rest_np = np.zeros((0, 3), dtype=np.float32)
+        self.attachment_particle_np = np.zeros(0, dtype=np.int32)
+        self.tri_indices_np = np.zeros((0, 3), dtype=np.int32)
+        self.particle_mass_np = np.zeros(0, dtype=np.float32)
+        self.particle_inv_mass_np = np.zeros(0, dtype=np.float32)
+
+    @property
+    def particle_q_rest(self) -> np.ndarray:
+        """Rest/initial particle positions [m], numpy (particle_count, 3)."""
+        return self.particle_q_rest_np
+
+    def state(self) -> ClothState:
+        """A new state at the rest positions with zero velocity."""
+        q = wp.array(self.particle_q_rest_np, dtype=wp.vec3, device=self.device)
+        qd = wp.zeros(self.particle_count, dtype=wp.vec3, device=self.device)
+        return ClothState(q, qd)
+
+    def control(self) -> ClothControl:
+        """A new control with attachment targets at the rest positions, attachments enabled."""
+        return ClothControl(self)
+
+    def world_slice(self, world: int) -> slice:
+        """Particle index range of ``world``."""
+        if not 0 <= world < self.world_count:
+            raise ValueError(f"world must be in [0, {self.world_count}) (got {world})")
+        start = int(self.world_particle_start[world])
+        return slice(start, start + int(self.world_particle_count[world]))

@@ -1,0 +1,283 @@
+"""Quasi-static driver: steps all worlds frame by frame until each one comes to rest.
+
+Per frame, for every substep ``s`` the body mesh is moved to fraction ``(s + 1) / substeps`` of
+its motion from the previous to the target pose (one refit for all worlds), then the solver
+advances one substep.  After the frame a per-world check decides:
+
+* EXPLODED: a non-finite position/velocity, a speed above ``explosion_speed`` or a stretch
+  ratio above ``explosion_stretch``; the world is frozen (no longer integrated) and the
+  others continue untouched (no kernel mixes worlds).
+* CONVERGED: max particle speed below ``tolerance`` for ``patience`` consecutive frames; frozen.
+* MAX_STEPS: still moving after ``max_frames`` frames; frozen.
+
+On CUDA the whole frame (substeps, body refits, metrics) is captured once as a CUDA graph and
+replayed; on CPU it runs eagerly because Warp's CPU backend executes launches synchronously and
+graph replay would save no launch overhead there.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+
+import numpy as np
+import warp as wp
+
+from simulate.cloth.model import ClothModel
+from simulate.contact.body_collider import BodyCollider
+from simulate.solvers import common_kernels as ck
+from simulate.solvers import make_solver
+
+__all__ = ["QuasiStaticSimulator", "SimSettings", "WorldStatus"]
+
+
+class WorldStatus(enum.IntEnum):
+    """Per-world outcome of quasi-static stepping."""
+
+    RUNNING = 0
+    CONVERGED = 1
+    MAX_STEPS = 2
+    EXPLODED = 3
+
+
+@dataclasses.dataclass
+class SimSettings:
+    """Time stepping and convergence settings (SI units)."""
+
+    frame_dt: float = 1.0 / 60.0
+    """Frame duration [s]; the body moves from its previous to its target pose in one frame."""
+    substeps: int | None = 10
+    """Substeps per frame; None = solver's choice (mass-spring: from its stable time step)."""
+    iterations: int = 10
+    """XPBD iterations per substep."""
+    xpbd_mode: str = "gauss_seidel"
+    """XPBD sweep: "gauss_seidel" (graph colouring) or "jacobi"."""
+    damping: float = 1.0
+    """Velocity damping rate [1/s] added to each fabric's damping (speeds up settling)."""
+    tolerance: float = 0.01
+    """Convergence: max particle speed [m/s] ..."""
+    patience: int = 5
+    """... below tolerance for this many consecutive frames."""
+    max_frames: int = 600
+    """Frames after which a still-moving world is marked MAX_STEPS."""
+    explosion_speed: float = 50.0
+    """A particle faster than this [m/s] marks its world EXPLODED."""
+    explosion_stretch: float = 3.0
+    """A triangle stretched beyond this ratio [-] marks its world EXPLODED."""
+    use_cuda_graph: bool = True
+    """Capture and replay the frame as a CUDA graph on CUDA devices."""
+
+    def __post_init__(self) -> None:
+        checks = {
+            "frame_dt": self.frame_dt > 0.0,
+            "substeps": self.substeps is None or (int(self.substeps) == self.substeps and self.substeps >= 1),
+            "iterations": int(self.iterations) == self.iterations and self.iterations >= 1,
+            "damping": self.damping >= 0.0,
+            "tolerance": self.tolerance > 0.0,
+            "patience": int(self.patience) == self.patience and self.patience >= 1,
+            "max_frames": int(self.max_frames) == self.max_frames and self.max_frames >= 1,
+            "explosion_speed": self.explosion_speed > 0.0,
+            "explosion_stretch": self.explosion_stretch > 1.0,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"SimSettings.{name} is invalid (got {getattr(self, name)!r}); see its docstring")
+
+
+class QuasiStaticSimulator:
+    """Relaxes every world of a ClothModel on its body, with per-world status and freezing."""
+
+    def __init__(
+        self,
+        model: ClothModel,
+        collider: BodyCollider | None,
+        *,
+        solver: str = "xpbd",
+        settings: SimSettings | None = None,
+        solver_options: dict | None = None,
+    ) -> None:
+        """
+        Args:
+            model: cloth model (one garment per world).
+            collider: body collider with ``model.world_count`` worlds, or None (no body).
+            solver: "xpbd" or "mass_spring".
+            settings: stepping and convergence settings.
+            solver_options: extra keyword options for the solver class.
+        """
+        self.model = model
+        self.settings = settings or SimSettings()
+        s = self.settings
+        if collider is not None and collider.world_count != model.world_count:
+            raise ValueError(f"collider has {collider.world_count} worlds but the model has {model.world_count}")
+        if collider is not None and collider.device != model.device:
+            raise ValueError(f"collider is on {collider.device} but the model is on {model.device}")
+        self.collider = collider
+        body_contact = bool(model.features.body_contact and collider is not None)
+        opts = dict(solver_options or {})
+        opts.setdefault("body_contact", body_contact)
+        opts.setdefault("extra_damping", s.damping)
+        if solver == "xpbd":
+            opts.setdefault("iterations", s.iterations)
+            opts.setdefault("mode", s.xpbd_mode)
+        self.solver = make_solver(solver, model, **opts)
+        if s.substeps is None:
+            self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10
+        else:
+            self.substeps = int(s.substeps)
+        self.dt = s.frame_dt / self.substeps
+        """Substep length [s]."""
+        if collider is not None:
+            collider.motion_scale = 1.0 / self.substeps
+        self.state_0 = model.state()
+        self.state_1 = model.state()
+        self.control = model.control()
+        self.control.collider = collider
+        w = model.world_count
+        dev = model.device
+        self.world_max_speed = wp.zeros(w, dtype=float, device=dev)
+        self.world_bad = wp.zeros(w, dtype=wp.int32, device=dev)
+        self.world_max_stretch = wp.zeros(w, dtype=float, device=dev)
+        self.status = np.full(w, WorldStatus.RUNNING, dtype=np.int8)
+        """Per-world WorldStatus values, shape (world_count,)."""
+        self.world_frames = np.zeros(w, dtype=np.int64)
+        """Frames each world has been stepped since its last target, shape (world_count,)."""
+        self._calm = np.zeros(w, dtype=np.int64)
+        self._history: list[np.ndarray] = []
+        self._active_host = np.ones(w, dtype=np.int32)
+        self.frame_count = 0
+        self._graph = None
+        self._use_graph = bool(s.use_cuda_graph and wp.get_device(dev).is_cuda)
+
+    # ----------------------------------------------------------------- stepping
+    def _simulate_frame(self) -> None:
+        """Substeps of one frame plus the metric kernels (graph-capturable: no allocation)."""
+        m = self.model
+        for sub in range(self.substeps):
+            if self.collider is not None:
+                self.collider.update((sub + 1) / self.substeps)
+            self.solver.step(self.state_0, self.state_1, self.control, self.dt)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+        if self.substeps % 2 == 1:
+            # Keep the frame's result in the buffer it started from, so a replayed graph chains.
+            self.state_1.assign(self.state_0)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+        if self.collider is not None:
+            self.collider.finish_frame()
+        self.world_max_speed.zero_()
+        self.world_bad.zero_()
+        self.world_max_stretch.zero_()
+        wp.launch(ck.measure_particles, dim=m.particle_count,
+                  inputs=[m.particle_world, self.control.world_active, self.state_0.particle_qd,
+                          self.state_0.particle_q],
+                  outputs=[self.world_max_speed, self.world_bad], device=m.device)
+        wp.launch(ck.measure_triangles, dim=m.tri_count,
+                  inputs=[m.tri_indices, m.tri_dm_inv, m.tri_world, self.control.world_active,
+                          self.state_0.particle_q],
+                  outputs=[self.world_max_stretch], device=m.device)
+
+    def _sync_active(self) -> None:
+        active = (self.status == WorldStatus.RUNNING).astype(np.int32)
+        if not np.array_equal(active, self._active_host):
+            self.control.world_active.assign(active)
+            self._active_host = active
+
+    def step_frame(self) -> np.ndarray:
+        """Advance every RUNNING world by one frame; returns the per-world status array."""
+        self._sync_active()
+        running = self.status == WorldStatus.RUNNING
+        if self._use_graph:
+            if self._graph is None:
+                # The first frame runs eagerly so every kernel is compiled and loaded before capture.
+                self._simulate_frame()
+                with wp.ScopedCapture(device=self.model.device) as capture:
+                    self._simulate_frame()
+                self._graph = capture.graph
+                # Capture recorded but did not execute the second frame's work.
+            else:
+                wp.capture_launch(self._graph)
+        else:
+            self._simulate_frame()
+        self.frame_count += 1
+        speed = self.world_max_speed.numpy()
+        bad = self.world_bad.numpy()
+        stretch = self.world_max_stretch.numpy()
+        s = self.settings
+        residual = np.where(running, speed, np.nan)
+        self._history.append(residual)
+        self.world_frames[running] += 1
+        exploded = running & ((bad != 0) | (speed > s.explosion_speed) | (stretch > s.explosion_stretch))
+        calm = running & ~exploded & (speed < s.tolerance)
+        self._calm = np.where(calm, self._calm + 1, np.where(running, 0, self._calm))
+        self.status[exploded] = WorldStatus.EXPLODED
+        self.status[running & ~exploded & (self._calm >= s.patience)] = WorldStatus.CONVERGED
+        timeout = (self.status == WorldStatus.RUNNING) & (self.world_frames >= s.max_frames)
+        self.status[timeout] = WorldStatus.MAX_STEPS
+        return self.status.copy()
+
+    def relax(self, max_frames: int | None = None) -> np.ndarray:
+        """Step until no world is RUNNING (or ``max_frames`` frames this call; the rest get MAX_STEPS).
+
+        Returns:
+            per-world WorldStatus values, shape (world_count,).
+        """
+        budget = self.settings.max_frames if max_frames is None else int(max_frames)
+        if budget < 1:
+            raise ValueError(f"max_frames must be >= 1 (got {max_frames!r})")
+        for _ in range(budget):
+            if not (self.status == WorldStatus.RUNNING).any():
+                break
+            self.step_frame()
+        self.status[self.status == WorldStatus.RUNNING] = WorldStatus.MAX_STEPS
+        return self.status.copy()
+
+    # ----------------------------------------------------------------- poses and state
+    def set_body_target(self, vertices: np.ndarray, *, reset_velocities: bool = False) -> None:
+        """Body pose at the end of the next frame [m] (W, Vb, 3); non-exploded worlds run again."""
+        if self.collider is None:
+            raise ValueError("set_body_target needs a collider (the simulator was built with collider=None)")
+        self.collider.set_target(vertices)
+        self.restart(reset_velocities=reset_velocities)
+
+    def restart(self, *, reset_velocities: bool = False) -> None:
+        """Mark every non-exploded world RUNNING again (frame counters and calm counters reset)."""
+        keep = self.status != WorldStatus.EXPLODED
+        self.status[keep] = WorldStatus.RUNNING
+        self.world_frames[keep] = 0
+        self._calm[keep] = 0
+        if reset_velocities:
+            self.state_0.particle_qd.zero_()
+
+    def positions(self) -> np.ndarray:
+        """Particle positions [m] of all worlds, shape (particle_count, 3)."""
+        return self.state_0.particle_q.numpy()
+
+    def velocities(self) -> np.ndarray:
+        """Particle velocities [m/s], shape (particle_count, 3)."""
+        return self.state_0.particle_qd.numpy()
+
+    def world_positions(self, world: int) -> np.ndarray:
+        """Positions [m] of one world's particles, shape (V_w, 3)."""
+        return self.positions()[self.model.world_slice(world)]
+
+    def set_positions(self, positions: np.ndarray, *, world: int | None = None) -> None:
+        """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3)); zeroes their velocities."""
+        q = self.positions()
+        qd = self.velocities()
+        sl = slice(None) if world is None else self.model.world_slice(world)
+        target = q[sl]
+        pos = np.asarray(positions, dtype=np.float32)
+        if pos.shape != target.shape:
+            raise ValueError(f"positions must have shape {target.shape} (got {pos.shape})")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("positions must be finite (got NaN or inf)")
+        q[sl] = pos
+        qd[sl] = 0.0
+        self.state_0.particle_q.assign(q)
+        self.state_0.particle_qd.assign(qd)
+
+    @property
+    def residual_history(self) -> np.ndarray:
+        """Max particle speed [m/s] per frame and world (NaN where the world was frozen), (frames, W)."""
+        if not self._history:
+            return np.zeros((0, self.model.world_count), dtype=np.float32)
+        return np.stack(self._history)

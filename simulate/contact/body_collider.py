@@ -1,0 +1,162 @@
+"""BodyCollider: the body of every world as one Warp mesh, interpolated per substep."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from simulate.contact import kernels
+
+__all__ = ["BodyCollider"]
+
+
+class BodyCollider:
+    """Body meshes of ``world_count`` worlds packed into one ``wp.Mesh``.
+
+    World ``w``'s body is shifted by ``world_offset[w]`` (a cell of a 3-D grid, so coordinates
+    stay small and float32 keeps sub-micrometre resolution); particles of world ``w`` query
+    the mesh at their position plus the same offset, with a maximum distance far below the
+    cell spacing, so one BVH refit and one query launch serve every world.
+
+    Body motion: ``set_target`` sets the pose at the end of the next frame; the driver calls
+    ``update(alpha)`` before each substep (linear interpolation between the frame's start and
+    end pose, then one refit) and ``finish_frame()`` after the last one.
+    """
+
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        *,
+        device: wp.context.Devicelike = None,
+        thickness: float = 2.0e-3,
+        margin: float = 1.0e-2,
+        world_count: int | None = None,
+    ) -> None:
+        """
+        Args:
+            vertices: body vertices [m], shape (W, Vb, 3), or (Vb, 3) shared by ``world_count`` worlds.
+            faces: triangles, shape (Fb, 3); any subset of the body's faces (unreferenced
+                vertices are dropped internally, see ``vertex_map``).
+            device: Warp device.
+            thickness: contact distance kept between the body surface and the cloth [m]
+                (half the fabric thickness is added per particle).
+            margin: extra search distance beyond the contact distance when contact planes are
+                found once per substep [m]; must exceed how far cloth moves in one substep.
+            world_count: number of worlds when ``vertices`` is (Vb, 3) (default 1).
+        """
+        verts = np.asarray(vertices, dtype=np.float64)
+        if verts.ndim == 2:
+            verts = np.broadcast_to(verts, (world_count or 1,) + verts.shape)
+        elif world_count is not None and verts.ndim == 3 and verts.shape[0] != world_count:
+            raise ValueError(f"vertices has {verts.shape[0]} worlds but world_count={world_count}")
+        if verts.ndim != 3 or verts.shape[2] != 3 or verts.shape[1] < 3 or verts.shape[0] < 1:
+            raise ValueError(f"vertices must have shape (W, Vb, 3) or (Vb, 3) (got {np.shape(vertices)})")
+        if not np.all(np.isfinite(verts)):
+            raise ValueError("vertices must be finite (got NaN or inf)")
+        tris = np.asarray(faces)
+        if tris.ndim != 2 or tris.shape[1] != 3 or tris.shape[0] < 1 or not np.issubdtype(tris.dtype, np.integer):
+            raise ValueError(f"faces must be an integer array of shape (Fb, 3) (got {tris.shape}, {tris.dtype})")
+        if tris.min() < 0 or tris.max() >= verts.shape[1]:
+            raise ValueError(f"faces index range [{tris.min()}, {tris.max()}] outside [0, {verts.shape[1]})")
+        for name, value in (("thickness", thickness), ("margin", margin)):
+            if not (math.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0 [m] (got {value!r})")
+        self.device = wp.get_device(device)
+        self.thickness = float(thickness)
+        self.margin = float(margin)
+        self.world_count = int(verts.shape[0])
+        self.source_vertex_count = int(verts.shape[1])
+        self.vertex_map, local = np.unique(tris.reshape(-1), return_inverse=True)
+        """Indices of the given vertices kept in the mesh (those referenced by ``faces``)."""
+        self.faces = local.reshape(-1, 3).astype(np.int32)
+        """Faces in compact vertex numbering, shape (Fb, 3)."""
+        self.vertex_count = len(self.vertex_map)
+        compact = verts[:, self.vertex_map]  # (W, Vk, 3)
+
+        # World cells: a cube grid with spacing well above body extent + cloth excursion.
+        extent = float(np.max(compact.max(axis=1) - compact.min(axis=1)))
+        self.world_spacing = 3.0 * extent + 2.0
+        n = max(1, math.ceil(round(self.world_count ** (1.0 / 3.0), 9)))
+        w = np.arange(self.world_count)
+        cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1).astype(np.float64)
+        self.world_offset_np = (cells * self.world_spacing).astype(np.float32)
+        self.world_offset = wp.array(self.world_offset_np, dtype=wp.vec3, device=self.device)
+        """Offset of each world's cell [m], shape (world_count,)."""
+
+        self.vertex_world = wp.array(np.repeat(w, self.vertex_count).astype(np.int32), device=self.device)
+        flat = compact.reshape(-1, 3).astype(np.float32)
+        self.pose_start = wp.array(flat, dtype=wp.vec3, device=self.device)
+        """Body positions at the start of the current frame [m], shape (W * Vk,)."""
+        self.pose_end = wp.array(flat, dtype=wp.vec3, device=self.device)
+        """Body positions at the end of the current frame [m], shape (W * Vk,)."""
+        indices = (self.faces[None, :, :] + (w * self.vertex_count)[:, None, None]).astype(np.int32)
+        self.mesh_indices = wp.array(indices.reshape(-1), dtype=wp.int32, device=self.device)
+        points = wp.array(flat + np.repeat(self.world_offset_np, self.vertex_count, axis=0),
+                          dtype=wp.vec3, device=self.device)
+        self.mesh = wp.Mesh(points=points, indices=self.mesh_indices)
+        self.motion_scale = 0.0
+        """Fraction of the frame's body motion covered by one substep (set by the driver)."""
+
+    # ---------------------------------------------------------------- poses
+    def _compact(self, vertices: np.ndarray) -> np.ndarray:
+        verts = np.asarray(vertices, dtype=np.float32)
+        if verts.ndim == 2:
+            verts = np.broadcast_to(verts, (self.world_count,) + verts.shape)
+        if verts.ndim != 3 or verts.shape[0] != self.world_count or verts.shape[2] != 3 or \
+                verts.shape[1] not in (self.source_vertex_count, self.vertex_count):
+            raise ValueError(f"body vertices must have shape ({self.world_count}, {self.source_vertex_count} or "
+                             f"{self.vertex_count}, 3) (got {np.shape(vertices)})")
+        if not np.all(np.isfinite(verts)):
+            raise ValueError("body vertices must be finite (got NaN or inf)")
+        if verts.shape[1] == self.source_vertex_count:
+            verts = verts[:, self.vertex_map]
+        return np.ascontiguousarray(verts.reshape(-1, 3))
+
+    def set_target(self, vertices: np.ndarray) -> None:
+        """Body pose at the end of the next frame [m], shape (W, Vb, 3) or (Vb, 3) for all worlds."""
+        self.pose_end.assign(self._compact(vertices))
+
+    def set_pose(self, vertices: np.ndarray) -> None:
+        """Place the body at ``vertices`` [m] now (no interpolation), shape as in ``set_target``."""
+        flat = self._compact(vertices)
+        self.pose_start.assign(flat)
+        self.pose_end.assign(flat)
+        self.update(1.0)
+
+    def update(self, alpha: float) -> None:
+        """Move the mesh to fraction ``alpha`` in [0, 1] of the frame's motion and refit the BVH."""
+        wp.launch(kernels.interpolate_body_points, dim=len(self.pose_start),
+                  inputs=[self.pose_start, self.pose_end, self.vertex_world, self.world_offset, float(alpha)],
+                  outputs=[self.mesh.points], device=self.device)
+        self.mesh.refit()
+
+    def finish_frame(self) -> None:
+        """The end pose becomes the next frame's start pose."""
+        wp.copy(self.pose_start, self.pose_end)
+
+    # ---------------------------------------------------------------- queries
+    def signed_distance(self, points: np.ndarray | wp.array, point_world: np.ndarray | wp.array, *,
+                        max_dist: float = 1.0) -> np.ndarray:
+        """Signed distance [m] of points to their world's body at its current pose.
+
+        Args:
+            points: (N, 3) [m]; point_world: (N,) world index per point.
+            max_dist: search radius [m]; points farther away report ``max_dist``.
+        Returns:
+            (N,) float32, negative inside the body.
+        """
+        pts = points if isinstance(points, wp.array) else wp.array(np.asarray(points, np.float32), dtype=wp.vec3,
+                                                                    device=self.device)
+        pw = point_world if isinstance(point_world, wp.array) else wp.array(
+            np.asarray(point_world, np.int32), dtype=wp.int32, device=self.device)
+        if len(pts) != len(pw):
+            raise ValueError(f"points ({len(pts)}) and point_world ({len(pw)}) must have the same length")
+        dist = wp.zeros(len(pts), dtype=float, device=self.device)
+        normal = wp.zeros(len(pts), dtype=wp.vec3, device=self.device)
+        wp.launch(kernels.query_signed_distance, dim=len(pts),
+                  inputs=[self.mesh.id, self.world_offset, pts, pw, float(max_dist)], outputs=[dist, normal],
+                  device=self.device)
+        return dist.numpy()

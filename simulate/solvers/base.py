@@ -1,0 +1,81 @@
+"""Shared parts of the cloth solvers: buffers and launches for contact, friction, velocities."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from simulate.cloth.model import ClothControl, ClothModel, ClothState
+from simulate.solvers import common_kernels as ck
+
+__all__ = ["SolverBase"]
+
+
+class SolverBase:
+    """Allocates per-particle contact buffers once; subclasses implement ``step``."""
+
+    def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0) -> None:
+        """
+        Args:
+            model: the cloth model.
+            body_contact: contact with ``control.collider``; default ``model.features.body_contact``.
+            extra_damping: velocity damping rate added to every fabric's damping [1/s].
+        """
+        if not (np.isfinite(extra_damping) and extra_damping >= 0.0):
+            raise ValueError(f"extra_damping must be a finite number >= 0 [1/s] (got {extra_damping!r})")
+        self.model = model
+        self.device = model.device
+        feats = model.features
+        self.body_contact = feats.body_contact if body_contact is None else bool(body_contact)
+        self.friction = bool(feats.friction and self.body_contact)
+        self.attachments = bool(feats.attachments and model.attachment_count > 0)
+        self.extra_damping = float(extra_damping)
+        self.gravity = wp.vec3(*model.gravity)
+        n = max(model.particle_count, 1)
+        dev = self.device
+        self.contact_active = wp.zeros(n, dtype=wp.int32, device=dev)
+        """1 where a particle has a contact plane this substep, shape (particle_count,)."""
+        self.contact_normal = wp.zeros(n, dtype=wp.vec3, device=dev)
+        """Outward body normal of the contact plane, shape (particle_count,)."""
+        self.contact_offset = wp.zeros(n, dtype=float, device=dev)
+        """Plane offset [m]: the constraint is dot(normal, x) >= offset."""
+        self.contact_motion = wp.zeros(n, dtype=wp.vec3, device=dev)
+        """Body displacement at the contact point during this substep [m]."""
+        self.contact_depth = wp.zeros(n, dtype=float, device=dev)
+        """Normal correction applied by the contact this substep [m] (friction budget)."""
+        self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
+        self._finalize_kernel = ck.make_finalize_kernel(self.friction)
+
+    def _check(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
+        if not dt > 0.0:
+            raise ValueError(f"dt must be > 0 [s] (got {dt!r})")
+        if self.body_contact and control.collider is None:
+            raise ValueError("body_contact is on but control.collider is None: set control.collider to a "
+                             "BodyCollider or build the solver with body_contact=False")
+        if state_in is state_out:
+            raise ValueError("state_in and state_out must be different ClothState buffers (double buffering)")
+
+    def detect_contacts(self, x: wp.array, control: ClothControl) -> None:
+        """Find one contact plane per particle at positions ``x`` (skipped without body contact)."""
+        if not self.body_contact:
+            return
+        from simulate.contact import kernels as contact_kernels
+
+        col = control.collider
+        m = self.model
+        wp.launch(contact_kernels.detect_body_contacts, dim=m.particle_count,
+                  inputs=[col.mesh.id, col.mesh_indices, col.pose_start, col.pose_end, col.world_offset,
+                          float(col.motion_scale), float(col.thickness), float(col.margin),
+                          m.particle_world, m.particle_radius, control.world_active, x],
+                  outputs=[self.contact_active, self.contact_normal, self.contact_offset, self.contact_motion,
+                           self.contact_depth], device=self.device)
+
+    def finalize_substep(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
+        """Friction on the substep displacement, then velocities with damping into ``state_out``."""
+        m = self.model
+        wp.launch(self._finalize_kernel, dim=m.particle_count,
+                  inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
+                          m.world_friction, self.extra_damping, float(dt), self.contact_active, self.contact_normal,
+                          self.contact_motion, self.contact_depth, state_in.particle_q, state_in.particle_qd,
+                          state_out.particle_q],
+                  outputs=[state_out.particle_qd], device=self.device)
