@@ -173,3 +173,18 @@ def test_pose_mask_keeps_moving_joints_and_ancestors() -> None:
         pose_feature_indices(np.array([1]), 12, posable_joints=np.array([0, 2, 3, 5]))
     with pytest.raises(ValueError, match="multiple of 3"):
         pose_feature_indices(joints, 10)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_forward_each_matches_each_mlp_and_applies_dropout_in_training(device: str) -> None:
+    mlps = [m.to(device) for m in _mlps(3)]
+    stacked = HighFrequencyPrototypes.from_mlps(mlps).eval()
+    pose = torch.randn(3, 5, POSE_SIZE, device=device)
+    empty = torch.zeros(5, 0, device=device)
+    with torch.no_grad():
+        each = torch.stack([m(pose[k], empty, empty) for k, m in enumerate(mlps)])
+        torch.testing.assert_close(stacked.forward_each(pose), each, atol=ATOL_FLOAT32_M, rtol=1e-5)
+        stacked.train()
+        assert not torch.allclose(stacked.forward_each(pose), each, atol=1e-4), "dropout inactive in train mode"
+    with pytest.raises(ValueError, match="pose must have shape"):
+        stacked.forward_each(pose[:2])

@@ -1,9 +1,10 @@
-"""K prototype high-frequency models D_HF_k(pose), evaluated together.
+"""K prototype high-frequency models D_HF_k(pose), trained and evaluated together.
 
-Each prototype style-shape has its own pose MLP (trained alone, see
-:func:`learn.tailornet.train.train_hf`). For inference the K MLPs are stacked into
-batched weight tensors so all prototypes run in three batched contractions instead of a
-Python loop over K; the mixture sum is folded into the last layer:
+Each prototype style-shape has its own pose MLP, trained on that pair's frames only (see
+:func:`learn.tailornet.train.train_hf`). The K MLPs live in stacked weight tensors so
+all prototypes run in three batched contractions instead of a Python loop over K, in
+training (each prototype on its own batch, :meth:`HighFrequencyPrototypes.forward_each`)
+and at inference, where the mixture sum is folded into the last layer:
 sum_k w_k (h_k W3_k + b3_k) = [w_1 h_1, ..., w_K h_K] @ [W3_1; ...; W3_K] + w @ b3,
 one (B, K H) @ (K H, 3V) matmul.
 """
@@ -33,17 +34,29 @@ def high_frequency_model(
 
 
 class HighFrequencyPrototypes(nn.Module):
-    """K stacked pose MLPs (inference only: dropout is off; train them one by one).
+    """K stacked pose MLPs.
+
+    :meth:`forward` mixes the K predictions with kernel weights (inference);
+    :meth:`forward_each` gives prototype k its own batch of poses (training all K at
+    once, with dropout in train mode, see :func:`learn.tailornet.train.train_hf`).
 
     Args:
         prototype_count: K.
         vertex_count: V.
         pose_indices: pose entries read by every prototype.
         hidden_size: hidden width H of each MLP.
+        dropout: dropout after the first hidden layer, applied by :meth:`forward_each`
+            in train mode.
     """
 
     def __init__(
-        self, prototype_count: int, vertex_count: int, pose_indices: Sequence[int], *, hidden_size: int = 1024
+        self,
+        prototype_count: int,
+        vertex_count: int,
+        pose_indices: Sequence[int],
+        *,
+        hidden_size: int = 1024,
+        dropout: float = 0.2,
     ) -> None:
         super().__init__()
         if prototype_count < 1:
@@ -55,6 +68,7 @@ class HighFrequencyPrototypes(nn.Module):
         self.prototype_count = int(k)
         self.vertex_count = int(vertex_count)
         self.hidden_size = int(h)
+        self.dropout = float(dropout)
         self.register_buffer("pose_indices", pose_index)
         self.weight1 = nn.Parameter(torch.zeros(k, p, h))
         self.bias1 = nn.Parameter(torch.zeros(k, h))
@@ -70,6 +84,7 @@ class HighFrequencyPrototypes(nn.Module):
             "vertex_count": self.vertex_count,
             "pose_indices": self.pose_indices.tolist(),
             "hidden_size": self.hidden_size,
+            "dropout": self.dropout,
         }
 
     @classmethod
@@ -90,7 +105,8 @@ class HighFrequencyPrototypes(nn.Module):
                     f"prototype model {i} differs from model 0 in inputs, width or vertex count"
                 )
         stacked = cls(
-            len(models), first.vertex_count, first.pose_indices.tolist(), hidden_size=first.mlp.hidden_size
+            len(models), first.vertex_count, first.pose_indices.tolist(), hidden_size=first.mlp.hidden_size,
+            dropout=first.mlp.dropout,
         )
         layers = [(m.mlp.layers[0], m.mlp.layers[3], m.mlp.layers[5]) for m in models]
         with torch.no_grad():
@@ -118,6 +134,23 @@ class HighFrequencyPrototypes(nn.Module):
         mixed = (h2 * weights[..., None]).reshape(pose.shape[0], -1)  # (B, K H)
         out = mixed @ self.weight3 + weights @ self.bias3  # (B, 3V)
         return out.reshape(-1, self.vertex_count, 3)
+
+    def forward_each(self, pose: torch.Tensor) -> torch.Tensor:
+        """Prototype k on its own poses: pose (K, b, P) -> [m], (K, b, V, 3).
+
+        Dropout (p = ``dropout``) after the first hidden layer in train mode, as in
+        :class:`learn.common.mlp.MLP`.
+        """
+        k = self.prototype_count
+        if pose.ndim != 3 or pose.shape[0] != k:
+            raise ValueError(f"pose must have shape ({k}, b, P), got {tuple(pose.shape)}")
+        x = pose[..., self.pose_indices]  # (K, b, P')
+        h1 = torch.relu(torch.baddbmm(self.bias1[:, None, :], x, self.weight1))  # (K, b, H)
+        h1 = nn.functional.dropout(h1, p=self.dropout, training=self.training)
+        h2 = torch.relu(torch.baddbmm(self.bias2[:, None, :], h1, self.weight2))  # (K, b, H)
+        w3 = self.weight3.reshape(k, self.hidden_size, -1)  # (K, H, 3V)
+        out = torch.baddbmm(self.bias3[:, None, :], h2, w3)  # (K, b, 3V)
+        return out.reshape(k, pose.shape[1], self.vertex_count, 3)
 
     def forward_all(self, pose: torch.Tensor) -> torch.Tensor:
         """Every prototype's prediction: pose (B, P) -> [m], (B, K, V, 3)."""

@@ -17,9 +17,10 @@ from __future__ import annotations
 import copy
 import csv
 import hashlib
+import json
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -44,7 +45,10 @@ CHECKPOINT_FORMAT = 1
 # The authors' settings (REFERENCE.md): Adam, batch 32, L1 loss.
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "lf": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2},
-    "hf": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 800, "hidden_size": 1024, "dropout": 0.2},
+    "hf": {
+        "lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 800, "hidden_size": 1024, "dropout": 0.2,
+        "stacked": True,
+    },
     "shape_style": {"lr": 1e-3, "weight_decay": 1e-5, "batch_size": 32, "epochs": 400, "hidden_size": 128, "dropout": 0.2},
     "baseline": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2},
     "model": {
@@ -289,11 +293,13 @@ def load_checkpoint(path: str | os.PathLike[str], *, map_location: str | torch.d
     return torch.load(path, map_location=map_location, weights_only=False)
 
 
-def train_stage(
+EpochFn = Callable[[torch.nn.Module, torch.optim.Optimizer, torch.Generator], float]
+
+
+def run_epochs(
     stage: str,
-    model: DisplacementMLP,
-    data: FrameArrays,
-    target: np.ndarray,
+    model: torch.nn.Module,
+    epoch_fn: EpochFn,
     *,
     run_dir: str | os.PathLike[str],
     hyperparameters: Mapping[str, Any],
@@ -301,27 +307,25 @@ def train_stage(
     device: str = "cpu",
     seed: int = 0,
     progress: bool = True,
-) -> DisplacementMLP:
-    """Train ``model`` to map (data.pose, data.shape, data.style) to ``target`` (N, V, 3).
+) -> torch.nn.Module:
+    """The resumable epoch loop shared by every stage.
 
-    Resumes from ``<run_dir>/<stage>.pt`` when present (after checking the fingerprint and
-    the model configuration). Returns the trained model in eval mode.
+    ``epoch_fn(model, optimizer, generator)`` runs one epoch (shuffling with
+    ``generator``) and returns its mean training loss [m]. After each epoch the model,
+    optimizer, epoch count and RNG states go to ``<run_dir>/<stage>.pt`` and the loss to
+    ``<run_dir>/<stage>_loss.csv``; when the last epoch is reached ``<stage>.done`` (JSON)
+    is written. An existing checkpoint is resumed after checking the fingerprint and the
+    model configuration. Returns the model in eval mode.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = run_dir / f"{stage}.pt"
     log_path = run_dir / f"{stage}_loss.csv"
     epochs = int(hyperparameters["epochs"])
-    batch_size = int(hyperparameters["batch_size"])
-    if epochs < 0 or batch_size < 1:
-        raise ValueError(f"{stage}: epochs must be >= 0 and batch_size >= 1, got {epochs}, {batch_size}")
-    if target.shape != (data.frame_count, model.vertex_count, 3):
+    if epochs < 0 or int(hyperparameters["batch_size"]) < 1:
         raise ValueError(
-            f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
+            f"{stage}: epochs must be >= 0 and batch_size >= 1, got {epochs}, {hyperparameters['batch_size']}"
         )
-    if data.frame_count == 0:
-        raise ValueError(f"{stage}: no training frames")
-
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     model = model.to(device)
@@ -344,11 +348,6 @@ def train_stage(
     if start_epoch > epochs:
         raise ValueError(f"{checkpoint_path} already holds {start_epoch} epochs, more than epochs={epochs}")
 
-    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
-    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
-    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
-    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
-
     # Keep the log consistent with the checkpoint: drop rows of epochs never checkpointed.
     rows: list[list[str]] = []
     if log_path.exists() and start_epoch > 0:
@@ -366,18 +365,7 @@ def train_stage(
     for epoch in bar:
         model.train()
         started = time.perf_counter()
-        order = torch.randperm(data.frame_count, generator=generator).to(device)
-        total, count = 0.0, 0
-        for begin in range(0, data.frame_count, batch_size):
-            batch = order[begin : begin + batch_size]
-            prediction = model(pose[batch], shape[batch], style[batch])
-            loss = l1_displacement_loss(prediction, target_t[batch])
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            total += float(loss.detach()) * batch.numel()
-            count += batch.numel()
-        mean_loss = total / count
+        mean_loss = epoch_fn(model, optimizer, generator)
         _atomic_save(
             {
                 "format": CHECKPOINT_FORMAT,
@@ -399,7 +387,117 @@ def train_stage(
             csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
         bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}")
     bar.close()
+    (run_dir / f"{stage}.done").write_text(json.dumps({"stage": stage, "epochs": epochs}))
     return model.eval()
+
+
+def train_stage(
+    stage: str,
+    model: DisplacementMLP,
+    data: FrameArrays,
+    target: np.ndarray,
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Any],
+    fingerprint: DatasetFingerprint | None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+) -> DisplacementMLP:
+    """Train ``model`` to map (data.pose, data.shape, data.style) to ``target`` (N, V, 3).
+
+    Mini-batches of ``batch_size`` frames in a fresh random order each epoch; see
+    :func:`run_epochs` for checkpoints, logs and resuming. Returns the model in eval mode.
+    """
+    if target.shape != (data.frame_count, model.vertex_count, 3):
+        raise ValueError(
+            f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
+        )
+    if data.frame_count == 0:
+        raise ValueError(f"{stage}: no training frames")
+    batch_size = int(hyperparameters["batch_size"])
+    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
+    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
+    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
+    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
+
+    def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        order = torch.randperm(data.frame_count, generator=generator).to(device)
+        total = torch.zeros((), device=device)
+        for begin in range(0, data.frame_count, batch_size):
+            batch = order[begin : begin + batch_size]
+            loss = l1_displacement_loss(net(pose[batch], shape[batch], style[batch]), target_t[batch])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += loss.detach() * batch.numel()
+        return float(total) / data.frame_count
+
+    return run_epochs(
+        stage, model, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
+        device=device, seed=seed, progress=progress,
+    )
+
+
+def train_stacked_prototypes(
+    model: HighFrequencyPrototypes,
+    data: FrameArrays,
+    target: np.ndarray,
+    frames_per_prototype: list[np.ndarray],
+    *,
+    run_dir: str | os.PathLike[str],
+    hyperparameters: Mapping[str, Any],
+    fingerprint: DatasetFingerprint | None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+    stage: str = "hf",
+) -> HighFrequencyPrototypes:
+    """Train the K prototype MLPs at once, each on its own frames (stage ``hf``).
+
+    Every step feeds each prototype a batch of ``batch_size`` of its own frames and
+    minimises the sum of the K L1 losses. Prototype k's parameters get gradients only
+    from its own loss and Adam (with its L2 weight decay) acts element-wise, so this
+    is K independent trainings run as batched matmuls. An epoch is
+    ceil(max_k n_k / batch_size) full batches per prototype, drawn from a per-prototype
+    random order repeated as needed (exactly one pass when all n_k are equal multiples
+    of the batch size, as with TailorNet's equal pose sets).
+    """
+    k = model.prototype_count
+    if len(frames_per_prototype) != k:
+        raise ValueError(f"frames_per_prototype must list {k} index arrays, got {len(frames_per_prototype)}")
+    counts = [int(np.asarray(f).size) for f in frames_per_prototype]
+    if min(counts) == 0:
+        raise ValueError(f"every prototype needs frames; counts per prototype: {counts}")
+    batch_size = int(hyperparameters["batch_size"])
+    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
+    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
+    frames = [torch.as_tensor(np.asarray(f), dtype=torch.int64) for f in frames_per_prototype]
+    steps = -(-max(counts) // batch_size)
+
+    def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        sequences = []
+        for idx in frames:
+            order = idx[torch.randperm(idx.numel(), generator=generator)]
+            repeats = -(-steps * batch_size // idx.numel())
+            sequences.append(order.repeat(repeats)[: steps * batch_size])
+        sequence = torch.stack(sequences).to(device)  # (K, steps * batch)
+        total = torch.zeros((), device=device)
+        for step in range(steps):
+            batch = sequence[:, step * batch_size : (step + 1) * batch_size]  # (K, b)
+            prediction = net.forward_each(pose[batch])  # (K, b, V, 3)
+            per_prototype = (prediction - target_t[batch]).abs().sum(-1).mean(dim=(1, 2))  # (K,)
+            loss = per_prototype.sum()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += per_prototype.detach().mean()
+        return float(total) / steps
+
+    return run_epochs(
+        stage, model, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
+        device=device, seed=seed, progress=progress,
+    )
 
 
 def _stage_hyper(hyper: Mapping[str, Any]) -> dict[str, Any]:
@@ -482,25 +580,44 @@ def train_hf(
     device: str = "cpu",
     seed: int = 0,
     progress: bool = True,
+    stacked: bool | None = None,
 ) -> HighFrequencyPrototypes:
     """Train one D_HF(pose) per prototype pair on that pair's frames, target D - D_LF.
 
-    Stages are named ``hf_00``, ``hf_01``, ... in prototype order; returns them stacked.
+    ``stacked`` (default: the ``hf.stacked`` hyper-parameter, True) trains all K at once
+    as one stage ``hf`` (:func:`train_stacked_prototypes`, far faster on a GPU);
+    otherwise one stage per prototype, ``hf_00``, ``hf_01``, ... Both start from the
+    same initial weights. Returns the K models stacked, in eval mode.
     """
     if data.low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     hyper = merged_hyperparameters(hyperparameters)
-    models = []
-    for k, pair in enumerate(np.asarray(prototype_pairs).reshape(-1)):
+    if stacked is None:
+        stacked = bool(hyper["hf"]["stacked"])
+    frames_per_prototype = []
+    for pair in np.asarray(prototype_pairs).reshape(-1):
         frames = np.flatnonzero(data.pair_id == pair)
         if frames.size == 0:
             raise ValueError(f"prototype pair {pair} has no frames in the training data")
-        subset = data.subset(frames)
-        torch.manual_seed(seed + 1 + k)  # deterministic initial weights
-        model = high_frequency_model(
-            data.vertex_count, pose_indices, hidden_size=int(hyper["hf"]["hidden_size"]),
-            dropout=float(hyper["hf"]["dropout"]),
+        frames_per_prototype.append(frames)
+    initial = []
+    for k in range(len(frames_per_prototype)):
+        torch.manual_seed(seed + 1 + k)  # deterministic initial weights, same in both modes
+        initial.append(
+            high_frequency_model(
+                data.vertex_count, pose_indices, hidden_size=int(hyper["hf"]["hidden_size"]),
+                dropout=float(hyper["hf"]["dropout"]),
+            )
         )
+    if stacked:
+        return train_stacked_prototypes(
+            HighFrequencyPrototypes.from_mlps(initial), data, data.displacements - data.low_frequency,
+            frames_per_prototype, run_dir=run_dir, hyperparameters=_stage_hyper(hyper["hf"]),
+            fingerprint=fingerprint, device=device, seed=seed + 1, progress=progress,
+        )
+    models = []
+    for k, (frames, model) in enumerate(zip(frames_per_prototype, initial)):
+        subset = data.subset(frames)
         models.append(
             train_stage(
                 f"hf_{k:02d}", model, subset, subset.displacements - subset.low_frequency, run_dir=run_dir,
@@ -579,8 +696,6 @@ def fit_tailornet(
     Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
     on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
     """
-    import json
-
     hyper = merged_hyperparameters(hyperparameters)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
