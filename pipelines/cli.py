@@ -14,6 +14,7 @@ import sys
 SUBCOMMAND_MODULES: list[tuple[str, str, str]] = [
     ("info", "pipelines.info", "versions, devices and kernel cache location"),
     ("body", "pipelines.body", "pose and shape a body, write OBJ/PLY and a PNG preview"),
+    ("generate-dataset", "pipelines.generate_dataset", "simulate a dataset spec into sharded HDF5 + manifest"),
     ("dataset", "data_manifest.cli", "validate, summarize and export generated datasets"),
 ]
 

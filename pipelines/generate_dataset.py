@@ -1,0 +1,298 @@
+"""``drape generate-dataset``: spec -> filtered, sharded HDF5 dataset + manifest.
+
+Stages: validate the spec; plan styles, shapes, pairs, poses and tasks
+(:mod:`pipelines.dataset_plan`); prepare the garment template and each style's
+canonical drape (cached under ``OUT/cache``); simulate the pending tasks in batches
+of ``simulation.worlds`` worlds (:func:`simulate.sequence.run_sequences`) on the
+local device or on a Ray cluster; filter every frame and write one shard per task
+(temporary name, renamed when complete); list each finished shard in the manifest
+at once (so a kill loses at most the shards in flight); audit a sample of kept
+frames against a much tighter solve; print a summary table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipelines.spec import load_spec, spec_hash, validate_spec
+
+#: Frame drop reasons, in the order they are tested (a frame is counted once).
+DROP_REASONS = ("nan", "not_converged", "distortion", "penetration", "self_intersection")
+
+
+def resolve_device(device: str) -> str:
+    """"auto" -> "cuda:0" when Warp sees a GPU, else "cpu"; "cuda" -> "cuda:0"."""
+    import warp as wp
+
+    if device == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if device.startswith("cuda") and wp.get_cuda_device_count() == 0:
+        raise ValueError(f"simulation.device is {device!r} but Warp finds no CUDA device; use auto or cpu")
+    return "cuda:0" if device == "cuda" else device
+
+
+def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any]) -> str | None:
+    """The first filter a frame fails (see :data:`DROP_REASONS`), or None to keep it."""
+    from simulate.cloth.quasi_static import WorldStatus
+
+    if status == WorldStatus.EXPLODED or not metrics["finite"]:
+        return "nan"
+    if filters["require_converged"] and status != WorldStatus.CONVERGED:
+        return "not_converged"
+    if metrics["area_ratio_min"] < 1.0 - filters["max_area_shrink"] or metrics["area_ratio_max"] > 1.0 + filters["max_area_growth"]:
+        return "distortion"
+    if metrics["penetration_fraction"] > filters["max_penetration_fraction"]:
+        return "penetration"
+    if metrics["self_intersections"] > filters["max_self_intersections"]:
+        return "self_intersection"
+    return None
+
+
+@dataclass
+class Context:
+    """Everything a worker needs, built once per process from the spec."""
+
+    spec: dict
+    device: str
+    body: Any
+    template: Any  # GarmentTemplate
+    template_dict: dict
+    body_faces: np.ndarray
+    plan: Any
+    style_rest: np.ndarray  # (n_styles, V, 3) cloth rest geometry per style
+    style_start: np.ndarray  # (n_styles, V, 3) canonical drape per style (neutral body)
+
+    @property
+    def tasks(self) -> dict:
+        return {t.task_id: t for t in self.plan.tasks}
+
+
+_CONTEXTS: dict[str, Context] = {}
+
+#: Body parts each garment type can touch (the rest is culled from the collider).
+CONTACT_PARTS = {"tshirt": ("torso", "arms"), "shirt": ("torso", "arms", "hands"), "pants": ("torso", "legs", "feet"),
+                 "shorts": ("torso", "legs"), "skirt": ("torso", "legs")}
+
+
+def sequence_settings(spec: dict):
+    from simulate.cloth.quasi_static import SimSettings
+    from simulate.sequence import SequenceSettings
+
+    s = spec["simulation"]
+    sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
+                      xpbd_mode=s["xpbd_mode"], tolerance=float(s["tolerance"]), patience=int(s["patience"]),
+                      max_frames=int(s["max_relax_frames"]))
+    return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
+                            interpolation_threshold=float(s["interpolation_threshold"]),
+                            min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
+                            friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]))
+
+
+def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:
+    """Loads the body, plans the dataset and prepares (or loads cached) garments."""
+    key = spec_hash(spec) + str(device)
+    if key in _CONTEXTS:
+        return _CONTEXTS[key]
+    from simulate.body import load_body_model
+    from simulate.garment.style import generate_garment
+    from simulate.garment.templates import make_template
+    from simulate.sequence import drape_static
+
+    from pipelines.dataset_plan import plan_dataset
+
+    device = resolve_device(device or spec["simulation"]["device"])
+    body = load_body_model(spec["body"]["backend"], path=spec["body"]["path"])
+    gtype = spec["garment"]["type"]
+    plan = plan_dataset(spec, body)
+    cache = out_dir / "cache" / f"garments-{spec_hash(spec)[:16]}.npz"
+    template = make_template(gtype, body, resolution=int(spec["garment"]["resolution"]))
+    body_faces = body.part_faces(CONTACT_PARTS[gtype])
+    if cache.is_file():
+        with np.load(cache) as z:
+            style_rest, style_start = z["style_rest"], z["style_start"]
+    else:
+        t0 = time.perf_counter()
+        style_rest = np.stack([generate_garment(gtype, s, body, template=template) for s in plan.styles]).astype(np.float32)
+        style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
+                                           poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
+                                           settings=sequence_settings(spec), device=device, fabric=spec["garment"]["fabric"])
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_suffix(".tmp.npz")
+        np.savez(tmp, style_rest=style_rest, style_start=style_start.astype(np.float32), status=status)
+        os.replace(tmp, cache)
+        log(f"prepared {len(style_rest)} style drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
+            f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
+    template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
+                     "body_vertex_index": template.body_vertex_index, "uv": template.uv}
+    ctx = Context(spec, device, body, template, template_dict, body_faces, plan, style_rest, style_start)
+    _CONTEXTS[key] = ctx
+    return ctx
+
+
+def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard: Callable[[Any], None] | None = None,
+                   on_progress: Callable[[int], None] | None = None) -> list[dict]:
+    """Simulates a batch of tasks as parallel worlds and writes their shards.
+
+    Returns the manifest records of the shards written (also passed to ``on_shard``
+    as soon as each shard is complete).
+    """
+    import torch
+
+    from data_manifest.shard import ShardWriter, shard_path
+    from simulate.body import inverse_lbs
+    from simulate.quality import QualityMeter
+    from simulate.sequence import SequenceTask, run_sequences
+
+    spec = ctx.spec
+    tasks = [ctx.tasks[t] for t in task_ids]
+    tmpl = ctx.template
+    meter = QualityMeter(tmpl.faces, tmpl.vertices, ctx.body.faces, ctx.body.vertex_count, device=ctx.device)
+    index = tmpl.body_vertex_index
+    on_body = index >= 0
+    writers, remaining, records = [], [], []
+    t_start = time.perf_counter()
+    for t in tasks:
+        task_dict = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
+                     "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
+                     "fabric": spec["garment"]["fabric"]}
+        writers.append(ShardWriter(shard_path(out_dir, t.task_id), template=ctx.template_dict, task=task_dict,
+                                   precision=spec["output"]["precision"], compression=spec["output"]["compression"]))
+        remaining.append(len(t.poses))
+    filters = spec["filters"]
+    weights = tmpl.skinning_weights
+
+    def record(frame) -> None:
+        t = tasks[frame.task]
+        writer = writers[frame.task]
+        x = np.asarray(frame.positions, np.float64)
+        metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"])
+        reason = drop_reason(metrics, frame.status, filters)
+        if reason is None:
+            unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]
+            base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
+            metrics = dict(metrics, status=float(frame.status), frames=float(frame.frames))
+            writer.write_frame(x, unposed - base, t.poses[frame.key], metrics, frame_index=int(t.pose_ids[frame.key]))
+        else:
+            writer.record_dropped(reason)
+        remaining[frame.task] -= 1
+        if remaining[frame.task] == 0:
+            writer.timings["wall_s"] = time.perf_counter() - t_start
+            writer.close()
+            records.append(writer.record)
+            if on_shard is not None:
+                on_shard(writer.record)
+
+    seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
+                              shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
+    try:
+        with torch.no_grad():
+            run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
+                          device=ctx.device, on_frame=record, on_progress=on_progress)
+    except BaseException:
+        for w in writers:
+            if w.record is None:
+                w.abort()
+        raise
+    return [r if isinstance(r, dict) else r.to_dict() if hasattr(r, "to_dict") else r for r in records]
+
+
+def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
+    totals = manifest.totals
+    kept = int(totals.get("frames", totals.get("frames_kept", 0)))
+    dropped = totals.get("dropped", {}) or {}
+    lines = ["", f"dataset {manifest.name}: {len(manifest.shards)} shards",
+             f"  {'frames kept':<22}{kept:>10}"]
+    for reason in DROP_REASONS:
+        lines.append(f"  {'dropped: ' + reason:<22}{int(dropped.get(reason, 0)):>10}")
+    if seconds > 0:
+        lines.append(f"  {'this run':<22}{seconds:>9.1f} s   {frames_simulated_keys / seconds:8.2f} target frames/s")
+    return "\n".join(lines)
+
+
+def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local", device: str | None = None,
+             ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print) -> Any:
+    """Runs (or resumes) a dataset generation; returns the finished Manifest."""
+    from data_manifest.manifest import Manifest, collect_provenance
+    from data_manifest.schema import template_sha256
+    from data_manifest.shard import remove_orphan_temporaries
+
+    from pipelines.executors import EXECUTORS, run_local, run_ray
+
+    if executor not in EXECUTORS:
+        raise ValueError(f"--executor must be one of {', '.join(EXECUTORS)} (got {executor!r})")
+    spec = validate_spec(dict(spec_or_path)) if isinstance(spec_or_path, dict) else load_spec(spec_or_path)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    ctx = build_context(spec, out_dir, device=device, log=log)
+    splits: dict[str, list[str]] = {}
+    for t in ctx.plan.tasks:
+        splits.setdefault(t.split, []).append(t.task_id)
+    provenance = collect_provenance(device=ctx.device, seeds={"spec": int(spec["seed"])}, command=" ".join(sys.argv))
+    manifest = Manifest.load_or_create(out_dir, name=spec["name"], spec=spec, template_sha256=template_sha256(ctx.template_dict),
+                                       precision=spec["output"]["precision"], provenance=provenance, splits=splits)
+    remove_orphan_temporaries(out_dir)
+    pending = [t for t in ctx.plan.tasks if not manifest.is_complete(t.task_id)]
+    skipped = len(ctx.plan.tasks) - len(pending)
+    if skipped:
+        log(f"resuming: {skipped} of {len(ctx.plan.tasks)} shards already complete")
+    # which sampled poses self-intersected (dropped before simulation), for the record
+    np.savez(out_dir / "pruned_poses.npz", poses=ctx.plan.pruned_poses)
+    worlds = int(spec["simulation"]["worlds"])
+    # similar-length sequences together keep worlds busy until the batch ends
+    pending.sort(key=lambda t: (-len(t.poses), t.task_id))
+    batches = [[t.task_id for t in pending[i:i + worlds]] for i in range(0, len(pending), worlds)]
+    total_keys = sum(len(t.poses) for t in pending)
+    from tqdm import tqdm
+
+    bar = tqdm(total=total_keys, desc=f"{spec['name']}: target poses", unit="frame", disable=not progress, file=sys.stderr)
+
+    def on_shard(record) -> None:
+        manifest.add_shard(record)
+        manifest.save()
+        bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}")
+
+    def on_progress(count: int, batch: list[str] | None = None) -> None:
+        if batch is not None:
+            count = sum(len(ctx.tasks[t].poses) for t in batch)
+        bar.update(count)
+
+    t_sim = time.perf_counter()
+    if executor == "local":
+        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress)
+    else:
+        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress, address=ray_address)
+    bar.close()
+    sim_seconds = time.perf_counter() - t_sim
+    if pending and int(spec["audit"]["samples"]) > 0:
+        from pipelines.audit import audit_dataset
+
+        manifest.audit = audit_dataset(ctx, out_dir, manifest, log=log)
+    manifest.finish()
+    manifest.save()
+    log(_summary_table(manifest, sim_seconds, total_keys))
+    log(f"  {'total wall time':<22}{time.perf_counter() - t0:>9.1f} s\n  manifest: {out_dir / 'manifest.json'}")
+    return manifest
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("generate-dataset", help="simulate a dataset spec into sharded HDF5 + manifest",
+                       description="Runs (or resumes) a dataset spec: plans styles/shapes/poses, simulates every "
+                       "style-shape pair through its poses, filters frames and writes one HDF5 shard per task. "
+                       "Rerunning the same command skips finished shards.")
+    p.add_argument("spec", help="spec YAML path, or the name of a shipped spec (quickstart, tailornet-tshirt)")
+    p.add_argument("--out", required=True, help="dataset directory")
+    p.add_argument("--executor", default="local", choices=["local", "ray"], help="where batches run (default local)")
+    p.add_argument("--device", default=None, help="override simulation.device (auto, cpu, cuda:0)")
+    p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=lambda a: (generate(a.spec, a.out, executor=a.executor, device=a.device, ray_address=a.ray_address,
+                                            progress=not a.no_progress), 0)[1])

@@ -1,0 +1,276 @@
+"""Quasi-static sequence driver (seed 000 section 5.3, seed 004 section 3.3).
+
+Each task is one garment style on one body shape visiting a list of target poses.
+A world starts on the neutral body in the canonical pose, the body shape is blended
+to the task's shape over ``shape_transition_frames`` frames and the garment relaxed,
+then the body visits the target poses in the given order; slerp'ed poses are
+inserted where any joint would turn more than ``interpolation_threshold`` in one
+frame (one frame each), and every target pose is held until the world converges
+(or hits ``max_relax_frames``), when the frame is handed to ``on_frame``.
+
+Many tasks run as parallel worlds of one simulator. Worlds follow their own
+schedules; a world whose current entry is done moves on without waiting for the
+others, and a world whose schedule is finished is frozen. Nothing couples worlds,
+so a task's frames do not depend on which other tasks share its batch.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from simulate.body.base import BodyModel, PosedBody
+from simulate.cloth import ClothBuilder, Features
+from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.contact import BodyCollider
+from simulate.poses import interpolate_sequence
+
+# Entry kinds of a world's schedule.
+TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
+SETTLE = 1  # hold until converged, not recorded (after the shape transition)
+KEY = 2  # hold until converged, then record
+
+
+@dataclass
+class SequenceTask:
+    """One garment on one body shape through a pose list.
+
+    Attributes:
+        rest_vertices: cloth rest geometry (edge lengths, areas) [m], shape (V, 3).
+        start_vertices: initial positions on the neutral body, canonical pose [m], (V, 3).
+        shape: body shape, (S,).
+        poses: target poses in visiting order, (N, 60).
+        fabric: fabric preset name or Fabric.
+    """
+
+    rest_vertices: np.ndarray
+    start_vertices: np.ndarray
+    shape: np.ndarray
+    poses: np.ndarray
+    fabric: object = "cotton"
+
+
+@dataclass
+class SequenceSettings:
+    """Stepping of the sequence (see the module docstring)."""
+
+    sim: SimSettings = field(default_factory=SimSettings)
+    solver: str = "xpbd"
+    shape_transition_frames: int = 10
+    interpolation_threshold: float = 0.1
+    min_hold_frames: int = 2
+    contact_thickness: float = 0.004
+    friction: float | None = None
+    self_contact: bool = False
+
+
+@dataclass
+class RecordedFrame:
+    """What ``on_frame`` receives for a target pose that finished relaxing.
+
+    Attributes:
+        task: index of the task in the batch.
+        key: index of the target pose in the task's pose list.
+        positions: garment vertices [m], (V, 3).
+        status: WorldStatus of the world (CONVERGED, MAX_STEPS or EXPLODED).
+        frames: frames the pose was held.
+        body_vertices: posed body [m], (Vb, 3).
+        skinning_transforms: (J, 4, 4); rest_vertices: shaped unposed body (Vb, 3).
+    """
+
+    task: int
+    key: int
+    positions: np.ndarray
+    status: int
+    frames: int
+    body_vertices: np.ndarray
+    skinning_transforms: np.ndarray
+    rest_body_vertices: np.ndarray
+
+
+def restart_worlds(sim: QuasiStaticSimulator, worlds: np.ndarray) -> None:
+    """Marks the given (non-exploded) worlds RUNNING again with fresh frame/calm counters."""
+    mask = np.asarray(worlds, dtype=bool) & (sim.status != WorldStatus.EXPLODED)
+    sim.status[mask] = WorldStatus.RUNNING
+    sim.world_frames[mask] = 0
+    sim._calm[mask] = 0
+
+
+def _schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape: np.ndarray, s: SequenceSettings):
+    """(shapes (M,S), poses (M,60), kinds (M,), key index (M,)) of one world."""
+    n = s.shape_transition_frames
+    blend = (np.arange(1, n + 1) / n)[:, None]
+    shapes = [neutral_shape[None] * (1 - blend) + task.shape[None] * blend, task.shape[None]]
+    poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
+    kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
+    keys = [np.full(n, -1), np.array([-1])]
+    seq, key_index = interpolate_sequence(task.poses, canonical_pose, s.interpolation_threshold)
+    shapes.append(np.tile(task.shape, (len(seq), 1)))
+    poses.append(seq)
+    kinds.append(np.where(key_index >= 0, KEY, TRANSITION))
+    keys.append(key_index)
+    return (np.concatenate(shapes).astype(np.float32), np.concatenate(poses).astype(np.float32),
+            np.concatenate(kinds), np.concatenate(keys))
+
+
+def run_sequences(
+    body: BodyModel,
+    faces: np.ndarray,
+    tasks: list[SequenceTask],
+    *,
+    body_faces: np.ndarray,
+    settings: SequenceSettings,
+    device: str,
+    on_frame: Callable[[RecordedFrame], None],
+    on_progress: Callable[[int], None] | None = None,
+) -> dict[str, float]:
+    """Simulates every task's sequence as one world of one batched simulator.
+
+    Args:
+        body: body model (its canonical pose and neutral shape start every world).
+        faces: garment triangles shared by all tasks, (F, 3).
+        tasks: the batch.
+        body_faces: the body faces the garment can touch (culled), (Fb, 3).
+        settings: sequence settings.
+        device: Warp device ("cpu", "cuda:0"); the body is posed with torch on it too.
+        on_frame: called once per (task, target pose) in visiting order per task.
+        on_progress: called with the number of target poses finished after each frame.
+    Returns:
+        statistics: frames simulated, wall seconds in simulation/body/record phases.
+    """
+    import time
+
+    w_count = len(tasks)
+    neutral = np.asarray(body.shape_default, np.float32)
+    canonical = np.asarray(body.canonical_pose, np.float32)
+    schedules = [_schedule(t, canonical, neutral, settings) for t in tasks]
+    torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
+
+    def pose_bodies(shapes: np.ndarray, poses: np.ndarray) -> PosedBody:
+        with torch.no_grad():
+            posed = body.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
+        return PosedBody(**{k: (v.cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in posed.__dict__.items()})
+
+    builder = ClothBuilder()
+    for t in tasks:
+        builder.add_garment(t.rest_vertices, faces, fabric=t.fabric)
+    features = Features(self_contact=settings.self_contact, friction=settings.friction != 0.0)
+    model = builder.finalize(device, features=features)
+    start = pose_bodies(np.tile(neutral, (w_count, 1)), np.tile(canonical, (w_count, 1)))
+    collider = BodyCollider(start.vertices, body_faces, device=device, thickness=settings.contact_thickness)
+    sim_settings = SimSettings(**{**settings.sim.__dict__})
+    sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=sim_settings)
+    for w, t in enumerate(tasks):
+        sim.set_positions(np.asarray(t.start_vertices, np.float32), world=w)
+
+    ptr = np.zeros(w_count, dtype=np.int64)
+    held = np.zeros(w_count, dtype=np.int64)
+    done = np.zeros(w_count, dtype=bool)
+    body_now: dict[str, np.ndarray] = {
+        "vertices": start.vertices.copy(), "skin": start.skinning_transforms.copy(), "rest": start.rest_vertices.copy()}
+    stats = {"frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0}
+    changed = np.ones(w_count, dtype=bool)
+    while not done.all():
+        t0 = time.perf_counter()
+        if changed.any():
+            idx = np.nonzero(changed)[0]
+            shapes = np.stack([schedules[w][0][ptr[w]] for w in idx])
+            poses = np.stack([schedules[w][1][ptr[w]] for w in idx])
+            posed = pose_bodies(shapes, poses)
+            body_now["vertices"][idx] = posed.vertices
+            body_now["skin"][idx] = posed.skinning_transforms
+            body_now["rest"][idx] = posed.rest_vertices
+            collider.set_target(body_now["vertices"])
+            restart_worlds(sim, changed & ~done)
+        t1 = time.perf_counter()
+        status = sim.step_frame()
+        t2 = time.perf_counter()
+        stats["frames"] += 1
+        stats["sim_s"] += t2 - t1
+        stats["body_s"] += t1 - t0
+        held[~done] += 1
+        changed[:] = False
+        finished_keys = 0
+        for w in np.nonzero(~done)[0]:
+            shapes_w, poses_w, kinds_w, keys_w = schedules[w]
+            kind = kinds_w[ptr[w]]
+            st = int(status[w])
+            if st == WorldStatus.EXPLODED:
+                # the world is frozen for good: hand over every remaining target pose as failed
+                for j in range(ptr[w], len(kinds_w)):
+                    if kinds_w[j] == KEY:
+                        on_frame(RecordedFrame(w, int(keys_w[j]), sim.world_positions(w), st, int(held[w]),
+                                               body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                        finished_keys += 1
+                done[w] = True
+                continue
+            if kind == TRANSITION:
+                finished = True
+            else:
+                finished = st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and held[w] >= settings.min_hold_frames
+                if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and not finished:
+                    restart_worlds(sim, np.arange(w_count) == w)  # keep holding the pose
+            if not finished:
+                continue
+            if kind == KEY:
+                r0 = time.perf_counter()
+                on_frame(RecordedFrame(w, int(keys_w[ptr[w]]), sim.world_positions(w), st, int(held[w]),
+                                       body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                stats["record_s"] += time.perf_counter() - r0
+                finished_keys += 1
+            ptr[w] += 1
+            held[w] = 0
+            if ptr[w] >= len(kinds_w):
+                done[w] = True
+            else:
+                changed[w] = True
+        if on_progress is not None and finished_keys:
+            on_progress(finished_keys)
+    return stats
+
+
+def drape_static(
+    body: BodyModel,
+    faces: np.ndarray,
+    rest_vertices: np.ndarray,
+    *,
+    shapes: np.ndarray,
+    poses: np.ndarray,
+    body_faces: np.ndarray,
+    settings: SequenceSettings,
+    device: str,
+    fabric: object = "cotton",
+    start_vertices: np.ndarray | None = None,
+    max_frames: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Relaxes W garments on W static bodies (one world each) until they come to rest.
+
+    Args:
+        rest_vertices: cloth rest geometry per world [m], (W, V, 3) (also the start unless given).
+        shapes: (W, S) body shapes; poses: (W, 60) body poses.
+        start_vertices: initial positions [m], (W, V, 3) (default: ``rest_vertices``).
+        max_frames: frame budget (default ``settings.sim.max_frames``).
+    Returns:
+        (positions (W, V, 3) [m], status (W,) WorldStatus values).
+    """
+    rest_vertices = np.asarray(rest_vertices, np.float32)
+    w_count = len(rest_vertices)
+    torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
+    with torch.no_grad():
+        posed = body.pose_torch(torch.as_tensor(np.asarray(shapes, np.float32), device=torch_device),
+                                torch.as_tensor(np.asarray(poses, np.float32), device=torch_device))
+    body_vertices = posed.vertices.cpu().numpy()
+    builder = ClothBuilder()
+    for w in range(w_count):
+        builder.add_garment(rest_vertices[w], faces, fabric=fabric)
+    model = builder.finalize(device, features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0))
+    collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness)
+    sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=SimSettings(**settings.sim.__dict__))
+    if start_vertices is not None:
+        for w in range(w_count):
+            sim.set_positions(np.asarray(start_vertices[w], np.float32), world=w)
+    status = sim.relax(max_frames)
+    positions = sim.positions()
+    return np.stack([positions[model.world_slice(w)] for w in range(w_count)]), status
