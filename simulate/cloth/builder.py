@@ -62,9 +62,10 @@ def triangle_rest_frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nd
     e2u = np.einsum("ij,ij->i", e2, u)
     e2v = np.einsum("ij,ij->i", e2, v)
     dm_inv = np.zeros((len(faces), 2, 2))
-    dm_inv[:, 0, 0] = 1.0 / len1
-    dm_inv[:, 0, 1] = -e2u / (len1 * e2v)
-    dm_inv[:, 1, 1] = 1.0 / e2v
+    with np.errstate(divide="ignore", invalid="ignore"):  # degenerate faces are rejected by the caller
+        dm_inv[:, 0, 0] = 1.0 / len1
+        dm_inv[:, 0, 1] = -e2u / (len1 * e2v)
+        dm_inv[:, 1, 1] = 1.0 / e2v
     return dm_inv, 0.5 * double_area
 
 

@@ -238,14 +238,36 @@ class QuasiStaticSimulator:
         self.collider.set_target(vertices)
         self.restart(reset_velocities=reset_velocities)
 
-    def restart(self, *, reset_velocities: bool = False) -> None:
-        """Mark every non-exploded world RUNNING again (frame counters and calm counters reset)."""
-        keep = self.status != WorldStatus.EXPLODED
-        self.status[keep] = WorldStatus.RUNNING
-        self.world_frames[keep] = 0
-        self._calm[keep] = 0
-        if reset_velocities:
-            self.state_0.particle_qd.zero_()
+    def restart(self, worlds: np.ndarray | list[int] | None = None, *, reset_velocities: bool = False) -> None:
+        """Mark worlds RUNNING again (frame and calm counters reset); exploded worlds stay frozen.
+
+        Args:
+            worlds: world indices or a (world_count,) bool mask; None = all worlds.
+            reset_velocities: zero the velocities of the restarted worlds' particles.
+        """
+        count = self.model.world_count
+        if worlds is None:
+            mask = np.ones(count, dtype=bool)
+        else:
+            arr = np.asarray(worlds)
+            if arr.dtype == bool:
+                if arr.shape != (count,):
+                    raise ValueError(f"worlds mask must have shape ({count},) (got {arr.shape})")
+                mask = arr.copy()
+            else:
+                idx = arr.astype(np.int64).reshape(-1)
+                if idx.size and (idx.min() < 0 or idx.max() >= count):
+                    raise ValueError(f"worlds must be indices in [0, {count}) (got {idx.tolist()})")
+                mask = np.zeros(count, dtype=bool)
+                mask[idx] = True
+        mask &= self.status != WorldStatus.EXPLODED
+        self.status[mask] = WorldStatus.RUNNING
+        self.world_frames[mask] = 0
+        self._calm[mask] = 0
+        if reset_velocities and mask.any():
+            qd = self.velocities()
+            qd[mask[self.model.particle_world_np]] = 0.0
+            self.state_0.particle_qd.assign(qd)
 
     def positions(self) -> np.ndarray:
         """Particle positions [m] of all worlds, shape (particle_count, 3)."""
