@@ -1,0 +1,55 @@
+"""Body-model load time, memory and pose-evaluation time; prints one JSON line per measurement.
+
+    python bench/bench_body.py [--backend anny] [--batches 1 256] [--device cpu] [--repeats 5]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+
+import numpy as np
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--backend", default="anny")
+    parser.add_argument("--model-path", default=None)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--batches", type=int, nargs="+", default=[1, 256])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    import torch
+
+    from simulate.body import load_body_model
+
+    t0 = time.perf_counter()
+    body = load_body_model(args.backend, path=args.model_path, device=args.device)
+    load_s = time.perf_counter() - t0
+    print(json.dumps({"bench": "body_load", "backend": body.name, "device": args.device, "load_s": round(load_s, 3),
+                      "vertices": body.vertex_count, "faces": int(len(body.faces)), "joints": body.joint_count,
+                      "max_rss_mib": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                      "torch_threads": torch.get_num_threads()}))
+    rng = np.random.default_rng(0)
+    for batch in args.batches:
+        shape = rng.uniform(0.2, 0.8, (batch, body.shape_size)).astype(np.float32)
+        pose = rng.normal(0, 0.2, (batch, body.pose_size)).astype(np.float32)
+        body.pose(shape, pose)  # warm-up
+        times = []
+        for _ in range(args.repeats):
+            if args.device.startswith("cuda"):
+                torch.cuda.synchronize()
+            t = time.perf_counter()
+            with torch.no_grad():
+                body.pose_torch(shape, pose)
+            if args.device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t)
+        print(json.dumps({"bench": "body_pose", "backend": body.name, "device": args.device, "batch": batch,
+                          "median_ms": round(1e3 * float(np.median(times)), 3),
+                          "per_body_ms": round(1e3 * float(np.median(times)) / batch, 4)}))
+
+
+if __name__ == "__main__":
+    main()
