@@ -90,14 +90,6 @@ class RecordedFrame:
     rest_body_vertices: np.ndarray
 
 
-def restart_worlds(sim: QuasiStaticSimulator, worlds: np.ndarray) -> None:
-    """Marks the given (non-exploded) worlds RUNNING again with fresh frame/calm counters."""
-    mask = np.asarray(worlds, dtype=bool) & (sim.status != WorldStatus.EXPLODED)
-    sim.status[mask] = WorldStatus.RUNNING
-    sim.world_frames[mask] = 0
-    sim._calm[mask] = 0
-
-
 def _schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape: np.ndarray, s: SequenceSettings):
     """(shapes (M,S), poses (M,60), kinds (M,), key index (M,)) of one world."""
     n = s.shape_transition_frames
@@ -183,7 +175,7 @@ def run_sequences(
             body_now["skin"][idx] = posed.skinning_transforms
             body_now["rest"][idx] = posed.rest_vertices
             collider.set_target(body_now["vertices"])
-            restart_worlds(sim, changed & ~done)
+            sim.restart(changed & ~done)
         t1 = time.perf_counter()
         status = sim.step_frame()
         t2 = time.perf_counter()
@@ -211,7 +203,7 @@ def run_sequences(
             else:
                 finished = st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and held[w] >= settings.min_hold_frames
                 if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and not finished:
-                    restart_worlds(sim, np.arange(w_count) == w)  # keep holding the pose
+                    sim.restart([w])  # keep holding the pose
             if not finished:
                 continue
             if kind == KEY:
