@@ -1,0 +1,219 @@
+"""Optional cloth self-contact: vertex-triangle repulsion found with a BVH over the cloth.
+
+All worlds' cloth triangles live in one ``wp.Mesh`` whose points are the particles shifted to
+per-world grid cells (as for the body), so one refit and one query launch serve every world
+and a world never sees another world's cloth.  Once per substep each particle finds the
+nearest triangle not containing it within ``thickness + margin`` (BVH AABB query, exact
+point-triangle distance) and remembers which side of it it was on.  In every solver
+iteration the particle is then pushed back to ``thickness`` on that side (one-sided: the
+particle moves, each triangle's corners are pushed by their own queries), written to a
+per-particle delta so results stay deterministic.  None of this runs unless
+``Features.self_contact`` is on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from simulate.cloth.model import ClothModel
+
+wp.set_module_options({"enable_backward": False})
+
+__all__ = ["SelfContact"]
+
+
+@wp.func
+def closest_point_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Barycentric coordinates of the point of triangle abc closest to p (Ericson 2004)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return wp.vec3(1.0 - v, v, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return wp.vec3(1.0 - w, 0.0, w)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - w, w)
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    w = vc * denom
+    return wp.vec3(1.0 - v - w, v, w)
+
+
+@wp.kernel
+def place_cloth_points(
+    x: wp.array(dtype=wp.vec3),
+    particle_world: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    # Out:
+    points_out: wp.array(dtype=wp.vec3),
+):
+    """Cloth points shifted to their world's cell; non-finite points collapse to the cell corner."""
+    i = wp.tid()
+    p = x[i]
+    off = world_offset[particle_world[i]]
+    if wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]):
+        points_out[i] = p + off
+    else:
+        points_out[i] = off
+
+
+@wp.kernel
+def detect_self_contacts(
+    mesh: wp.uint64,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    reach: float,
+    # Out:
+    candidate_out: wp.array(dtype=wp.int32),
+    side_out: wp.array(dtype=float),
+):
+    """Nearest non-incident triangle of the same world within ``reach`` [m], and the side the particle is on."""
+    i = wp.tid()
+    candidate_out[i] = -1
+    w = particle_world[i]
+    if world_active[w] == 0:
+        return
+    p = x[i]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+        return
+    q = p + world_offset[w]
+    r = wp.vec3(reach, reach, reach)
+    query = wp.mesh_query_aabb(mesh, q - r, q + r)
+    face = int(0)
+    best = reach
+    best_face = int(-1)
+    best_side = float(1.0)
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        a = tri_indices[face, 0]
+        b = tri_indices[face, 1]
+        c = tri_indices[face, 2]
+        if a == i or b == i or c == i:
+            continue
+        xa = x[a]
+        xb = x[b]
+        xc = x[c]
+        bary = closest_point_barycentric(p, xa, xb, xc)
+        closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
+        d = wp.length(p - closest)
+        if d < best:
+            best = d
+            best_face = face
+            normal = wp.cross(xb - xa, xc - xa)
+            best_side = wp.where(wp.dot(p - closest, normal) >= 0.0, 1.0, -1.0)
+    candidate_out[i] = best_face
+    side_out[i] = best_side
+
+
+@wp.kernel
+def project_self_contacts(
+    tri_indices: wp.array2d(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    candidate: wp.array(dtype=wp.int32),
+    side: wp.array(dtype=float),
+    thickness: float,
+    x: wp.array(dtype=wp.vec3),
+    # Out:
+    delta_out: wp.array(dtype=wp.vec3),
+):
+    """Correction [m] pushing a particle back to ``thickness`` on its remembered side of its triangle."""
+    i = wp.tid()
+    delta_out[i] = wp.vec3(0.0)
+    t = candidate[i]
+    if t < 0 or inv_mass[i] == 0.0:
+        return
+    xa = x[tri_indices[t, 0]]
+    xb = x[tri_indices[t, 1]]
+    xc = x[tri_indices[t, 2]]
+    n = wp.cross(xb - xa, xc - xa)
+    n_len = wp.length(n)
+    if n_len < 1.0e-12:
+        return
+    n = n / n_len * side[i]
+    p = x[i]
+    bary = closest_point_barycentric(p, xa, xb, xc)
+    closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
+    gap = wp.dot(p - closest, n)
+    if gap < thickness:
+        delta_out[i] = n * (thickness - gap)
+
+
+class SelfContact:
+    """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
+
+    def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3) -> None:
+        """
+        Args:
+            model: cloth model.
+            thickness: distance kept between a particle and other triangles [m]; default the
+                largest fabric thickness of the model, at least 2 mm.
+            margin: extra search distance when candidates are found once per substep [m].
+        """
+        self.model = model
+        dev = model.device
+        if thickness is None:
+            thickness = max(2.0e-3, max(f.thickness for f in model.fabrics))
+        if not (np.isfinite(thickness) and thickness > 0.0 and np.isfinite(margin) and margin >= 0.0):
+            raise ValueError(f"self-contact thickness must be > 0 and margin >= 0 [m] (got {thickness!r}, {margin!r})")
+        self.thickness = float(thickness)
+        self.margin = float(margin)
+        rest = model.particle_q_rest_np
+        extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
+        spacing = 4.0 * extent + 2.0
+        n = max(1, int(np.ceil(round(model.world_count ** (1.0 / 3.0), 9))))
+        w = np.arange(model.world_count)
+        cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1)
+        self.world_offset = wp.array((cells * spacing).astype(np.float32), dtype=wp.vec3, device=dev)
+        count = max(model.particle_count, 1)
+        self.points = wp.array(rest, dtype=wp.vec3, device=dev)
+        self.mesh = wp.Mesh(points=self.points, indices=wp.array(model.tri_indices_np.reshape(-1), dtype=wp.int32,
+                                                                 device=dev))
+        self.candidate = wp.full(count, -1, dtype=wp.int32, device=dev)
+        self.side = wp.ones(count, dtype=float, device=dev)
+        self.delta = wp.zeros(count, dtype=wp.vec3, device=dev)
+        """Per-particle self-contact correction of the current iteration [m]."""
+
+    def detect(self, x: wp.array, world_active: wp.array) -> None:
+        """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle."""
+        m = self.model
+        wp.launch(place_cloth_points, dim=m.particle_count, inputs=[x, m.particle_world, self.world_offset],
+                  outputs=[self.mesh.points], device=m.device)
+        self.mesh.refit()
+        wp.launch(detect_self_contacts, dim=m.particle_count,
+                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, self.world_offset,
+                          x, self.thickness + self.margin],
+                  outputs=[self.candidate, self.side], device=m.device)
+
+    def project(self, x: wp.array, world_active: wp.array) -> None:
+        """Corrections for the current positions into ``delta`` (applied by the particle pass)."""
+        m = self.model
+        wp.launch(project_self_contacts, dim=m.particle_count,
+                  inputs=[m.tri_indices, m.particle_inv_mass, self.candidate, self.side, self.thickness, x],
+                  outputs=[self.delta], device=m.device)

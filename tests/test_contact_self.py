@@ -1,0 +1,42 @@
+"""Optional self-contact: a falling layer rests on a pinned layer only when self-contact is on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from simulate.cloth import ClothBuilder, Features
+from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.cloth.scenes import grid_cloth
+
+wp.init()
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
+ATOL_GAP_M = 5.0e-4
+"""Allowed shortfall of the kept distance below the self-contact thickness [m]."""
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("mode", ["gauss_seidel", "jacobi"])
+@pytest.mark.parametrize("self_contact", [True, False])
+def test_layer_rests_on_layer_with_self_contact(device: str, mode: str, self_contact: bool) -> None:
+    lower_v, lower_f = grid_cloth(9, 9, 0.4, 0.4, plane="xz", origin=(-0.2, 0.0, -0.2))
+    upper_v, upper_f = grid_cloth(7, 7, 0.3, 0.3, plane="xz", origin=(-0.16, 0.02, -0.14))
+    verts = np.vstack([lower_v, upper_v])
+    faces = np.vstack([lower_f, upper_f + len(lower_v)])
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))  # the lower layer is a table
+    model = builder.finalize(device, features=Features(self_contact=self_contact, body_contact=False))
+    sim = QuasiStaticSimulator(model, None, settings=SimSettings(substeps=5, iterations=5, damping=2.0,
+                                                                 xpbd_mode=mode))
+    assert (sim.solver.self_contact is not None) == self_contact, "self-contact buffers/kernels present when off"
+    for _ in range(30):
+        sim.step_frame()
+    upper = sim.positions()[len(lower_v):]
+    if self_contact:
+        thickness = sim.solver.self_contact.thickness
+        assert upper[:, 1].min() > thickness - ATOL_GAP_M, (
+            f"upper layer at y = {upper[:, 1].min() * 1e3:.2f} mm, expected >= {thickness * 1e3:.1f} mm")
+        assert upper[:, 1].max() < 0.01, "upper layer did not come down onto the lower one"
+    else:
+        assert upper[:, 1].max() < -0.1, "without self-contact the upper layer should fall through"
