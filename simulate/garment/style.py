@@ -1,0 +1,167 @@
+"""CLOTH3D-like style parameters (seed 004, Sec. 3.2): hem length, sleeve/leg length,
+looseness and width profile, with names, ranges and defaults per garment type.
+
+Lengths are fractions in [0, 1] between a garment type's shortest and longest cut;
+the cut positions are defined from the body's joints (so they scale with shape):
+
+==========  ==============  ===========================================================
+type        parameter       meaning (0 ... 1)
+==========  ==============  ===========================================================
+tshirt      length          hem from 55 % ... 105 % of the way from spine2 (chest) down
+                            to the hip joints
+            sleeve_length   cuff from 30 % ... 85 % of shoulder -> elbow
+shirt       length          as tshirt
+            sleeve_length   cuff from 30 % ... 92 % of elbow -> wrist
+pants       leg_length      hem from 30 % ... 92 % of knee -> ankle
+shorts      leg_length      hem from 35 % ... 80 % of hip -> knee
+skirt       length          hem from 35 % of hip -> knee down to 20 % below the knee
+==========  ==============  ===========================================================
+
+``looseness`` [m] is the outward offset of the garment from the body surface along
+smoothed normals (for the skirt: from the hull of the hips and legs). ``width_profile``
+[m] is the extra offset added linearly from a limb's anchor (near the shoulder/hip)
+to its hem: the flare of sleeves, legs or the skirt (CLOTH3D's width profile).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+GARMENT_TYPES: tuple[str, ...] = ("tshirt", "shirt", "pants", "shorts", "skirt")
+
+#: type -> parameter -> (min, max, default, unit/description)
+STYLE_SPECS: dict[str, dict[str, tuple[float, float, float, str]]] = {
+    "tshirt": {
+        "length": (0.0, 1.0, 0.8, "hem height fraction [-]"),
+        "sleeve_length": (0.0, 1.0, 0.5, "sleeve length fraction [-]"),
+        "looseness": (0.005, 0.05, 0.015, "outward offset [m]"),
+        "width_profile": (0.0, 0.04, 0.01, "sleeve flare at the cuff [m]"),
+    },
+    "shirt": {
+        "length": (0.0, 1.0, 0.9, "hem height fraction [-]"),
+        "sleeve_length": (0.0, 1.0, 0.9, "sleeve length fraction [-]"),
+        "looseness": (0.005, 0.05, 0.015, "outward offset [m]"),
+        "width_profile": (0.0, 0.04, 0.005, "sleeve flare at the cuff [m]"),
+    },
+    "pants": {
+        "leg_length": (0.0, 1.0, 0.9, "leg length fraction [-]"),
+        "looseness": (0.005, 0.05, 0.012, "outward offset [m]"),
+        "width_profile": (0.0, 0.06, 0.01, "leg flare at the hem [m]"),
+    },
+    "shorts": {
+        "leg_length": (0.0, 1.0, 0.6, "leg length fraction [-]"),
+        "looseness": (0.005, 0.05, 0.012, "outward offset [m]"),
+        "width_profile": (0.0, 0.06, 0.015, "leg flare at the hem [m]"),
+    },
+    "skirt": {
+        "length": (0.0, 1.0, 0.5, "hem height fraction [-]"),
+        "looseness": (0.005, 0.05, 0.015, "offset from the hip/leg hull [m]"),
+        "width_profile": (0.0, 0.25, 0.08, "flare at the hem [m]"),
+    },
+}
+
+
+def check_garment_type(garment_type: str, *, field_name: str = "garment_type") -> str:
+    """Returns the type name; ValueError listing the allowed types otherwise."""
+    if garment_type not in STYLE_SPECS:
+        raise ValueError(f"{field_name} {garment_type!r} is not a known garment type; "
+                         f"expected one of {', '.join(GARMENT_TYPES)}")
+    return garment_type
+
+
+def describe_styles(garment_type: str) -> str:
+    """One line listing a type's style parameters with their ranges and defaults."""
+    spec = STYLE_SPECS[check_garment_type(garment_type)]
+    return ", ".join(f"{k} in [{lo:g}, {hi:g}] (default {d:g}, {desc})" for k, (lo, hi, d, desc) in spec.items())
+
+
+@dataclass(frozen=True)
+class StyleParams:
+    """Validated style of one garment: ``values`` maps every parameter of the type to a
+    float (missing ones take the defaults of :data:`STYLE_SPECS`)."""
+
+    garment_type: str
+    values: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        spec = STYLE_SPECS[check_garment_type(self.garment_type)]
+        full = {k: v[2] for k, v in spec.items()}
+        for name, value in dict(self.values).items():
+            if name not in spec:
+                raise ValueError(f"unknown style parameter {name!r} for garment type {self.garment_type!r}; "
+                                 f"allowed: {describe_styles(self.garment_type)}")
+            try:
+                x = float(value)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"style parameter {name} must be a number, got {value!r}") from exc
+            lo, hi = spec[name][0], spec[name][1]
+            if not (lo <= x <= hi):
+                raise ValueError(f"style parameter {name}={x:g} for {self.garment_type!r} is outside its range "
+                                 f"[{lo:g}, {hi:g}]; allowed: {describe_styles(self.garment_type)}")
+            full[name] = x
+        object.__setattr__(self, "values", full)
+
+    def __getitem__(self, name: str) -> float:
+        return self.values[name]
+
+    def as_array(self) -> list[float]:
+        """Values in :data:`STYLE_SPECS` order."""
+        return [self.values[k] for k in STYLE_SPECS[self.garment_type]]
+
+    @classmethod
+    def parse(cls, garment_type: str, text: str | None) -> "StyleParams":
+        """Parses ``"length=0.6,looseness=0.02"`` (empty/None = defaults)."""
+        values: dict[str, float] = {}
+        for item in (text or "").replace(" ", "").split(","):
+            if not item:
+                continue
+            name, sep, value = item.partition("=")
+            if not sep:
+                raise ValueError(f"style item {item!r} must be NAME=VALUE; allowed: {describe_styles(garment_type)}")
+            try:
+                values[name] = float(value)
+            except ValueError as exc:
+                raise ValueError(f"style parameter {name} must be a number, got {value!r}") from exc
+        return cls(garment_type, values)
+
+
+def sample_styles(garment_type: str, count: int, *, seed: int = 0) -> list[StyleParams]:
+    """``count`` styles drawn uniformly within every parameter's range (seeded)."""
+    import numpy as np
+
+    spec = STYLE_SPECS[check_garment_type(garment_type)]
+    if count < 1:
+        raise ValueError(f"count must be >= 1, got {count}")
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        out.append(StyleParams(garment_type, {k: float(rng.uniform(lo, hi)) for k, (lo, hi, _, _) in spec.items()}))
+    return out
+
+
+def generate_garment(garment_type: str, style: StyleParams | dict | str | None, body, *, shape=None,
+                     template=None, resolution: int | None = None):
+    """Vertices [m] (V, 3) of a garment of one style on the canonical body of ``shape``.
+
+    The topology is that of the type's template (fixed across styles): shorter lengths
+    slide hem rows up along the body instead of deleting vertices.
+
+    Args:
+        garment_type: one of :data:`GARMENT_TYPES`.
+        style: StyleParams, a {name: value} dict, a "name=value,..." string, or None.
+        body: the BodyModel the template was built on.
+        shape: body shape (S,) (default: the body's neutral shape).
+        template: a GarmentTemplate of this type (default: built with ``resolution``).
+    """
+    from simulate.garment.templates import apply_style, make_template
+
+    if not isinstance(style, StyleParams):
+        style = StyleParams.parse(garment_type, style) if isinstance(style, str) or style is None \
+            else StyleParams(garment_type, style)
+    if style.garment_type != garment_type:
+        raise ValueError(f"style is for {style.garment_type!r} but garment_type is {garment_type!r}")
+    if template is None:
+        kwargs = {} if resolution is None else {"resolution": resolution}
+        template = make_template(garment_type, body, **kwargs)
+    elif template.garment_type != garment_type:
+        raise ValueError(f"template is a {template.garment_type!r}, expected {garment_type!r}")
+    return apply_style(template, style, body, shape=shape)

@@ -1,0 +1,596 @@
+"""Garment templates on the canonical body: t-shirt, shirt, pants, shorts (body-surface
+regions, TailorNet's indicator I) and skirt (its own surface, attached at the waist).
+
+A body-topology garment is cut out of the canonical body mesh (neutral shape, canonical
+A-pose) along level sets defined from joint positions (planes through the hips, a
+tilted neck cut, cuts perpendicular to the limb axes), cleaned to a manifold with simple
+boundary loops, midpoint-subdivided to the requested resolution and embedded in the
+body's triangles (``body_face``, ``body_bary``): the garment surface on any body shape
+is the same barycentric points on that shape's mesh, and a style is an outward offset
+of that surface (see :func:`apply_style`). The embedding also gives I
+(``body_vertex_index``: the nearest body vertex of each garment vertex) and the
+skinning weights (barycentric interpolation of the body's weights).
+
+The skirt is a ring grid (rows x columns) from the waist down, with radii from the
+hull of the hips and legs; I = -1 and its skinning weights are inverse-distance
+averages of its K = 100 nearest torso/leg body vertices (TailorNet).
+
+Frame: metres, y up, facing +z, left +x (see :mod:`simulate.body.base`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from simulate.body.base import PARTS, POSE_JOINTS
+from simulate.garment import mesh_ops
+from simulate.garment.style import GARMENT_TYPES, STYLE_SPECS, StyleParams, check_garment_type
+
+#: Default target vertex count per type (TailorNet's counts: t-shirt 7,702, shirt 9,723,
+#: pants 4,718, skirt 7,130). Body-topology garments take the subdivision level whose
+#: count is nearest in log scale, so actual counts differ (see the template).
+DEFAULT_RESOLUTION: dict[str, int] = {"tshirt": 7700, "shirt": 9700, "pants": 4700, "shorts": 3000, "skirt": 7100}
+
+#: Expected boundary loop names per type.
+BOUNDARY_NAMES: dict[str, tuple[str, ...]] = {
+    "tshirt": ("neck", "hem", "left_sleeve", "right_sleeve"),
+    "shirt": ("neck", "hem", "left_sleeve", "right_sleeve"),
+    "pants": ("waist", "left_hem", "right_hem"),
+    "shorts": ("waist", "left_hem", "right_hem"),
+    "skirt": ("waist", "hem"),
+}
+
+#: Segment ids stored per vertex (which length parameter slides it).
+SEGMENT_NONE, SEGMENT_TORSO, SEGMENT_LEFT, SEGMENT_RIGHT = 0, 1, 2, 3
+
+#: Limb chains (joint names) and cut positions in "bone units" u: u = i + t is the point
+#: at fraction t along bone i of the chain. (anchor, shortest, longest).
+LIMB_CUTS: dict[str, tuple[str, float, float, float]] = {
+    "tshirt": ("arm", 0.2, 0.35, 0.85),
+    "shirt": ("arm", 0.2, 1.3, 1.92),
+    "pants": ("leg", 0.25, 1.3, 1.92),
+    "shorts": ("leg", 0.25, 0.35, 0.8),
+}
+#: Torso hem of tops in units of (spine2 height - hip height) below spine2: (anchor, shortest, longest).
+TORSO_CUT: tuple[float, float, float] = (0.3, 0.55, 1.05)
+#: Skirt hem: fraction of hip -> knee height (shortest, longest).
+SKIRT_CUT: tuple[float, float] = (0.35, 1.2)
+#: Waist of pants/shorts/skirt below the spine1 joint [m] (anny spine1 is near the navel).
+WAIST_BELOW_SPINE1_M = 0.01
+#: Skinning weights of the skirt: K nearest body vertices (TailorNet).
+SKIRT_SKINNING_NEIGHBOURS = 100
+#: Cut vertices closer than this to a cut are snapped onto it (no slivers) [m].
+CUT_SNAP_M = 0.004
+
+
+def _chain(kind: str, side: int) -> list[str]:
+    s = "left" if side > 0 else "right"
+    return [f"{s}_shoulder", f"{s}_elbow", f"{s}_wrist"] if kind == "arm" else [f"{s}_hip", f"{s}_knee", f"{s}_ankle"]
+
+
+def body_joints(body, shape) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Canonical-pose vertices (V, 3) and the 20 posable joints {name: (3,)} [m] for a shape."""
+    posed = body.pose(shape, body.canonical_pose)
+    j = posed.joints[0][body.pose_joint_indices]
+    return posed.vertices[0].astype(np.float64), {n: j[i].astype(np.float64) for i, n in enumerate(POSE_JOINTS)}
+
+
+def limb_coordinate(points: np.ndarray, chain: list[np.ndarray]) -> np.ndarray:
+    """Bone-unit coordinate u (N,) of points along a joint polyline (u = i + t on bone i)."""
+    best_d = np.full(len(points), np.inf)
+    u = np.zeros(len(points))
+    for i in range(len(chain) - 1):
+        a, b = chain[i], chain[i + 1]
+        ab = b - a
+        t = np.clip(((points - a) @ ab) / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+        d = np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
+        better = d < best_d
+        best_d[better] = d[better]
+        u[better] = i + t[better]
+    return u
+
+
+def limb_point(u: np.ndarray, chain: list[np.ndarray]) -> np.ndarray:
+    """Points (N, 3) at bone-unit coordinates u along the polyline."""
+    i = np.clip(np.floor(u).astype(int), 0, len(chain) - 2)
+    t = (u - i)[:, None]
+    c = np.stack(chain)
+    return c[i] + t * (c[i + 1] - c[i])
+
+
+@dataclass
+class GarmentTemplate:
+    """One garment type's mesh on the canonical body, with everything datasets need.
+
+    Attributes:
+        garment_type: one of :data:`GARMENT_TYPES`.
+        vertices: rest garment [m] at the default style on the canonical body (neutral
+            shape, canonical pose), shape (V, 3).
+        faces: triangles, shape (F, 3), outward-oriented.
+        uv: per-vertex UV of the vertex's first panel (main chart), in [0, 1]^2, (V, 2).
+        face_uv: per-face-corner UV, (F, 3, 2): seam vertices have one UV per panel.
+        vertex_panel: panel of each vertex's main chart, (V,); face_panel: (F,).
+        panel_names: names of the panels ("front", "back").
+        boundary_names / boundary_loops: named ordered vertex loops (neck, hem, ...).
+        attachment: vertex indices attached to the body (waistband), (A,).
+        skinning_weights: (V, J) float32, rows sum to 1.
+        body_vertex_index: I, nearest body vertex of each garment vertex, (V,); -1 for the skirt.
+        body_face / body_bary: embedding of each vertex in a body triangle, (V,), (V, 3);
+            -1 / 0 for the skirt.
+        segment: which length parameter slides each vertex (SEGMENT_*), (V,).
+        grid_shape: (rows, columns) of the skirt's ring grid; (0, 0) otherwise.
+        resolution: subdivision level (body-topology) or target vertex count (skirt).
+        body_name: body backend the template was cut from.
+        default_style: the style ``vertices`` were generated with.
+    """
+
+    garment_type: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    face_uv: np.ndarray
+    vertex_panel: np.ndarray
+    face_panel: np.ndarray
+    panel_names: list[str]
+    boundary_names: list[str]
+    boundary_loops: list[np.ndarray]
+    attachment: np.ndarray
+    skinning_weights: np.ndarray
+    body_vertex_index: np.ndarray
+    body_face: np.ndarray
+    body_bary: np.ndarray
+    segment: np.ndarray
+    grid_shape: tuple[int, int] = (0, 0)
+    resolution: int = 0
+    body_name: str = "anny"
+    default_style: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def vertex_count(self) -> int:
+        return int(len(self.vertices))
+
+    @property
+    def follows_body_topology(self) -> bool:
+        return bool((self.body_vertex_index >= 0).all())
+
+    def boundary(self, name: str) -> np.ndarray:
+        """Ordered vertex indices of a named boundary loop."""
+        if name not in self.boundary_names:
+            raise ValueError(f"template {self.garment_type!r} has no boundary {name!r}; it has {', '.join(self.boundary_names)}")
+        return self.boundary_loops[self.boundary_names.index(name)]
+
+    # ------------------------------------------------------------------ io
+    def _arrays(self) -> dict[str, np.ndarray]:
+        lengths = np.array([len(l) for l in self.boundary_loops], dtype=np.int64)
+        return {
+            "vertices": np.asarray(self.vertices, np.float32), "faces": np.asarray(self.faces, np.int64),
+            "uv": np.asarray(self.uv, np.float32), "face_uv": np.asarray(self.face_uv, np.float32),
+            "vertex_panel": np.asarray(self.vertex_panel, np.int64), "face_panel": np.asarray(self.face_panel, np.int64),
+            "boundary_concat": np.concatenate(self.boundary_loops).astype(np.int64) if self.boundary_loops else np.zeros(0, np.int64),
+            "boundary_lengths": lengths, "attachment": np.asarray(self.attachment, np.int64),
+            "skinning_weights": np.asarray(self.skinning_weights, np.float32),
+            "body_vertex_index": np.asarray(self.body_vertex_index, np.int64),
+            "body_face": np.asarray(self.body_face, np.int64), "body_bary": np.asarray(self.body_bary, np.float32),
+            "segment": np.asarray(self.segment, np.int64),
+        }
+
+    def _meta(self) -> dict:
+        return {"garment_type": self.garment_type, "panel_names": list(self.panel_names),
+                "boundary_names": list(self.boundary_names), "grid_shape": [int(x) for x in self.grid_shape],
+                "resolution": int(self.resolution), "body_name": self.body_name,
+                "default_style": {k: float(v) for k, v in self.default_style.items()}}
+
+    def content_hash(self) -> str:
+        """sha256 (hex) of every array (dtype, shape, bytes) and the metadata, in a fixed order."""
+        h = hashlib.sha256()
+        for name, arr in sorted(self._arrays().items()):
+            a = np.ascontiguousarray(arr)
+            h.update(f"{name}:{a.dtype.str}:{a.shape}".encode())
+            h.update(a.tobytes())
+        h.update(json.dumps(self._meta(), sort_keys=True).encode())
+        return h.hexdigest()
+
+    def save(self, path: str | Path) -> Path:
+        """Writes the template as .npz (arrays + JSON metadata + content hash)."""
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"template path must end in .npz, got {path.name!r}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, meta=np.array(json.dumps(self._meta())), sha256=np.array(self.content_hash()),
+                            **self._arrays())
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "GarmentTemplate":
+        """Reads a template written by :meth:`save`; checks its content hash."""
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"garment template file {str(path)!r} does not exist")
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k not in ("meta", "sha256")}
+            stored = str(z["sha256"])
+        loops = np.split(arrays.pop("boundary_concat"), np.cumsum(arrays.pop("boundary_lengths"))[:-1])
+        tpl = cls(garment_type=meta["garment_type"], boundary_loops=list(loops), panel_names=meta["panel_names"],
+                  boundary_names=meta["boundary_names"], grid_shape=tuple(meta["grid_shape"]),
+                  resolution=meta["resolution"], body_name=meta["body_name"], default_style=meta["default_style"],
+                  **arrays)
+        if tpl.content_hash() != stored:
+            raise ValueError(f"garment template {str(path)!r} is corrupt: content hash {tpl.content_hash()} "
+                             f"differs from the stored {stored}")
+        return tpl
+
+
+# ------------------------------------------------------------------ body-topology cut
+def _cut_fields(garment_type: str, joints: dict[str, np.ndarray]):
+    """Cuts of a body-topology type as functions (vertices (V,3), parts (V,)) ->
+    (field (V,) with the kept side <= 0 [m or bone units], applicable bool (V,))."""
+    p = {name: PARTS.index(name) for name in PARTS}
+    cuts = []
+    if garment_type in ("tshirt", "shirt"):
+        neck, collar = joints["neck"], 0.5 * (joints["left_collar"] + joints["right_collar"])
+        origin = np.array([neck[0], 0.5 * (neck[1] + collar[1]), neck[2]])
+        tilt = np.radians(25.0)
+        normal = np.array([0.0, np.cos(tilt), np.sin(tilt)])
+
+        def neck_cut(v, part):
+            plane = (v - origin) @ normal
+            hole = 0.10 - np.linalg.norm((v - neck)[:, [0, 2]], axis=1)
+            return np.minimum(plane, hole), np.isin(part, [p["torso"], p["head"]])
+
+        y_top = joints["spine2"][1]
+        y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
+        y_hem = y_top - TORSO_CUT[2] * (y_top - y_hip)
+
+        def hem_cut(v, part):
+            return y_hem - v[:, 1], np.isin(part, [p["torso"], p["legs"]])
+
+        cuts += [neck_cut, hem_cut]
+    else:
+        y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
+
+        def waist_cut(v, part):
+            return v[:, 1] - y_waist, np.isin(part, [p["torso"], p["arms"], p["hands"]])
+
+        cuts.append(waist_cut)
+    kind, _, _, u_max = LIMB_CUTS[garment_type]
+    limb_parts = [p["arms"], p["hands"]] if kind == "arm" else [p["legs"], p["feet"]]
+    for side in (1, -1):
+        chain = [joints[n] for n in _chain(kind, side)]
+
+        def limb_cut(v, part, chain=chain, side=side):
+            u = limb_coordinate(v, chain)
+            return u - u_max, np.isin(part, limb_parts) & (np.sign(v[:, 0]) == side)
+
+        cuts.append(limb_cut)
+    return cuts
+
+
+def _allowed_parts(garment_type: str) -> list[int]:
+    names = ("torso", "arms", "legs") if garment_type in ("tshirt", "shirt") else ("torso", "legs")
+    return [PARTS.index(n) for n in names]
+
+
+def _name_loops(garment_type: str, v: np.ndarray, loops: list[np.ndarray]) -> tuple[list[str], list[np.ndarray]]:
+    expected = BOUNDARY_NAMES[garment_type]
+    if len(loops) != len(expected):
+        raise RuntimeError(f"{garment_type} template has {len(loops)} boundary loops, expected {len(expected)} "
+                           f"({', '.join(expected)})")
+    centre = np.array([v[l].mean(0) for l in loops])
+    names: list[str | None] = [None] * len(loops)
+    side = np.argsort(centre[:, 0])
+    if garment_type == "skirt":
+        order = np.argsort(-centre[:, 1])
+        names[order[0]], names[order[1]] = "waist", "hem"
+    elif garment_type in ("tshirt", "shirt"):
+        names[side[-1]], names[side[0]] = "left_sleeve", "right_sleeve"
+        mid = [i for i in range(4) if names[i] is None]
+        hi, lo = sorted(mid, key=lambda i: -centre[i, 1])
+        names[hi], names[lo] = "neck", "hem"
+    else:
+        names[side[-1]], names[side[0]] = "left_hem", "right_hem"
+        names[[i for i in range(3) if names[i] is None][0]] = "waist"
+    order = [names.index(n) for n in expected]
+    return list(expected), [loops[i] for i in order]
+
+
+def _body_region(garment_type: str, body, level: int):
+    """Cuts, cleans and subdivides the body region. Returns (faces, body_face (V,), body_bary (V,3))."""
+    v0, joints = body_joints(body, body.shape_default)
+    f0 = np.asarray(body.faces, dtype=np.int64)
+    v, f = v0, f0
+    part = np.asarray(body.vertex_parts, dtype=np.int64)
+    parent = np.arange(len(f0))  # body face of each current face
+    bary = np.tile(np.eye(3)[None], (len(f0), 1, 1))  # (F, 3, 3) per-corner barycentrics in the body face
+    for cut in _cut_fields(garment_type, joints):
+        values, applicable = cut(v, part)
+        fld = np.where(applicable, values, np.minimum(values, -1.0))
+        v_new, f_new, par, bary_new, (src, t) = mesh_ops.cut_by_field(v, f, fld, face_bary=bary, snap=CUT_SNAP_M)
+        a_keep = np.where(fld[src[:, 0]] <= 0, src[:, 0], src[:, 1])
+        part = part[a_keep]
+        parent = parent[par]
+        v, f, bary = v_new, f_new, bary_new
+    allowed = np.isin(part, _allowed_parts(garment_type))
+    keep = allowed[f].all(1)
+    f, parent, bary = f[keep], parent[keep], bary[keep]
+    keep = mesh_ops.clean_submesh(f, len(v))
+    f, parent, bary = f[keep], parent[keep], bary[keep]
+    f, used = mesh_ops.remove_unused_vertices(f, len(v))
+    v = v[used]
+    for _ in range(level):
+        v, f, par, bary = mesh_ops.midpoint_subdivide(v, f, bary)
+        parent = parent[par]
+    # Per-vertex embedding from the first face corner that uses the vertex.
+    flat = f.ravel()
+    first = np.full(len(v), -1, dtype=np.int64)
+    first[flat[::-1]] = np.arange(len(flat))[::-1]
+    face_of, corner_of = first // 3, first % 3
+    body_face = parent[face_of]
+    body_bary = bary[face_of, corner_of]
+    check = np.einsum("vk,vkd->vd", body_bary, v0[f0[body_face]])
+    if np.abs(check - v).max() > 1e-6:
+        raise RuntimeError("garment embedding in body triangles is inconsistent (internal error)")
+    return f, body_face, body_bary
+
+
+def embedded_points(body_vertices: np.ndarray, body_faces: np.ndarray, body_face: np.ndarray,
+                    body_bary: np.ndarray) -> np.ndarray:
+    """Barycentric points on a body mesh: (..., Vb, 3) vertices -> (..., V, 3) [m]."""
+    tri = np.asarray(body_vertices)[..., body_faces[body_face], :]  # (..., V, 3, 3)
+    return np.einsum("vk,...vkd->...vd", body_bary, tri)
+
+
+def _segments(garment_type: str, part_of_vertex: np.ndarray, side_of_vertex: np.ndarray) -> np.ndarray:
+    seg = np.full(len(part_of_vertex), SEGMENT_NONE, dtype=np.int64)
+    kind = LIMB_CUTS[garment_type][0]
+    limb = PARTS.index("arms") if kind == "arm" else PARTS.index("legs")
+    seg[(part_of_vertex == limb) & (side_of_vertex > 0)] = SEGMENT_LEFT
+    seg[(part_of_vertex == limb) & (side_of_vertex < 0)] = SEGMENT_RIGHT
+    if garment_type in ("tshirt", "shirt"):
+        seg[np.isin(part_of_vertex, [PARTS.index("torso"), PARTS.index("legs")])] = SEGMENT_TORSO
+    return seg
+
+
+# ------------------------------------------------------------------------- skirt
+def _skirt_grid_shape(target: int) -> tuple[int, int]:
+    cols = max(16, 4 * int(round(np.sqrt(target * 2.2) / 4)))
+    rows = max(4, int(round(target / cols)))
+    return rows, cols
+
+
+def skirt_vertices(body, shape, style: StyleParams, rows: int, cols: int) -> np.ndarray:
+    """Skirt ring-grid vertices (rows * cols, 3) [m] for a style on the canonical body of a shape.
+
+    Ring k lies at height y_k from the waist (k = 0) to the hem; its radius per angle is
+    the hull of the body (torso + legs) between the waist and y_k, plus looseness plus
+    ``width_profile * k / (rows - 1)``. Angle 0 faces +z; angles increase toward +x.
+    """
+    v, joints = body_joints(body, shape)
+    part = np.asarray(body.vertex_parts)
+    y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
+    y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
+    y_knee = 0.5 * (joints["left_knee"][1] + joints["right_knee"][1])
+    lo, hi = SKIRT_CUT
+    y_hem = y_hip + (y_knee - y_hip) * (lo + (hi - lo) * style["length"])
+    ring_y = y_waist + (y_hem - y_waist) * np.linspace(0.0, 1.0, rows)
+    # Dense body surface points (twice-subdivided torso/leg faces) for the hull.
+    fmask = np.isin(part[body.faces], [PARTS.index("torso"), PARTS.index("legs")]).all(1)
+    pts, tri = v, body.faces[fmask]
+    for _ in range(2):
+        pts, tri, _, _ = mesh_ops.midpoint_subdivide(pts, tri)
+    pts = pts[np.unique(tri)]
+    band = (np.abs(pts[:, 1] - y_waist) < 0.015)
+    centre = pts[band].mean(0) if band.any() else np.array([0.0, y_waist, 0.0])
+    rel = pts - centre
+    ang = np.arctan2(rel[:, 0], rel[:, 2])  # 0 at +z, +pi/2 at +x
+    rad = np.linalg.norm(rel[:, [0, 2]], axis=1)
+    bins = 48
+    b = np.floor((ang + np.pi) / (2 * np.pi) * bins).astype(int) % bins
+    half_band = 0.5 * abs(ring_y[1] - ring_y[0]) + 0.01
+    radius = np.zeros((rows, bins))
+    for k, y in enumerate(ring_y):
+        sel = (pts[:, 1] <= y_waist + 0.005) & (pts[:, 1] >= y - half_band)
+        r = np.zeros(bins)
+        np.maximum.at(r, b[sel], rad[sel])
+        radius[k] = r
+    radius = np.maximum.accumulate(radius, axis=0)  # the hull only grows from the waist down
+    for k in range(rows):  # fill empty bins, then a circular smoothing
+        r = radius[k]
+        if (r > 0).any():
+            good = np.nonzero(r > 0)[0]
+            r = np.interp(np.arange(bins), good, r[good], period=bins)
+        for _ in range(3):
+            r = np.maximum(r, 0.25 * np.roll(r, 1) + 0.5 * r + 0.25 * np.roll(r, -1))
+        radius[k] = r
+    theta = 2 * np.pi * np.arange(cols) / cols - np.pi
+    bin_centres = (np.arange(bins) + 0.5) / bins * 2 * np.pi - np.pi
+    t = np.linspace(0.0, 1.0, rows)
+    out = np.zeros((rows, cols, 3))
+    for k in range(rows):
+        r = np.interp(theta, bin_centres, radius[k], period=2 * np.pi)
+        r = r + style["looseness"] + style["width_profile"] * t[k]
+        out[k, :, 0] = centre[0] + r * np.sin(theta)
+        out[k, :, 1] = ring_y[k]
+        out[k, :, 2] = centre[2] + r * np.cos(theta)
+    return out.reshape(-1, 3)
+
+
+def _skirt_faces(rows: int, cols: int) -> np.ndarray:
+    r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols), indexing="ij")
+    a = r * cols + c
+    b = r * cols + (c + 1) % cols
+    cc = (r + 1) * cols + c
+    d = (r + 1) * cols + (c + 1) % cols
+    # outward normals: angle increases toward +x from +z, rows go down
+    return np.concatenate([np.stack([a, cc, b], -1).reshape(-1, 3), np.stack([b, cc, d], -1).reshape(-1, 3)])
+
+
+def skirt_skinning_weights(body, points: np.ndarray, *, neighbours: int = SKIRT_SKINNING_NEIGHBOURS) -> np.ndarray:
+    """Inverse-distance average of the weights of the K nearest torso/leg body vertices, (N, J)."""
+    v, _ = body_joints(body, body.shape_default)
+    mask = np.isin(body.vertex_parts, [PARTS.index("torso"), PARTS.index("legs")])
+    idx = np.nonzero(mask)[0]
+    d, nn = cKDTree(v[idx]).query(points, k=neighbours)
+    w = 1.0 / np.maximum(d, 1e-6)
+    w /= w.sum(1, keepdims=True)
+    weights = np.einsum("nk,nkj->nj", w, body.skinning_weights[idx[nn]])
+    return (weights / weights.sum(1, keepdims=True)).astype(np.float32)
+
+
+# ------------------------------------------------------------------------- styles
+def _slide(surface: np.ndarray, faces: np.ndarray, member: np.ndarray, u: np.ndarray, u_anchor: float,
+           u_max: float, u_cut: float, axis_point) -> tuple[np.ndarray, np.ndarray]:
+    """Moves a segment's rows toward its anchor so the hem at u_max lands at u_cut, keeping
+    the vertices on the surface. Returns (new positions (V, 3), new coordinates (V,))."""
+    scale = (u_cut - u_anchor) / max(u_max - u_anchor, 1e-9)
+    u_new = np.where(u > u_anchor, u_anchor + (u - u_anchor) * scale, u)
+    u_new = u + member * (u_new - u)
+    moved = surface + (axis_point(u_new) - axis_point(u))
+    sel = (member > 1e-3) & (np.abs(u_new - u) > 1e-9)
+    out = surface.copy()
+    if sel.any():
+        seg_faces = faces[(member[faces] > 0.5).all(1)]
+        if len(seg_faces) == 0:
+            seg_faces = faces
+        query = mesh_ops.ClosestPointQuery(surface, seg_faces)
+        out[sel] = query.query(moved[sel])[0]
+    return out, u_new
+
+
+def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=None) -> np.ndarray:
+    """Garment vertices [m] (V, 3) of ``style`` on the canonical body of ``shape``
+    (default neutral), with the template's (fixed) topology."""
+    if style.garment_type != template.garment_type:
+        raise ValueError(f"style is for {style.garment_type!r} but the template is a {template.garment_type!r}")
+    shape = body.shape_default if shape is None else np.asarray(shape, dtype=np.float32)
+    gt = template.garment_type
+    if gt == "skirt":
+        rows, cols = template.grid_shape
+        return skirt_vertices(body, shape, style, rows, cols).astype(np.float32)
+    bv, joints = body_joints(body, shape)
+    faces = template.faces
+    surf = embedded_points(bv, body.faces, template.body_face, template.body_bary)
+    extra = np.zeros(len(surf))
+
+    def membership(mask: np.ndarray) -> np.ndarray:
+        return np.clip(mesh_ops.smooth_vertex_values(mask.astype(np.float64)[:, None], faces, iterations=8)[:, 0], 0, 1)
+
+    if gt in ("tshirt", "shirt"):
+        y_top = joints["spine2"][1]
+        y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
+        height = y_top - y_hip
+        anchor, lo, hi = TORSO_CUT
+        u = (y_top - surf[:, 1]) / height
+        member = membership(template.segment == SEGMENT_TORSO)
+        axis = lambda uu: np.stack([np.zeros_like(uu), y_top - uu * height, np.zeros_like(uu)], -1)  # noqa: E731
+        surf, _ = _slide(surf, faces, member, u, anchor, hi, lo + (hi - lo) * style["length"], axis)
+        length_name = "sleeve_length"
+    else:
+        length_name = "leg_length"
+    kind, anchor, lo, hi = LIMB_CUTS[gt]
+    u_cut = lo + (hi - lo) * style[length_name]
+    for seg_id, side in ((SEGMENT_LEFT, 1), (SEGMENT_RIGHT, -1)):
+        chain = [joints[n] for n in _chain(kind, side)]
+        member = membership(template.segment == seg_id)
+        u = limb_coordinate(surf, chain)
+        surf, u_new = _slide(surf, faces, member, u, anchor, hi, u_cut, lambda uu, c=chain: limb_point(uu, c))
+        ramp = np.clip((u_new - anchor) / max(u_cut - anchor, 1e-9), 0.0, 1.0)
+        extra += member * ramp * style["width_profile"]
+    normals = mesh_ops.smooth_normals(surf, faces, iterations=10)
+    return (surf + normals * (style["looseness"] + extra)[:, None]).astype(np.float32)
+
+
+# ------------------------------------------------------------------------- builder
+def subdivision_level_for(garment_type: str, body, resolution: int) -> int:
+    """Subdivision level (0-2) whose vertex count is nearest ``resolution`` in log scale."""
+    base_faces, _, _ = _body_region(garment_type, body, 0)
+    v0 = len(np.unique(base_faces))
+    e0 = len(mesh_ops.unique_edges(base_faces)[0])
+    f0 = len(base_faces)
+    counts = [v0, v0 + e0]
+    counts.append(counts[1] + 2 * e0 + 3 * f0)  # V2 = V1 + E1, E1 = 2 E0 + 3 F0
+    return int(np.argmin([abs(np.log(c / resolution)) for c in counts]))
+
+
+def make_template(garment_type: str, body, *, resolution: int | None = None,
+                  style: StyleParams | dict | str | None = None) -> GarmentTemplate:
+    """Builds the template of a garment type on ``body``'s canonical body.
+
+    Args:
+        garment_type: one of :data:`GARMENT_TYPES`.
+        body: a BodyModel (anny by default in the project).
+        resolution: target vertex count (default :data:`DEFAULT_RESOLUTION`); body-topology
+            garments use the nearest of subdivision levels 0-2 (see ``template.resolution``).
+        style: style of the template's rest ``vertices`` (default: the type's defaults).
+    Raises:
+        ValueError for an unknown type, a non-positive resolution or a bad style.
+    """
+    from simulate.garment import uv as uv_mod
+
+    check_garment_type(garment_type)
+    if resolution is None:
+        resolution = DEFAULT_RESOLUTION[garment_type]
+    if int(resolution) != resolution or resolution < 64:
+        raise ValueError(f"resolution must be an integer vertex count >= 64, got {resolution!r}")
+    if not isinstance(style, StyleParams):
+        style = StyleParams.parse(garment_type, style) if style is None or isinstance(style, str) \
+            else StyleParams(garment_type, style)
+    if garment_type == "skirt":
+        rows, cols = _skirt_grid_shape(int(resolution))
+        faces = _skirt_faces(rows, cols)
+        nv = rows * cols
+        segment = np.zeros(nv, dtype=np.int64)
+        tpl = GarmentTemplate(
+            garment_type=garment_type, vertices=np.zeros((nv, 3), np.float32), faces=faces,
+            uv=np.zeros((nv, 2), np.float32), face_uv=np.zeros((len(faces), 3, 2), np.float32),
+            vertex_panel=np.zeros(nv, np.int64), face_panel=np.zeros(len(faces), np.int64), panel_names=[],
+            boundary_names=["waist", "hem"], boundary_loops=[], attachment=np.zeros(0, np.int64),
+            skinning_weights=np.zeros((nv, body.joint_count), np.float32),
+            body_vertex_index=np.full(nv, -1, np.int64), body_face=np.full(nv, -1, np.int64),
+            body_bary=np.zeros((nv, 3), np.float32), segment=segment, grid_shape=(rows, cols),
+            resolution=int(resolution), body_name=body.name, default_style=dict(style.values))
+        tpl.vertices = apply_style(tpl, style, body)
+        loops = mesh_ops.boundary_loops(faces)
+        names, loops = _name_loops(garment_type, tpl.vertices, loops)
+        tpl.boundary_names, tpl.boundary_loops = names, loops
+        tpl.attachment = np.arange(2 * cols, dtype=np.int64)  # waistband: the top two rings
+        tpl.skinning_weights = skirt_skinning_weights(body, tpl.vertices)
+    else:
+        level = subdivision_level_for(garment_type, body, int(resolution))
+        faces, body_face, body_bary = _body_region(garment_type, body, level)
+        bv, joints = body_joints(body, body.shape_default)
+        surf = embedded_points(bv, body.faces, body_face, body_bary)
+        corner = np.argmax(body_bary, axis=1)
+        nearest_in_face = body.faces[body_face, corner]
+        part = np.asarray(body.vertex_parts)[nearest_in_face]
+        index = cKDTree(bv).query(surf)[1].astype(np.int64)
+        weights = np.einsum("vk,vkj->vj", body_bary, body.skinning_weights[body.faces[body_face]])
+        weights = (weights / weights.sum(1, keepdims=True)).astype(np.float32)
+        segment = _segments(garment_type, part, np.sign(surf[:, 0]))
+        tpl = GarmentTemplate(
+            garment_type=garment_type, vertices=surf.astype(np.float32), faces=faces,
+            uv=np.zeros((len(surf), 2), np.float32), face_uv=np.zeros((len(faces), 3, 2), np.float32),
+            vertex_panel=np.zeros(len(surf), np.int64), face_panel=np.zeros(len(faces), np.int64),
+            panel_names=[], boundary_names=[], boundary_loops=[], attachment=np.zeros(0, np.int64),
+            skinning_weights=weights, body_vertex_index=index, body_face=body_face.astype(np.int64),
+            body_bary=body_bary.astype(np.float32), segment=segment, grid_shape=(0, 0), resolution=level,
+            body_name=body.name, default_style=dict(style.values))
+        names, loops = _name_loops(garment_type, surf, mesh_ops.boundary_loops(faces))
+        tpl.boundary_names, tpl.boundary_loops = names, loops
+        if garment_type in ("pants", "shorts"):
+            y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
+            tpl.attachment = np.nonzero(surf[:, 1] > y_waist - 0.02)[0].astype(np.int64)
+        tpl.vertices = apply_style(tpl, style, body)
+    uv_mod.build_uv(tpl)
+    return tpl
+
+
+__all__ = ["GarmentTemplate", "make_template", "apply_style", "GARMENT_TYPES", "STYLE_SPECS", "DEFAULT_RESOLUTION",
+           "BOUNDARY_NAMES", "embedded_points", "body_joints", "skirt_skinning_weights"]
