@@ -47,7 +47,6 @@ def _rng(seed: int, *stream: int) -> np.random.Generator:
 
 
 def plan_dataset(spec: dict, body: BodyModel) -> Plan:
-    from simulate.garment.shapes import sample_test_shapes, tailornet_shapes
     from simulate.garment.style import StyleParams, sample_styles
     from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, greedy_order, load_pose_file, sample_poses
 
@@ -68,6 +67,8 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     for k, group in enumerate(("train", "test")):
         given = spec["shapes"][group]
         if given == "tailornet9":
+            from simulate.garment.shapes import tailornet_shapes
+
             shapes.append(np.asarray(tailornet_shapes(body), np.float32))
         elif isinstance(given, list):
             arr = np.asarray(given, np.float32)
@@ -76,6 +77,8 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                                  f"({', '.join(body.shape_names)}), got shape {arr.shape}")
             shapes.append(arr)
         else:
+            from simulate.garment.shapes import sample_test_shapes
+
             shapes.append(np.asarray(sample_test_shapes(body, int(given), seed=seed * 1000 + 21 + k), np.float32))
     n_train_shapes = len(shapes[0])
     all_shapes = np.concatenate(shapes)

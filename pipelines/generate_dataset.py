@@ -206,12 +206,12 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
 
 def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     totals = manifest.totals
-    kept = int(totals.get("frames", totals.get("frames_kept", 0)))
-    dropped = totals.get("dropped", {}) or {}
+    kept = int(totals.get("frames_kept", 0))
+    dropped = totals.get("frames_dropped", {}) or {}
     lines = ["", f"dataset {manifest.name}: {len(manifest.shards)} shards",
-             f"  {'frames kept':<22}{kept:>10}"]
+             f"  {'frames kept':<26}{kept:>6}"]
     for reason in DROP_REASONS:
-        lines.append(f"  {'dropped: ' + reason:<22}{int(dropped.get(reason, 0)):>10}")
+        lines.append(f"  {'dropped: ' + reason:<26}{int(dropped.get(reason, 0)):>6}")
     if seconds > 0:
         lines.append(f"  {'this run':<22}{seconds:>9.1f} s   {frames_simulated_keys / seconds:8.2f} target frames/s")
     return "\n".join(lines)
