@@ -110,3 +110,87 @@ def default_body(parts: tuple[str, ...] | None = ("torso", "arms", "legs"), *,
     posed = body.pose(body.shape_default[None], pose_vec[None])
     faces = body.faces if parts is None else body.part_faces(list(parts))
     return np.asarray(posed.vertices[0], dtype=np.float64), np.asarray(faces, dtype=np.int64), "anny"
+
+
+BENCH_POSE = {
+    "left_shoulder": (0.0, 0.0, 0.5),   # left arm raised sideways
+    "right_shoulder": (-0.6, 0.0, 0.0),  # right arm swung forward
+    "right_elbow": (0.0, 0.9, 0.0),      # and bent
+    "spine2": (0.0, 0.25, 0.0),          # torso twisted
+    "left_hip": (-0.4, 0.0, 0.0),        # left leg forward
+}
+"""Axis-angle offsets [rad] added to the canonical pose for the benchmark drape."""
+
+
+def shawl_scene(resolution: int = 100, *, size: float = 1.4, body: str = "default",
+                parts: tuple[str, ...] = ("torso", "arms", "head", "legs")) -> dict:
+    """Benchmark scene: a square cloth of ``resolution`` x ``resolution`` vertices held flat 2 cm above
+    the head of the default body in a non-trivial pose (:data:`BENCH_POSE`), culled to ``parts``.
+
+    Args:
+        resolution: vertices per side (100 gives a 10k-vertex cloth).
+        size: cloth side length [m].
+        body: "default" (anny via simulate.body, capsule if unavailable) or "capsule".
+        parts: body parts kept in the collider (hands and feet are dropped by default).
+    Returns:
+        dict with cloth_vertices (V, 3), cloth_faces (F, 3), body_vertices (Vb, 3),
+        body_faces (Fb, 3) [m], and body_kind ("anny" or "capsule").
+    """
+    kind = "capsule"
+    if body == "default":
+        try:
+            from simulate.body import POSE_JOINTS, load_body_model
+        except ImportError:
+            POSE_JOINTS = None
+        if POSE_JOINTS is not None:
+            model = load_body_model("anny")
+            pose = np.asarray(model.canonical_pose, dtype=np.float32).reshape(-1, 3).copy()
+            for joint, rot in BENCH_POSE.items():
+                pose[POSE_JOINTS.index(joint)] += np.asarray(rot, dtype=np.float32)
+            posed = model.pose(model.shape_default[None], pose.reshape(1, -1))
+            body_v = np.asarray(posed.vertices[0], dtype=np.float64)
+            body_f = np.asarray(model.part_faces(list(parts)), dtype=np.int64)
+            kind = "anny"
+    elif body != "capsule":
+        raise ValueError(f"body must be 'default' or 'capsule' (got {body!r})")
+    if kind == "capsule":
+        body_v, body_f = capsule_body(height=1.2, radius=0.15, center=(0.0, 0.0, 0.0))
+    used = body_v[np.unique(body_f)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    cloth_v, cloth_f = grid_cloth(resolution, resolution, size, size, plane="xz",
+                                  origin=(centre[0] - size / 2, hi[1] + 0.02, centre[2] - size / 2))
+    return {"cloth_vertices": cloth_v, "cloth_faces": cloth_f, "body_vertices": body_v, "body_faces": body_f,
+            "body_kind": kind}
+
+
+def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotton", jitter: float = 0.0,
+                  seed: int = 0, thickness: float = 2.0e-3, features=None):
+    """Model and collider with ``worlds`` copies of ``scene`` (see :func:`shawl_scene`).
+
+    Args:
+        scene: dict from :func:`shawl_scene`.
+        worlds: number of worlds.
+        device: Warp device.
+        fabric: fabric preset for every world.
+        jitter: per-world random horizontal shift of the cloth [m] (seeded), so worlds differ.
+        seed: RNG seed for the jitter.
+        thickness: body contact thickness [m].
+        features: simulate.cloth.Features or None.
+    Returns:
+        (ClothModel, BodyCollider)
+    """
+    from simulate.cloth.builder import ClothBuilder
+    from simulate.contact.body_collider import BodyCollider
+
+    rng = np.random.default_rng(seed)
+    builder = ClothBuilder()
+    for _ in range(worlds):
+        shift = np.zeros(3)
+        if jitter > 0.0:
+            shift[[0, 2]] = rng.uniform(-jitter, jitter, size=2)
+        builder.add_garment(scene["cloth_vertices"] + shift, scene["cloth_faces"], fabric=fabric)
+    model = builder.finalize(device, features=features)
+    collider = BodyCollider(scene["body_vertices"], scene["body_faces"], device=device, world_count=worlds,
+                            thickness=thickness)
+    return model, collider
