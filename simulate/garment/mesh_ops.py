@@ -397,7 +397,7 @@ class ClosestPointQuery:
         self.faces = np.asarray(faces, dtype=np.int64)
         self.candidates = min(int(candidates), len(self.faces))
         self._tree = cKDTree(self.vertices[self.faces].mean(1))
-        self._normals = face_normals(self.vertices, self.faces)
+        self.normals = face_normals(self.vertices, self.faces)
 
     def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Returns (closest points (N, 3) [m], face index (N,), barycentrics (N, 3),
@@ -412,6 +412,55 @@ class ClosestPointQuery:
         rows = np.arange(len(p))
         face = cand[rows, best]
         closest = q[rows, best]
-        sign = np.sign(((p - closest) * self._normals[face]).sum(-1))
+        sign = np.sign(((p - closest) * self.normals[face]).sum(-1))
         sign[sign == 0] = 1.0
         return closest, face, bary[rows, best], sign * dist[rows, best]
+
+
+def collapse_short_edges(vertices: np.ndarray, faces: np.ndarray, min_length: float, *, max_passes: int = 10
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Collapses edges shorter than ``min_length`` [m] into one endpoint (a boundary
+    endpoint when there is one), only where the collapse keeps the mesh manifold (link
+    condition) and never joining two boundary vertices through the interior.
+
+    Returns:
+        (faces' (F', 3) over the same vertex array, kept vertex mask (V,)).
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).copy()
+    for _ in range(max_passes):
+        edges, fe = unique_edges(f)
+        counts = np.bincount(fe.ravel(), minlength=len(edges))
+        on_boundary = np.zeros(len(v), dtype=bool)
+        on_boundary[edges[counts == 1].ravel()] = True
+        length = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+        short = np.nonzero(length < min_length)[0]
+        if len(short) == 0:
+            break
+        short = short[np.argsort(length[short])]
+        adj = vertex_adjacency(f, len(v)).tolil().rows
+        touched = np.zeros(len(v), dtype=bool)
+        target = np.arange(len(v))
+        done = 0
+        for e in short:
+            a, b = edges[e]
+            if touched[a] or touched[b]:
+                continue
+            boundary_edge = counts[e] == 1
+            if on_boundary[a] and on_boundary[b] and not boundary_edge:
+                continue
+            common = set(adj[a]) & set(adj[b])
+            if len(common) != (1 if boundary_edge else 2):
+                continue
+            keep, drop = (b, a) if (on_boundary[b] and not on_boundary[a]) else (a, b)
+            target[drop] = keep
+            touched[list(adj[a]) + list(adj[b]) + [a, b]] = True
+            done += 1
+        if done == 0:
+            break
+        f = target[f]
+        good = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+        f = f[good]
+    kept = np.zeros(len(v), dtype=bool)
+    kept[f.ravel()] = True
+    return f, kept

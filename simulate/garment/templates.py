@@ -64,6 +64,10 @@ SKIRT_CUT: tuple[float, float] = (0.35, 1.2)
 WAIST_BELOW_SPINE1_M = 0.01
 #: Skinning weights of the skirt: K nearest body vertices (TailorNet).
 SKIRT_SKINNING_NEIGHBOURS = 100
+#: Generated garment vertices are kept at least this far outside the body [m].
+PUSH_CLEARANCE_M = 0.004
+#: Edges shorter than this fraction of the median edge are collapsed.
+SHORT_EDGE_FRACTION = 0.35
 #: Cut vertices closer than this to a cut are snapped onto it (no slivers) [m].
 CUT_SNAP_M = 0.004
 
@@ -265,9 +269,11 @@ def _cut_fields(garment_type: str, joints: dict[str, np.ndarray]):
     for side in (1, -1):
         chain = [joints[n] for n in _chain(kind, side)]
 
-        def limb_cut(v, part, chain=chain, side=side):
-            u = limb_coordinate(v, chain)
-            return u - u_max, np.isin(part, limb_parts) & (np.sign(v[:, 0]) == side)
+        bone = np.linalg.norm(chain[int(min(u_max, 1.999))] - chain[int(min(u_max, 1.999)) + 1])
+
+        def limb_cut(v, part, chain=chain, side=side, bone=bone):
+            u = limb_coordinate(v, chain)  # bone units; times the bone length: ~metres near the cut
+            return (u - u_max) * bone, np.isin(part, limb_parts) & (np.sign(v[:, 0]) == side)
 
         cuts.append(limb_cut)
     return cuts
@@ -302,42 +308,48 @@ def _name_loops(garment_type: str, v: np.ndarray, loops: list[np.ndarray]) -> tu
 
 
 def _body_region(garment_type: str, body, level: int):
-    """Cuts, cleans and subdivides the body region. Returns (faces, body_face (V,), body_bary (V,3))."""
+    """Cuts, cleans, regularises and subdivides the body region.
+
+    Returns (vertices (V, 3) on the canonical body [m], faces (F, 3), body_face (V,),
+    body_bary (V, 3)): each vertex's closest point on the body (its embedding).
+    """
     v0, joints = body_joints(body, body.shape_default)
     f0 = np.asarray(body.faces, dtype=np.int64)
     v, f = v0, f0
     part = np.asarray(body.vertex_parts, dtype=np.int64)
-    parent = np.arange(len(f0))  # body face of each current face
-    bary = np.tile(np.eye(3)[None], (len(f0), 1, 1))  # (F, 3, 3) per-corner barycentrics in the body face
     for cut in _cut_fields(garment_type, joints):
         values, applicable = cut(v, part)
         fld = np.where(applicable, values, np.minimum(values, -1.0))
-        v_new, f_new, par, bary_new, (src, t) = mesh_ops.cut_by_field(v, f, fld, face_bary=bary, snap=CUT_SNAP_M)
-        a_keep = np.where(fld[src[:, 0]] <= 0, src[:, 0], src[:, 1])
-        part = part[a_keep]
-        parent = parent[par]
-        v, f, bary = v_new, f_new, bary_new
+        v, f, _, _, (src, _) = mesh_ops.cut_by_field(v, f, fld, snap=CUT_SNAP_M)
+        part = part[np.where(fld[src[:, 0]] <= 0, src[:, 0], src[:, 1])]
     allowed = np.isin(part, _allowed_parts(garment_type))
-    keep = allowed[f].all(1)
-    f, parent, bary = f[keep], parent[keep], bary[keep]
-    keep = mesh_ops.clean_submesh(f, len(v))
-    f, parent, bary = f[keep], parent[keep], bary[keep]
+    f = f[allowed[f].all(1)]
+    f = f[mesh_ops.clean_submesh(f, len(v))]
+    # Short edges (cut points next to body vertices, thin body triangles) make stiff,
+    # unstable cloth: collapse them, clean again, drop unused vertices.
+    lengths = np.linalg.norm(v[mesh_ops.unique_edges(f)[0][:, 0]] - v[mesh_ops.unique_edges(f)[0][:, 1]], axis=1)
+    f, _ = mesh_ops.collapse_short_edges(v, f, SHORT_EDGE_FRACTION * float(np.median(lengths)))
+    f = f[mesh_ops.clean_submesh(f, len(v))]
+    f, used = mesh_ops.remove_unused_vertices(f, len(v))
+    v = v[used]
+    region_index = np.nonzero(np.isin(np.asarray(body.vertex_parts)[f0], _allowed_parts(garment_type)).all(1))[0]
+    region_faces = f0[region_index]
+    query = mesh_ops.ClosestPointQuery(v0, region_faces)
+    boundary = np.zeros(len(v), dtype=bool)
+    for loop in mesh_ops.boundary_loops(f):
+        boundary[loop] = True
+    v = mesh_ops.smooth_vertex_values(v, f, iterations=3, lam=0.5, fixed=boundary)  # tangential regularisation
+    v[~boundary] = query.query(v[~boundary])[0]
+    # Projection can pull neighbours together in creases (armpits): collapse again.
+    f, _ = mesh_ops.collapse_short_edges(v, f, SHORT_EDGE_FRACTION * float(np.median(lengths)))
+    f = f[mesh_ops.clean_submesh(f, len(v))]
     f, used = mesh_ops.remove_unused_vertices(f, len(v))
     v = v[used]
     for _ in range(level):
-        v, f, par, bary = mesh_ops.midpoint_subdivide(v, f, bary)
-        parent = parent[par]
-    # Per-vertex embedding from the first face corner that uses the vertex.
-    flat = f.ravel()
-    first = np.full(len(v), -1, dtype=np.int64)
-    first[flat[::-1]] = np.arange(len(flat))[::-1]
-    face_of, corner_of = first // 3, first % 3
-    body_face = parent[face_of]
-    body_bary = bary[face_of, corner_of]
-    check = np.einsum("vk,vkd->vd", body_bary, v0[f0[body_face]])
-    if np.abs(check - v).max() > 1e-6:
-        raise RuntimeError("garment embedding in body triangles is inconsistent (internal error)")
-    return f, body_face, body_bary
+        v, f, _, _ = mesh_ops.midpoint_subdivide(v, f)
+        v = query.query(v)[0]
+    closest, face, bary, _ = query.query(v)
+    return closest, f, region_index[face], bary
 
 
 def embedded_points(body_vertices: np.ndarray, body_faces: np.ndarray, body_face: np.ndarray,
@@ -453,8 +465,11 @@ def _slide(surface: np.ndarray, faces: np.ndarray, member: np.ndarray, u: np.nda
     u_new = np.where(u > u_anchor, u_anchor + (u - u_anchor) * scale, u)
     u_new = u + member * (u_new - u)
     moved = surface + (axis_point(u_new) - axis_point(u))
-    sel = (member > 1e-3) & (np.abs(u_new - u) > 1e-9)
-    out = surface.copy()
+    # Vertices fully inside the segment are put back on its surface; the blend zone
+    # (partial membership, e.g. the armpit) is only translated, since projecting it
+    # would pull neighbours onto the same crease point.
+    sel = (member > 0.5) & (np.abs(u_new - u) > 1e-9)
+    out = moved.copy()
     if sel.any():
         seg_faces = faces[(member[faces] > 0.5).all(1)]
         if len(seg_faces) == 0:
@@ -504,13 +519,69 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
         ramp = np.clip((u_new - anchor) / max(u_cut - anchor, 1e-9), 0.0, 1.0)
         extra += member * ramp * style["width_profile"]
     normals = mesh_ops.smooth_normals(surf, faces, iterations=10)
-    return (surf + normals * (style["looseness"] + extra)[:, None]).astype(np.float32)
+    offset = safe_offsets(surf, normals, style["looseness"] + extra, faces, bv, body.faces)
+    verts = surf + normals * offset[:, None]
+    return relax_outside(verts, faces, bv, body.faces).astype(np.float32)
+
+
+def safe_offsets(surface: np.ndarray, normals: np.ndarray, offset: np.ndarray, faces: np.ndarray,
+                 body_vertices: np.ndarray, body_faces: np.ndarray, *, rounds: int = 5) -> np.ndarray:
+    """Per-vertex offsets [m] (V,) no larger than requested, halved where moving along
+    the normal runs toward another part of the body (armpits, crotch, between the legs):
+    there the offset point would be closer to the body than half the offset. The result
+    is smoothed (never increased) so neighbouring rows stay evenly spaced."""
+    query = mesh_ops.ClosestPointQuery(body_vertices, body_faces)
+    d = np.asarray(offset, dtype=np.float64).copy()
+    for _ in range(rounds):
+        sd = query.query(surface + normals * d[:, None])[3]
+        bad = sd < 0.5 * d
+        if not bad.any():
+            break
+        d[bad] *= 0.5
+        d = np.minimum(d, mesh_ops.smooth_vertex_values(d[:, None], faces, iterations=3)[:, 0])
+    return d
+
+
+def relax_outside(points: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, *,
+                  rounds: int = 4) -> np.ndarray:
+    """Pushes garment vertices out of the body (:func:`push_outside`), then relaxes the
+    pushed places (and two rings around them) by Laplacian smoothing, repeatedly, so
+    concave places (armpits, crotch) get no collapsed slivers."""
+    adj = mesh_ops.vertex_adjacency(faces, len(points))
+    out = np.asarray(points, dtype=np.float64)
+    for _ in range(rounds):
+        pushed = push_outside(out, body_vertices, body_faces)
+        moved = np.linalg.norm(pushed - out, axis=1) > 1e-7
+        out = pushed
+        if not moved.any():
+            break
+        region = moved.astype(np.float64)
+        for _ in range(2):
+            region = np.maximum(region, (adj @ region > 0).astype(np.float64))
+        out = mesh_ops.smooth_vertex_values(out, faces, iterations=5, lam=0.5, fixed=region < 0.5)
+    # No final push: it would collapse neighbours onto one crease point again; what the
+    # smoothing left inside (millimetres, in creases) is resolved by the drape.
+    return out
+
+
+def push_outside(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, *,
+                 clearance: float = PUSH_CLEARANCE_M) -> np.ndarray:
+    """Moves points that are inside the body or closer than ``clearance`` [m] to the body
+    surface point nearest them plus ``clearance`` along that face's normal (offsets in
+    concave places such as armpits and the crotch otherwise cross the body)."""
+    query = mesh_ops.ClosestPointQuery(body_vertices, body_faces)
+    closest, face, _, sd = query.query(points)
+    out = np.asarray(points, dtype=np.float64).copy()
+    bad = sd < clearance
+    if bad.any():
+        out[bad] = closest[bad] + query.normals[face[bad]] * clearance
+    return out
 
 
 # ------------------------------------------------------------------------- builder
 def subdivision_level_for(garment_type: str, body, resolution: int) -> int:
     """Subdivision level (0-2) whose vertex count is nearest ``resolution`` in log scale."""
-    base_faces, _, _ = _body_region(garment_type, body, 0)
+    _, base_faces, _, _ = _body_region(garment_type, body, 0)
     v0 = len(np.unique(base_faces))
     e0 = len(mesh_ops.unique_edges(base_faces)[0])
     f0 = len(base_faces)
@@ -564,9 +635,8 @@ def make_template(garment_type: str, body, *, resolution: int | None = None,
         tpl.skinning_weights = skirt_skinning_weights(body, tpl.vertices)
     else:
         level = subdivision_level_for(garment_type, body, int(resolution))
-        faces, body_face, body_bary = _body_region(garment_type, body, level)
+        surf, faces, body_face, body_bary = _body_region(garment_type, body, level)
         bv, joints = body_joints(body, body.shape_default)
-        surf = embedded_points(bv, body.faces, body_face, body_bary)
         corner = np.argmax(body_bary, axis=1)
         nearest_in_face = body.faces[body_face, corner]
         part = np.asarray(body.vertex_parts)[nearest_in_face]
