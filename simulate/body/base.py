@@ -112,6 +112,7 @@ class BodyModel(abc.ABC):
     skinning_weights_t: torch.Tensor
     vertex_parts: np.ndarray
     canonical_pose: np.ndarray
+    _weights_on: torch.Tensor | None = None
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -149,7 +150,7 @@ class BodyModel(abc.ABC):
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")
-        return t
+        return t.to(getattr(self, "device", t.device))
 
     def check_pose(self, pose, *, field: str = "pose") -> torch.Tensor:
         """Returns pose as a float32 tensor (B, 20, 3); accepts (60,), (20,3), (B,60), (B,20,3)."""
@@ -167,7 +168,7 @@ class BodyModel(abc.ABC):
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")
-        return t
+        return t.to(getattr(self, "device", t.device))
 
     def pose_from_dict(self, rotations: dict[str, object]) -> np.ndarray:
         """Builds a (60,) pose from {joint name: axis-angle (3,)}; unknown names raise."""
@@ -224,7 +225,9 @@ class BodyModel(abc.ABC):
         world, skin = kin.forward_kinematics(rot, rest_joints, self.joint_parents, translation=trans, levels=self._levels)
         correctives = self._pose_correctives(rot)
         shaped = rest_vertices if correctives is None else rest_vertices + correctives
-        vertices = kin.lbs(shaped, self.skinning_weights_t.to(shaped.device), skin)
+        if self._weights_on is None or self._weights_on.device != shaped.device:
+            self._weights_on = self.skinning_weights_t.to(shaped.device)
+        vertices = kin.lbs(shaped, self._weights_on, skin)
         return PosedBody(
             vertices=vertices, faces=self.faces, joints=world[..., :3, 3], joint_transforms=world,
             skinning_transforms=skin, skinning_weights=self.skinning_weights_t, rest_vertices=rest_vertices,
@@ -237,7 +240,7 @@ class BodyModel(abc.ABC):
             shape_t = self.check_shape(shape)
             rot = self.local_rotations_torch(pose)
             _, rest_joints = self._rest_torch(shape_t)
-            trans = None if translation is None else kin.as_torch(translation).reshape(-1, 3).expand(rot.shape[0], 3)
+            trans = None if translation is None else kin.as_torch(translation, device=rot.device).reshape(-1, 3).expand(rot.shape[0], 3)
             world, _ = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), self.joint_parents,
                                               translation=trans, levels=self._levels)
         return world[..., :3, 3].cpu().numpy()
