@@ -187,6 +187,10 @@ def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
     metrics = evaluate_split(trained["tailornet"], test, posing=posing)
     assert 0.0 < metrics["collision_rate"] <= 1.0, metrics
     assert metrics["collision_rate_postprocessed"] < metrics["collision_rate"], metrics
+    assert metrics["postprocess_frames_evaluated"] == 6 and metrics["collision_rate_subset"] == metrics["collision_rate"]
+    subset = evaluate_split(trained["tailornet"], test, posing=posing, postprocess_frames=2)
+    assert subset["postprocess_frames_evaluated"] == 2, subset
+    assert subset["collision_rate_postprocessed"] < subset["collision_rate_subset"], subset
     # Posing is a translation here, so posed and unposed errors coincide.
     assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 1e-3, metrics
     timing = time_inference(trained["tailornet"], test.pose, test.shape, test.style, batch_sizes=(1, 4), repeats=3)

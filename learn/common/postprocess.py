@@ -4,20 +4,22 @@ Vertices found inside the body are pushed out to the nearest body surface point 
 offset (1 mm) while every vertex keeps its Laplacian coordinates (local shape,
 wrinkles) in a least-squares sense:
 
-    min_x ||L x - L x0||^2 + w sum_c (n_c . x_c - b_c)^2 + eps ||x - x0||^2
+    min_x ||L x - L x0||^2 + w sum_c ||x_c - t_c||^2 + eps ||x - x0||^2
 
-where, for each constrained vertex c, n_c is the outward normal of the nearest body face
-and b_c = n_c . (nearest surface point) + offset, i.e. the vertex is asked to sit
-``offset`` outside the body plane under it. The small ``eps`` term pins the null space
-of the uniform Laplacian (a translation of a component without constraints).
+where, for each constrained vertex c, n_c is the outward normal of the nearest body face,
+b_c = n_c . (nearest surface point) + offset, and t_c is on the plane n_c . t = b_c,
+i.e. the vertex is asked to sit ``offset`` outside the body plane under it. The small
+``eps`` term pins the null space of the uniform Laplacian (a translation of a component
+without constraints).
 
-The authors' code pins every inside vertex to its target point (an equality in all three
-coordinates). That flattens wrinkles whose troughs dip into the body. We constrain only
-the normal coordinate and treat it as the one-sided bound n_c . x_c >= b_c with an
-active set: each round adds the vertices now inside and releases constrained vertices
-whose penalty pulls them inward (they would lie farther out on their own), so a
-wrinkled region is lifted as a whole instead of being pressed flat. The 3V x 3V sparse
-system is solved on the CPU with scipy's sparse LU.
+The authors' code pins every inside vertex to a target point and keeps it pinned.
+That flattens wrinkles whose troughs dip into the body. We treat the push-out as the
+one-sided bound n_c . x_c >= b_c with an active set: each round adds the vertices now
+inside (target: the vertex moved along n_c onto the plane ``offset`` outside the body)
+and releases constrained vertices whose penalty pulls them inward (they would lie
+farther out on their own), so a wrinkled region is lifted as a whole instead of being
+pressed flat. x, y and z share one V x V sparse system (three right-hand sides), solved
+on the CPU with scipy's sparse LU.
 """
 
 from __future__ import annotations
@@ -84,8 +86,8 @@ def remove_body_penetration(
         signed_distance: body query for this frame (see :data:`SignedDistanceFn`), e.g.
             :func:`mesh_signed_distance_fn`.
         offset: distance [m] outside the body surface that pushed vertices are sent to.
-        collision_weight: penalty weight w of the constraints [1/m^0, relative to the
-            Laplacian term].
+        collision_weight: penalty weight w of the constraints (dimensionless, relative to
+            the Laplacian term).
         stay_weight: weight eps keeping vertices near their input.
         threshold: [m] a vertex is counted as colliding when its signed distance is
             below -threshold; every vertex with distance < 0 is pushed out.
@@ -111,16 +113,17 @@ def remove_body_penetration(
         raise ValueError(
             f"laplacian must have shape ({vertex_count}, {vertex_count}), got {laplacian.shape}"
         )
-    # Unknowns are x flattened vertex-major: (x0, y0, z0, x1, ...), 3V of them.
-    base = sp.kron(laplacian.T @ laplacian + stay_weight * sp.identity(vertex_count), sp.identity(3))
-    base = sp.csr_matrix(base)
-    base_rhs = (laplacian.T @ (laplacian @ x0) + stay_weight * x0).reshape(-1)
+    # Per-coordinate normal equations: (L^T L + eps I + w S) x = L^T L x0 + eps x0 + w S t,
+    # S selecting the constrained vertices; x, y, z share the matrix (three right sides).
+    base = sp.csr_matrix(laplacian.T @ laplacian + stay_weight * sp.identity(vertex_count))
+    base_rhs = laplacian.T @ (laplacian @ x0) + stay_weight * x0  # (V, 3)
 
     distance, _, _ = signed_distance(x0.astype(np.float32))
     collisions_before = int(np.count_nonzero(distance < -threshold))
     x = x0.copy()
     normals = np.zeros((vertex_count, 3))
     bounds = np.zeros(vertex_count)
+    targets = np.zeros((vertex_count, 3))
     active = np.zeros(vertex_count, dtype=bool)
     for round_index in range(rounds):
         distance, closest, normal = signed_distance(x.astype(np.float32))
@@ -129,23 +132,18 @@ def remove_body_penetration(
             break
         normals[inside] = normal[inside]
         bounds[inside] = (normal[inside] * closest[inside]).sum(axis=1) + offset
+        # Target: the vertex moved along the normal onto the plane ``offset`` outside.
+        lift = bounds[inside] - (normal[inside] * x[inside]).sum(axis=1)
+        targets[inside] = x[inside] + lift[:, None] * normal[inside]
         active |= inside
         if not active.any():
             break
         for _ in range(MAX_RELEASE_SOLVES):
+            selector = collision_weight * active.astype(np.float64)
+            rhs = base_rhs + selector[:, None] * targets
+            x = spla.splu(sp.csc_matrix(base + sp.diags(selector))).solve(rhs)
+            # A positive normal residual means the penalty pulls the vertex inward: release it.
             constrained = np.flatnonzero(active)
-            # w n n^T blocks on the diagonal of the constrained vertices.
-            rows = (3 * constrained[:, None, None] + np.arange(3)[None, :, None]).repeat(3, axis=2)
-            cols = (3 * constrained[:, None, None] + np.arange(3)[None, None, :]).repeat(3, axis=1)
-            blocks = collision_weight * normals[constrained, :, None] * normals[constrained, None, :]
-            penalty = sp.csr_matrix(
-                (blocks.reshape(-1), (rows.reshape(-1), cols.reshape(-1))),
-                shape=(3 * vertex_count, 3 * vertex_count),
-            )
-            rhs = base_rhs.copy().reshape(vertex_count, 3)
-            rhs[constrained] += collision_weight * bounds[constrained, None] * normals[constrained]
-            x = spla.splu(sp.csc_matrix(base + penalty)).solve(rhs.reshape(-1)).reshape(vertex_count, 3)
-            # A positive residual means the penalty pulls the vertex inward: release it.
             residual = (normals[constrained] * x[constrained]).sum(axis=1) - bounds[constrained]
             release = constrained[residual > 0.0]
             if release.size == 0 or release.size == constrained.size:
