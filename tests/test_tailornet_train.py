@@ -33,6 +33,8 @@ from learn.tailornet.train import (
     frame_arrays_from_split,
     load_learner,
     merged_hyperparameters,
+    STAGE_ORDER,
+    stages_for_rank,
     template_sha256,
     train_hf,
     train_stage,
@@ -280,3 +282,24 @@ def test_stacked_prototype_training_equals_independent_trainings(tmp_path: Path)
         torch.testing.assert_close(a, b, atol=ATOL_STACKED_PARAMETER, rtol=0,
                                    msg=f"{name} differs between stacked and separate training")
     assert (tmp_path / "stacked" / "hf.done").exists() and (tmp_path / "separate" / "hf_02.done").exists()
+
+
+def test_stages_split_over_processes_assemble_the_same_model(trained: dict, tmp_path: Path) -> None:
+    """Two 'ranks' sharing a run directory give the model one process trains alone."""
+    assert stages_for_rank(0, 2) == ["hf", "baseline"] and stages_for_rank(1, 2) == ["lf", "shape_style"]
+    assert sorted(sum((stages_for_rank(r, 3) for r in range(3)), [])) == sorted(STAGE_ORDER)
+    with pytest.raises(ValueError, match="rank"):
+        stages_for_rank(2, 2)
+    train, faces = make_frames(0, 24, _pairs())
+    args = dict(run_dir=tmp_path, hyperparameters=HYPER, fingerprint=FINGERPRINT, progress=False)
+    assert fit_tailornet(train, faces, stages=["lf", "shape_style"], **args) is None, "assembled without hf"
+    model = fit_tailornet(train, faces, stages=["hf"], **args)
+    assert model is not None
+    test = trained["test"]
+    np.testing.assert_array_equal(
+        predict_displacements(model, test.pose, test.shape, test.style),
+        predict_displacements(trained["tailornet"], test.pose, test.shape, test.style),
+        err_msg="stage-split training differs from the single-process run",
+    )
+    with pytest.raises(ValueError, match="unknown TailorNet stages"):
+        fit_tailornet(train, faces, stages=["baseline"], **args)

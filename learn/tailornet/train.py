@@ -20,7 +20,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -669,6 +669,29 @@ def garment_pose_indices(
     return pose_feature_indices(joints, pose_size, posable_joints=posable_joints)
 
 
+TAILORNET_STAGES = ("shape_style", "lf", "hf")
+# Longest first, for spreading stages over processes (torchrun ranks), one GPU each.
+STAGE_ORDER = ("hf", "lf", "baseline", "shape_style")
+
+
+def stages_for_rank(rank: int, world_size: int) -> list[str]:
+    """Stages (of :data:`STAGE_ORDER`) that process ``rank`` of ``world_size`` trains.
+
+    With 4 processes each trains one stage; with 2, rank 0 trains hf and baseline and
+    rank 1 lf and shape_style. TailorNet's stages are independent given the data, so
+    they parallelise across GPUs without gradient exchange.
+    """
+    if world_size < 1 or not 0 <= rank < world_size:
+        raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
+    return [stage for i, stage in enumerate(STAGE_ORDER) if i % world_size == rank]
+
+
+def _done_markers(run_dir: Path, stage: str, prototype_count: int, stacked: bool) -> list[Path]:
+    if stage == "hf" and not stacked:
+        return [run_dir / f"hf_{k:02d}.done" for k in range(prototype_count)]
+    return [run_dir / f"{stage}.done"]
+
+
 def fit_tailornet(
     data: FrameArrays,
     faces: np.ndarray,
@@ -681,8 +704,10 @@ def fit_tailornet(
     device: str = "cpu",
     seed: int = 0,
     progress: bool = True,
-) -> TailorNet:
-    """Train every TailorNet stage on the training split and save ``tailornet.pt``.
+    stages: Collection[str] | None = None,
+    wait_timeout_s: float = 0.0,
+) -> TailorNet | None:
+    """Train TailorNet's stages on the training split and save ``tailornet_model.pt``.
 
     Args:
         data: training frames (train style-shapes x train poses).
@@ -693,19 +718,23 @@ def fit_tailornet(
         canonical_pose: the pose garments are draped in (body model's canonical A-pose),
             shape (P,); each pair's frame closest to it trains g and picks prototypes.
         hyperparameters: per-stage overrides of :data:`DEFAULT_HYPERPARAMETERS`.
+        stages: the stages of :data:`TAILORNET_STAGES` this call trains (default all).
+            The others are expected from other processes sharing ``run_dir``; once all
+            are finished (their ``.done`` markers exist, waiting up to
+            ``wait_timeout_s`` seconds) the model is assembled and saved, else None is
+            returned and a later call (e.g. by rank 0) assembles it.
     Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
     on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
     """
     hyper = merged_hyperparameters(hyperparameters)
+    stages = list(TAILORNET_STAGES if stages is None else stages)
+    unknown = sorted(set(stages) - set(TAILORNET_STAGES))
+    if unknown:
+        raise ValueError(f"unknown TailorNet stages {unknown}; expected among {list(TAILORNET_STAGES)}")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
         pose_indices = np.arange(data.pose.shape[1])
-    if data.low_frequency is None:
-        add_low_frequency(
-            data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
-            iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
-        )
     canonical_frames = canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose)
     pair_count = canonical_frames.shape[0]
     prototype_count = min(int(hyper["model"]["prototype_count"]), pair_count)
@@ -721,12 +750,36 @@ def fit_tailornet(
         )
     )
     common = dict(run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint, device=device, progress=progress)
-    shape_style = train_shape_style(data, canonical_pose=canonical_pose, seed=seed, **common)
-    low = train_lf(data, pose_indices, seed=seed + 1000, **common)
-    high = train_hf(data, pose_indices, choice.indices, seed=seed + 2000, **common)
+
+    def train(stage: str) -> torch.nn.Module:
+        if stage == "shape_style":
+            return train_shape_style(data, canonical_pose=canonical_pose, seed=seed, **common)
+        if data.low_frequency is None:
+            add_low_frequency(
+                data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
+                iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
+            )
+        if stage == "lf":
+            return train_lf(data, pose_indices, seed=seed + 1000, **common)
+        return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, **common)
+
+    trained = {stage: train(stage) for stage in TAILORNET_STAGES if stage in stages}
+    markers = [
+        marker
+        for stage in TAILORNET_STAGES
+        if stage not in trained
+        for marker in _done_markers(run_dir, stage, prototype_count, bool(hyper["hf"]["stacked"]))
+    ]
+    deadline = time.monotonic() + max(0.0, wait_timeout_s)
+    while not all(m.exists() for m in markers):
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(min(5.0, max(0.0, deadline - time.monotonic())))
+    # Stages finished elsewhere load from their complete checkpoints (no further epochs).
+    modules = {stage: trained[stage] if stage in trained else train(stage) for stage in TAILORNET_STAGES}
     prototype_frames = canonical_frames[choice.indices]
     model = TailorNet(
-        low, high, shape_style,
+        modules["lf"], modules["hf"], modules["shape_style"],
         torch.as_tensor(data.shape[prototype_frames]), torch.as_tensor(data.style[prototype_frames]),
         sigma=float(hyper["model"]["sigma"]),
     ).to(device).eval()
