@@ -42,6 +42,9 @@ class SolverMassSpring(SolverBase):
             safety: fraction of the stable step used by ``substeps_for`` (0, 1].
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping)
+        if model.features.self_contact:
+            raise ValueError("Features.self_contact is implemented by SolverXPBD only; use solver='xpbd' or "
+                             "build the model with Features(self_contact=False)")
         if not 0.0 < safety <= 1.0:
             raise ValueError(f"safety must be in (0, 1] (got {safety!r})")
         self.safety = float(safety)

@@ -1,0 +1,269 @@
+"""Side by side with Newton (pip `newton`, extra `peers`): SolverVBD and SolverXPBD against our
+XPBD (Gauss-Seidel and Jacobi) on the identical cloth, body and stopping rule.
+
+Scene: the benchmark drape (resolution^2-vertex square cloth falling onto the default body in
+a non-trivial pose; capsule stand-in without simulate.body), --worlds copies in one model.
+Identical for every solver: geometry, areal density, gravity (-9.81 y), contact distance
+(collider thickness + half fabric thickness), Coulomb friction, velocity damping (fabric +
+--damping, applied to Newton's velocities by a kernel after every substep) and the stopping
+rule (max particle speed < --tolerance for --patience consecutive frames, at most
+--max-frames frames).  Materials are matched to first order, since the energies differ:
+Newton's isotropic membrane gets tri_ke = tri_ka = 3 Y / 8 (2-D Young's modulus Y), its
+XPBD springs spring_ke = Y / 3 (edge share of a right-triangle grid), bending edge_ke = 3 B / h
+(our dihedral energy per edge of length h); our shear is orthotropic (much softer), Newton's is not.
+
+Because the energies differ, each solver's error is measured against its own tight reference
+(--ref-substeps x --ref-iterations, run to --ref-tolerance); the summary reports, per solver,
+the least wall time of a sweep configuration whose mean error is <= --target-error-mm, and how
+far each reference is from ours.  One JSON line per run, a summary line per solver.
+
+    python bench/bench_sim_newton.py --device cuda:0 --resolution 100 --worlds 1
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def damp_and_measure(qd: wp.array(dtype=wp.vec3), factor: float, max_speed: wp.array(dtype=float)):
+    """Scale velocities by ``factor`` and keep the largest speed [m/s] (NaN counts as huge)."""
+    i = wp.tid()
+    v = qd[i] * factor
+    qd[i] = v
+    s = wp.length(v)
+    if not wp.isfinite(s):
+        s = 1.0e30
+    wp.atomic_max(max_speed, 0, s)
+
+
+class NewtonRun:
+    """Newton model of the scene with our damping and stopping rule around its solver."""
+
+    def __init__(self, newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int) -> None:
+        self.device = wp.get_device(args.device)
+        cloth_v = scene["cloth_vertices"].astype(np.float32)
+        cloth_f = scene["cloth_faces"].astype(np.int32)
+        edge = float(np.mean(np.linalg.norm(cloth_v[cloth_f[:, 1]] - cloth_v[cloth_f[:, 0]], axis=1)))
+        young = fabric.stretch_stiffness
+        sub = newton.ModelBuilder(up_axis=newton.Axis.Y)
+        cfg = sub.default_shape_cfg.copy()
+        cfg.mu = fabric.friction
+        mesh = newton.Mesh(scene["body_vertices"].astype(np.float32), scene["body_faces"].astype(np.int32).reshape(-1),
+                           compute_inertia=False)
+        sub.add_shape_mesh(body=-1, mesh=mesh, cfg=cfg)
+        cloth_args = dict(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+                          vertices=[wp.vec3(*p) for p in cloth_v], indices=cloth_f.reshape(-1).tolist(),
+                          density=fabric.density, edge_ke=3.0 * fabric.bending_stiffness / edge, edge_kd=0.0,
+                          particle_radius=args.thickness + 0.5 * fabric.thickness)
+        if solver == "newton_vbd":
+            cloth_args.update(tri_ke=3.0 * young / 8.0, tri_ka=3.0 * young / 8.0, tri_kd=0.0)
+        else:
+            cloth_args.update(tri_ke=0.0, tri_ka=0.0, tri_kd=0.0, add_springs=True, spring_ke=young / 3.0,
+                              spring_kd=0.0)
+        sub.add_cloth_mesh(**cloth_args)
+        builder = newton.ModelBuilder(up_axis=newton.Axis.Y)
+        builder.replicate(sub, args.worlds, spacing=(4.0, 0.0, 0.0))
+        if solver == "newton_vbd":
+            builder.color(include_bending=True)
+        self.model = builder.finalize(device=self.device)
+        self.model.soft_contact_ke = 1.0e3
+        self.model.soft_contact_kd = 1.0
+        self.model.soft_contact_mu = fabric.friction
+        if solver == "newton_vbd":
+            self.solver = newton.solvers.SolverVBD(self.model, iterations=iterations)
+        else:
+            # Newton's XPBD sums spring corrections (atomics) and scales them by soft_body_relaxation;
+            # at realistic (light) cloth density the default 0.9 overshoots, so it is a flag.
+            self.solver = newton.solvers.SolverXPBD(self.model, iterations=iterations,
+                                                    soft_body_relaxation=args.newton_xpbd_relaxation)
+        self.pipeline = newton.CollisionPipeline(self.model, soft_contact_gap=0.01)
+        self.contacts = self.pipeline.contacts()
+        self.state_0 = self.model.state()
+        self.state_1 = self.model.state()
+        self.control = self.model.control()
+        self.substeps = substeps
+        self.dt = args.frame_dt / substeps
+        self.factor = max(0.0, 1.0 - (fabric.damping + args.damping) * self.dt)
+        self.max_speed = wp.zeros(1, dtype=float, device=self.device)
+        self.graph = None
+        self.particles_per_world = len(cloth_v)
+
+    def _frame(self) -> None:
+        for _ in range(self.substeps):
+            self.state_0.clear_forces()
+            self.pipeline.collide(self.state_0, self.contacts)
+            self.solver.step(self.state_0, self.state_1, self.control, self.contacts, self.dt)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+            self.max_speed.zero_()
+            wp.launch(damp_and_measure, dim=self.model.particle_count,
+                      inputs=[self.state_0.particle_qd, self.factor, self.max_speed], device=self.device)
+        if self.substeps % 2 == 1:
+            wp.copy(self.state_1.particle_q, self.state_0.particle_q)
+            wp.copy(self.state_1.particle_qd, self.state_0.particle_qd)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+
+    def step_frame(self) -> float:
+        """One frame; returns the max particle speed [m/s] after it."""
+        if self.device.is_cuda:
+            if self.graph is None:
+                self._frame()
+                with wp.ScopedCapture(device=self.device) as capture:
+                    self._frame()
+                self.graph = capture.graph
+            else:
+                wp.capture_launch(self.graph)
+        else:
+            self._frame()
+        return float(self.max_speed.numpy()[0])
+
+    def relax(self, tolerance: float, patience: int, max_frames: int) -> tuple[int, str]:
+        calm = 0
+        for frame in range(1, max_frames + 1):
+            speed = self.step_frame()
+            if not np.isfinite(speed) or speed > 50.0:
+                return frame, "EXPLODED"
+            calm = calm + 1 if speed < tolerance else 0
+            if calm >= patience:
+                return frame, "CONVERGED"
+        return max_frames, "MAX_STEPS"
+
+    def positions(self) -> np.ndarray:
+        """World 0's cloth positions [m] (Newton adds cloth particles after nothing else here)."""
+        return self.state_0.particle_q.numpy()[: self.particles_per_world]
+
+
+def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tolerance: float, max_frames: int):
+    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+    from simulate.cloth.scenes import batched_drape
+
+    model, collider = batched_drape(scene, args.worlds, args.device, fabric=args.fabric, thickness=args.thickness)
+    settings = SimSettings(frame_dt=args.frame_dt, substeps=substeps, iterations=iterations,
+                           xpbd_mode="gauss_seidel" if solver == "ours_xpbd_gs" else "jacobi", damping=args.damping,
+                           tolerance=tolerance, patience=args.patience, max_frames=max_frames)
+    sim = QuasiStaticSimulator(model, collider, settings=settings)
+    wp.synchronize_device(model.device)
+    t0 = time.perf_counter()
+    status = sim.relax()
+    wp.synchronize_device(model.device)
+    wall = time.perf_counter() - t0
+    return sim.world_positions(0), wall, int(sim.frame_count), WorldStatus(status[0]).name
+
+
+def run_newton(newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int, tolerance: float,
+               max_frames: int):
+    run = NewtonRun(newton, scene, fabric, args, solver, substeps, iterations)
+    wp.synchronize_device(run.device)
+    t0 = time.perf_counter()
+    frames, status = run.relax(tolerance, args.patience, max_frames)
+    wp.synchronize_device(run.device)
+    wall = time.perf_counter() - t0
+    return run.positions(), wall, frames, status
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda:0" if wp.get_cuda_device_count() else "cpu")
+    parser.add_argument("--resolution", type=int, default=100)
+    parser.add_argument("--worlds", type=int, default=1)
+    parser.add_argument("--body", default="default", choices=["default", "capsule"])
+    parser.add_argument("--fabric", default="cotton")
+    parser.add_argument("--solvers", nargs="+", default=["ours_xpbd_gs", "ours_xpbd_jacobi", "newton_vbd", "newton_xpbd"])
+    parser.add_argument("--substeps", type=int, nargs="+", default=[5, 10])
+    parser.add_argument("--iterations", type=int, nargs="+", default=[5, 10])
+    parser.add_argument("--ref-substeps", type=int, default=20)
+    parser.add_argument("--ref-iterations", type=int, default=20)
+    parser.add_argument("--ref-tolerance", type=float, default=0.003)
+    parser.add_argument("--frame-dt", type=float, default=1.0 / 60.0)
+    parser.add_argument("--tolerance", type=float, default=0.01)
+    parser.add_argument("--patience", type=int, default=5)
+    parser.add_argument("--max-frames", type=int, default=600)
+    parser.add_argument("--damping", type=float, default=5.0)
+    parser.add_argument("--thickness", type=float, default=2.0e-3, help="body contact thickness [m]")
+    parser.add_argument("--target-error-mm", type=float, default=10.0)
+    parser.add_argument("--newton-xpbd-relaxation", type=float, default=0.9,
+                        help="Newton SolverXPBD soft_body_relaxation (its default 0.9)")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+
+    from simulate.cloth.fabric import resolve_fabric
+    from simulate.cloth.scenes import shawl_scene
+
+    out = open(args.out, "a") if args.out else None
+
+    def emit(record: dict) -> None:
+        line = json.dumps(record)
+        print(line, flush=True)
+        if out is not None:
+            out.write(line + "\n")
+            out.flush()
+
+    try:
+        import newton
+    except ImportError as exc:
+        newton = None
+        emit({"bench": "sim_newton", "skipped": "newton", "reason": f"import newton failed: {exc}; "
+              "install the 'peers' extra (pip install -e .[peers])"})
+    fabric = resolve_fabric(args.fabric)
+    scene = shawl_scene(args.resolution, body=args.body)
+    base = {"bench": "sim_newton", "device": str(wp.get_device(args.device)), "worlds": args.worlds,
+            "vertices": int(len(scene["cloth_vertices"])), "body": scene["body_kind"], "fabric": fabric.name,
+            "tolerance": args.tolerance, "patience": args.patience}
+    references = {}
+    summary = {}
+    for solver in args.solvers:
+        if solver.startswith("newton") and newton is None:
+            continue
+
+        def run(substeps: int, iterations: int, tolerance: float, max_frames: int):
+            if solver.startswith("ours"):
+                return run_ours(scene, args, solver, substeps, iterations, tolerance, max_frames)
+            return run_newton(newton, scene, fabric, args, solver, substeps, iterations, tolerance, max_frames)
+
+        try:
+            run(1, 1, args.tolerance, 2)  # warm-up: compile kernels (not timed)
+            ref_q, ref_wall, ref_frames, ref_status = run(args.ref_substeps, args.ref_iterations, args.ref_tolerance,
+                                                          max(args.max_frames, 2000))
+        except Exception as exc:  # a peer's API drift must not hide the other solvers' numbers
+            emit({**base, "solver": solver, "error": f"{type(exc).__name__}: {exc}"})
+            continue
+        references[solver] = ref_q
+        emit({**base, "solver": solver, "config": "reference", "substeps": args.ref_substeps,
+              "iterations": args.ref_iterations, "frames": ref_frames, "status": ref_status,
+              "wall_s": round(ref_wall, 4)})
+        best = None
+        for substeps in args.substeps:
+            for iterations in args.iterations:
+                q, wall, frames, status = run(substeps, iterations, args.tolerance, args.max_frames)
+                err = np.linalg.norm(q - ref_q, axis=1) * 1e3
+                row = {**base, "solver": solver, "config": "sweep", "substeps": substeps, "iterations": iterations,
+                       "frames": frames, "status": status, "wall_s": round(wall, 4),
+                       "ms_per_frame": round(1e3 * wall / max(frames, 1), 4),
+                       "mean_err_mm": round(float(err.mean()), 3), "max_err_mm": round(float(err.max()), 3)}
+                emit(row)
+                if status == "CONVERGED" and row["mean_err_mm"] <= args.target_error_mm and (
+                        best is None or wall < best["wall_s"]):
+                    best = row
+        summary[solver] = best
+    ours = references.get("ours_xpbd_gs")
+    for solver, best in summary.items():
+        record = {**base, "solver": solver, "config": "summary", "target_error_mm": args.target_error_mm,
+                  "best_wall_s": None if best is None else best["wall_s"],
+                  "best_config": None if best is None else f"{best['substeps']}x{best['iterations']}",
+                  "best_ms_per_frame": None if best is None else best["ms_per_frame"]}
+        if ours is not None and solver in references:
+            gap = np.linalg.norm(references[solver] - ours, axis=1) * 1e3
+            record["reference_vs_ours_mean_mm"] = round(float(gap.mean()), 3)
+        emit(record)
+    if out is not None:
+        out.close()
+
+
+if __name__ == "__main__":
+    main()
