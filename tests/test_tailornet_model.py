@@ -188,3 +188,17 @@ def test_forward_each_matches_each_mlp_and_applies_dropout_in_training(device: s
         assert not torch.allclose(stacked.forward_each(pose), each, atol=1e-4), "dropout inactive in train mode"
     with pytest.raises(ValueError, match="pose must have shape"):
         stacked.forward_each(pose[:2])
+
+
+def test_weight_floor_skips_negligible_prototypes_within_bound() -> None:
+    stacked = HighFrequencyPrototypes.from_mlps(_mlps(4))
+    pose = torch.randn(3, POSE_SIZE)
+    weights = torch.tensor([[1.0 - 2e-7, 1e-7, 1e-7, 0.0], [0.5, 0.5 - 1e-7, 1e-7, 0.0], [0.0, 1.0, 0.0, 0.0]])
+    with torch.no_grad():
+        exact = stacked(pose, weights)
+        skipped = stacked(pose, weights, weight_floor=1e-6)  # prototypes 2, 3 skipped
+        kept_only = stacked(pose, weights * torch.tensor([1.0, 1.0, 0.0, 0.0]))
+        bound = 4 * 1e-6 * stacked.forward_all(pose).abs().max()
+    assert (skipped - exact).abs().max() <= bound, "skipping exceeded its error bound"
+    torch.testing.assert_close(skipped, kept_only, atol=ATOL_FLOAT32_M, rtol=1e-5,
+                               msg="subset path differs from the full path with zeroed weights")

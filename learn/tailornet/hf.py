@@ -123,16 +123,38 @@ class HighFrequencyPrototypes(nn.Module):
         h1 = torch.relu(torch.einsum("bp,kph->bkh", x, self.weight1) + self.bias1)  # (B, K, H)
         return torch.relu(torch.einsum("bkh,khj->bkj", h1, self.weight2) + self.bias2)  # (B, K, H)
 
-    def forward(self, pose: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """Mixture sum_k w_k D_HF_k(pose): pose (B, P), weights (B, K) -> [m], (B, V, 3)."""
+    def forward(
+        self, pose: torch.Tensor, weights: torch.Tensor, *, weight_floor: float = 0.0
+    ) -> torch.Tensor:
+        """Mixture sum_k w_k D_HF_k(pose): pose (B, P), weights (B, K) -> [m], (B, V, 3).
+
+        Prototypes whose weight is <= ``weight_floor`` for every frame of the batch are
+        skipped (their terms are dropped, an error of at most K x weight_floor x |D_HF|).
+        TailorNet's kernel is narrow, so usually one or two of the K prototypes remain
+        and the last layer, which dominates the cost, reads only their weights.
+        """
         if weights.ndim != 2 or weights.shape[1] != self.prototype_count or weights.shape[0] != pose.shape[0]:
             raise ValueError(
                 f"weights must have shape ({pose.shape[0]}, {self.prototype_count}), got "
                 f"{tuple(weights.shape)}"
             )
+        if weight_floor > 0.0:
+            active = torch.nonzero((weights > weight_floor).any(dim=0)).reshape(-1).tolist()
+            if len(active) < self.prototype_count:
+                return self._forward_subset(pose, weights, active)
         h2 = self._hidden(pose)  # (B, K, H)
         mixed = (h2 * weights[..., None]).reshape(pose.shape[0], -1)  # (B, K H)
         out = mixed @ self.weight3 + weights @ self.bias3  # (B, 3V)
+        return out.reshape(-1, self.vertex_count, 3)
+
+    def _forward_subset(self, pose: torch.Tensor, weights: torch.Tensor, active: list[int]) -> torch.Tensor:
+        x = pose[:, self.pose_indices]  # (B, P')
+        h = self.hidden_size
+        out = weights[:, active] @ self.bias3[active]  # (B, 3V)
+        for k in active:  # a few prototypes: views of their weight slices, no copies
+            h1 = torch.relu(x @ self.weight1[k] + self.bias1[k])  # (B, H)
+            h2 = torch.relu(h1 @ self.weight2[k] + self.bias2[k])  # (B, H)
+            out = out + (h2 * weights[:, k : k + 1]) @ self.weight3[k * h : (k + 1) * h]
         return out.reshape(-1, self.vertex_count, 3)
 
     def forward_each(self, pose: torch.Tensor) -> torch.Tensor:

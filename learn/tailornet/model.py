@@ -25,6 +25,8 @@ GarmentPoser = Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor
 # shape (B, S) -> unposed body vertex under each garment vertex [m], (B, V, 3).
 UnposedBody = Callable[[torch.Tensor], torch.Tensor]
 
+DEFAULT_WEIGHT_FLOOR = 1.0e-6
+
 
 def pose_displacements(
     displacements: torch.Tensor,
@@ -48,6 +50,9 @@ class TailorNet(nn.Module):
         prototype_shape: shape coefficients of the K prototypes, shape (K, S).
         prototype_style: style coefficients of the K prototypes, shape (K, G).
         sigma: kernel bandwidth (default 0.01, dimensionless like dist).
+        weight_floor: prototypes whose kernel weight is at most this for every frame of a
+            batch are skipped at inference (default 1e-6: an error below K x 1e-6 of the
+            high-frequency displacement, for a several-fold speed-up); 0 evaluates all.
     """
 
     def __init__(
@@ -59,6 +64,7 @@ class TailorNet(nn.Module):
         prototype_style: torch.Tensor,
         *,
         sigma: float = DEFAULT_SIGMA,
+        weight_floor: float = DEFAULT_WEIGHT_FLOOR,
     ) -> None:
         super().__init__()
         k = high_frequency.prototype_count
@@ -68,6 +74,8 @@ class TailorNet(nn.Module):
             raise ValueError(f"prototype_style must have shape ({k}, G), got {tuple(prototype_style.shape)}")
         if sigma <= 0:
             raise ValueError(f"sigma must be > 0, got {sigma}")
+        if not 0.0 <= weight_floor < 1.0:
+            raise ValueError(f"weight_floor must be in [0, 1), got {weight_floor}")
         vertex_counts = {low_frequency.vertex_count, high_frequency.vertex_count, shape_style.vertex_count}
         if len(vertex_counts) != 1:
             raise ValueError(f"sub-models disagree on the vertex count: {sorted(vertex_counts)}")
@@ -75,6 +83,7 @@ class TailorNet(nn.Module):
         self.high_frequency = high_frequency
         self.shape_style = shape_style
         self.sigma = float(sigma)
+        self.weight_floor = float(weight_floor)
         device = shape_style.pose_indices.device
         self.register_buffer("prototype_shape", prototype_shape.detach().float().clone().to(device))
         self.register_buffer("prototype_style", prototype_style.detach().float().clone().to(device))
@@ -96,6 +105,7 @@ class TailorNet(nn.Module):
             "prototype_shape": self.prototype_shape.tolist(),
             "prototype_style": self.prototype_style.tolist(),
             "sigma": self.sigma,
+            "weight_floor": self.weight_floor,
         }
 
     @classmethod
@@ -111,6 +121,7 @@ class TailorNet(nn.Module):
             torch.as_tensor(config["prototype_shape"], dtype=torch.float32),
             torch.as_tensor(config["prototype_style"], dtype=torch.float32),
             sigma=config["sigma"],
+            weight_floor=config.get("weight_floor", DEFAULT_WEIGHT_FLOOR),
         )
 
     @torch.no_grad()
@@ -134,7 +145,9 @@ class TailorNet(nn.Module):
         """low_frequency (B, V, 3), high_frequency (B, V, 3), weights (B, K), displacements."""
         weights = self.mixture_weights(shape, style)
         low = self.low_frequency(pose, shape, style)
-        high = self.high_frequency(pose, weights)
+        # Skipping negligible prototypes is exact enough at inference; training keeps all.
+        floor = 0.0 if torch.is_grad_enabled() else self.weight_floor
+        high = self.high_frequency(pose, weights, weight_floor=floor)
         return {"low_frequency": low, "high_frequency": high, "weights": weights, "displacements": low + high}
 
     def forward(self, pose: torch.Tensor, shape: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
