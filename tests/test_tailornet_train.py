@@ -62,7 +62,9 @@ def _pairs() -> list[tuple[np.ndarray, np.ndarray]]:
     return [(np.array([s, 0.3]), np.array([g, -0.2])) for s in (-1.0, 1.0) for g in (-1.0, 1.0)]
 
 
-def make_frames(seed: int, poses_per_pair: int, pairs: list[tuple[np.ndarray, np.ndarray]]) -> tuple[FrameArrays, np.ndarray]:
+def make_frames(
+    seed: int, poses_per_pair: int, pairs: list[tuple[np.ndarray, np.ndarray]]
+) -> tuple[FrameArrays, np.ndarray]:
     rng = np.random.default_rng(seed)
     vertices, faces = grid_mesh(GRID, GRID, spacing=0.05)
     x, y = vertices[:, 0], vertices[:, 1]
@@ -189,7 +191,8 @@ def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
     metrics = evaluate_split(trained["tailornet"], test, posing=posing)
     assert 0.0 < metrics["collision_rate"] <= 1.0, metrics
     assert metrics["collision_rate_postprocessed"] < metrics["collision_rate"], metrics
-    assert metrics["postprocess_frames_evaluated"] == 6 and metrics["collision_rate_subset"] == metrics["collision_rate"]
+    assert metrics["postprocess_frames_evaluated"] == 6, metrics
+    assert metrics["collision_rate_subset"] == metrics["collision_rate"], metrics
     subset = evaluate_split(trained["tailornet"], test, posing=posing, postprocess_frames=2)
     assert subset["postprocess_frames_evaluated"] == 2, subset
     assert subset["collision_rate_postprocessed"] < subset["collision_rate_subset"], subset

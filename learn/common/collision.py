@@ -66,7 +66,7 @@ class BodySignedDistance:
     normal: np.ndarray
 
 
-def _as_numpy(name: str, value: np.ndarray | torch.Tensor) -> np.ndarray:
+def _as_numpy(value: np.ndarray | torch.Tensor) -> np.ndarray:
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu().numpy()
     return np.asarray(value)
@@ -89,8 +89,8 @@ def body_signed_distance(
         device: Warp device ("cpu", "cuda:0"); default Warp's default device.
         max_distance: query radius [m]; farther points get distance = max_distance.
     """
-    p = _as_numpy("points", points).astype(np.float32)
-    bv = _as_numpy("body_vertices", body_vertices).astype(np.float32)
+    p = _as_numpy(points).astype(np.float32)
+    bv = _as_numpy(body_vertices).astype(np.float32)
     single = p.ndim == 2
     if single:
         p = p[None]

@@ -49,8 +49,12 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 800, "hidden_size": 1024, "dropout": 0.2,
         "stacked": True,
     },
-    "shape_style": {"lr": 1e-3, "weight_decay": 1e-5, "batch_size": 32, "epochs": 400, "hidden_size": 128, "dropout": 0.2},
-    "baseline": {"lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2},
+    "shape_style": {
+        "lr": 1e-3, "weight_decay": 1e-5, "batch_size": 32, "epochs": 400, "hidden_size": 128, "dropout": 0.2,
+    },
+    "baseline": {
+        "lr": 1e-4, "weight_decay": 1e-6, "batch_size": 32, "epochs": 100, "hidden_size": 1024, "dropout": 0.2,
+    },
     "model": {
         "prototype_count": 20,
         "sigma": DEFAULT_SIGMA,
@@ -652,7 +656,10 @@ def train_baseline(
         hyperparameters=_stage_hyper(hyper["baseline"]), fingerprint=fingerprint, device=device, seed=seed,
         progress=progress,
     )
-    save_learner(model, "baseline", Path(run_dir) / "baseline_model.pt", fingerprint=fingerprint, extra={"hyperparameters": hyper})
+    save_learner(
+        model, "baseline", Path(run_dir) / "baseline_model.pt", fingerprint=fingerprint,
+        extra={"hyperparameters": hyper},
+    )
     return model
 
 
@@ -749,7 +756,9 @@ def fit_tailornet(
             indent=2,
         )
     )
-    common = dict(run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint, device=device, progress=progress)
+    common = dict(
+        run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint, device=device, progress=progress
+    )
 
     def train(stage: str) -> torch.nn.Module:
         if stage == "shape_style":
@@ -783,7 +792,10 @@ def fit_tailornet(
         torch.as_tensor(data.shape[prototype_frames]), torch.as_tensor(data.style[prototype_frames]),
         sigma=float(hyper["model"]["sigma"]),
     ).to(device).eval()
-    save_learner(model, "tailornet", run_dir / "tailornet_model.pt", fingerprint=fingerprint, extra={"hyperparameters": hyper})
+    save_learner(
+        model, "tailornet", run_dir / "tailornet_model.pt", fingerprint=fingerprint,
+        extra={"hyperparameters": hyper},
+    )
     return model
 
 
