@@ -306,3 +306,32 @@ def test_stages_split_over_processes_assemble_the_same_model(trained: dict, tmp_
     )
     with pytest.raises(ValueError, match="unknown TailorNet stages"):
         fit_tailornet(train, faces, stages=["baseline"], **args)
+
+
+def test_predict_vertices_and_evaluate_models(trained: dict) -> None:
+    from learn.tailornet.evaluate import evaluate_models, predict_vertices
+
+    test = trained["test"].subset(np.arange(3))
+    model = trained["tailornet"]
+    single = predict_vertices(model, test.pose[0], test.shape[0], test.style[0])
+    assert single.shape == (1, GRID * GRID, 3)
+    # Batch 1 vs batch 3 differ only by matmul rounding (and which prototypes are skipped).
+    np.testing.assert_allclose(single[0], predict_displacements(model, test.pose, test.shape, test.style)[0],
+                               atol=1e-6)
+    posing = PosingContext(
+        unposed_body=lambda shape: torch.zeros(shape.shape[0], GRID * GRID, 3),
+        garment_poser=lambda unposed, pose, shape: unposed + 1.0,
+        posed_body=lambda pose, shape: torch.zeros(pose.shape[0], 3, 3),
+        body_faces=np.array([[0, 1, 2]]), garment_faces=trained["faces"],
+    )
+    posed = predict_vertices(model, test.pose, test.shape, test.style, posing=posing,
+                             translation=np.full((3, 3), 2.0, np.float32))
+    np.testing.assert_allclose(posed, predict_displacements(model, test.pose, test.shape, test.style) + 3.0,
+                               atol=1e-6)
+    report = evaluate_models({"tailornet": model, "baseline": trained["baseline"]}, {"test-test": test},
+                             timing_batch_sizes=(1, 2))
+    assert set(report["splits"]["test-test"]) == {"tailornet", "baseline"}
+    assert set(report["timing"]["baseline"]["cpu"]) == {"ms_per_frame_batch_1", "ms_per_frame_batch_2"}
+    import json
+
+    json.dumps(report)  # the report must be JSON-serialisable

@@ -211,3 +211,82 @@ def time_inference(
             times.append(time.perf_counter() - started)
         result[f"ms_per_frame_batch_{batch}"] = float(np.median(times) * 1000.0 / batch)
     return result
+
+
+@torch.no_grad()
+def predict_vertices(
+    model: torch.nn.Module,
+    pose: np.ndarray,
+    shape: np.ndarray,
+    style: np.ndarray,
+    *,
+    posing: PosingContext | None = None,
+    translation: np.ndarray | None = None,
+    postprocess: bool = False,
+    device: str = "cpu",
+    collision_device: str | None = None,
+) -> np.ndarray:
+    """Garment vertices [m] for N frames, shape (N, V, 3) (what ``drape predict`` writes).
+
+    Without ``posing``: the unposed displacements. With it: the posed garment, shifted by
+    ``translation`` [m] (N, 3) when given, and with ``postprocess`` pushed out of the body.
+    pose (N, P), shape (N, S), style (N, G); a single frame may be given as 1-D arrays.
+    """
+    arrays = [np.atleast_2d(np.asarray(a, dtype=np.float32)) for a in (pose, shape, style)]
+    displacements = predict_displacements(model, *arrays, device=device)
+    if posing is None:
+        return displacements
+    pose_t, shape_t = (torch.as_tensor(a, device=device) for a in arrays[:2])
+    posed = pose_displacements(
+        torch.as_tensor(displacements, device=device), pose_t, shape_t,
+        garment_poser=posing.garment_poser, unposed_body=posing.unposed_body,
+    ).cpu().numpy()
+    shift = 0.0 if translation is None else np.atleast_2d(np.asarray(translation, np.float32))[:, None, :]
+    posed = posed + shift
+    if postprocess:
+        body = posing.posed_body(pose_t, shape_t).cpu().numpy() + shift
+        posed, _, _ = remove_body_penetration_batch(
+            posed, posing.garment_faces, body, posing.body_faces, device=collision_device
+        )
+    return posed
+
+
+def evaluate_models(
+    models: dict[str, torch.nn.Module],
+    splits: dict[str, FrameArrays],
+    *,
+    posing: PosingContext | None = None,
+    postprocess: bool = True,
+    postprocess_frames: int | None = None,
+    device: str = "cpu",
+    timing_devices: tuple[str, ...] = ("cpu",),
+    timing_batch_sizes: tuple[int, ...] = (1, 32),
+    collision_device: str | None = None,
+) -> dict[str, Any]:
+    """Every model on every split plus inference timings: the body of ``drape evaluate``.
+
+    Returns ``{"splits": {split: {model: metrics}}, "timing": {model: {device: {...}}}}``
+    with metrics from :func:`evaluate_split` and timings from :func:`time_inference`
+    (on the first split's frames). JSON-serialisable.
+    """
+    if not models or not splits:
+        raise ValueError(f"need at least one model and one split, got {sorted(models)} and {sorted(splits)}")
+    report: dict[str, Any] = {"splits": {}, "timing": {}}
+    for split, data in splits.items():
+        report["splits"][split] = {
+            name: evaluate_split(
+                model, data, posing=posing, postprocess=postprocess, postprocess_frames=postprocess_frames,
+                device=device, collision_device=collision_device,
+            )
+            for name, model in models.items()
+        }
+    first = next(iter(splits.values()))
+    for name, model in models.items():
+        report["timing"][name] = {
+            timing_device: time_inference(
+                model, first.pose, first.shape, first.style, batch_sizes=timing_batch_sizes, device=timing_device
+            )
+            for timing_device in timing_devices
+        }
+        model.to(device)
+    return report
