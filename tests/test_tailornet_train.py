@@ -335,3 +335,21 @@ def test_predict_vertices_and_evaluate_models(trained: dict) -> None:
     import json
 
     json.dumps(report)  # the report must be JSON-serialisable
+
+
+def test_frame_arrays_from_dataset_object() -> None:
+    from types import SimpleNamespace
+
+    from learn.tailornet.train import frame_arrays_from_dataset
+
+    dataset = SimpleNamespace(
+        pose=torch.zeros(4, POSE_SIZE), shape=torch.zeros(4, 2), style=torch.ones(4, 2),
+        displacements=torch.ones(4, 5, 3), pair=torch.tensor([0, 0, 1, 1]), low_frequency=torch.zeros(4, 5, 3),
+        posed_vertices=None,
+    )
+    frames = frame_arrays_from_dataset(dataset)
+    assert frames.frame_count == 4 and frames.low_frequency is not None and frames.posed_vertices is None
+    assert frames.pair_id.dtype == np.int64 and frames.pair_id.tolist() == [0, 0, 1, 1]
+    with pytest.raises(ValueError, match="pair"):
+        frame_arrays_from_dataset(SimpleNamespace(pose=dataset.pose, shape=dataset.shape, style=dataset.style,
+                                                  displacements=dataset.displacements))

@@ -234,6 +234,30 @@ def frame_arrays_from_split(arrays: Mapping[str, np.ndarray]) -> FrameArrays:
     )
 
 
+def frame_arrays_from_dataset(dataset: Any) -> FrameArrays:
+    """Build :class:`FrameArrays` from a ``learn.data.DrapeDataset`` (or any object with
+    tensor/array attributes ``pose``, ``shape``, ``style``, ``displacements``, ``pair`` and
+    optional ``low_frequency``, ``posed_vertices``, ``translation``), reusing its cached
+    frequency split."""
+
+    def array(name: str, dtype: Any = np.float32) -> np.ndarray | None:
+        value = getattr(dataset, name, None)
+        if value is None:
+            return None
+        if isinstance(value, torch.Tensor):
+            value = value.detach().cpu().numpy()
+        return np.asarray(value, dtype=dtype)
+
+    missing = [n for n in ("pose", "shape", "style", "displacements", "pair") if getattr(dataset, n, None) is None]
+    if missing:
+        raise ValueError(f"dataset lacks {missing}; expected a learn.data.DrapeDataset-like object")
+    return FrameArrays(
+        pose=array("pose"), shape=array("shape"), style=array("style"), displacements=array("displacements"),
+        pair_id=array("pair", np.int64), low_frequency=array("low_frequency"),
+        posed_vertices=array("posed_vertices"), translation=array("translation"),
+    )
+
+
 def add_low_frequency(
     data: FrameArrays,
     faces: np.ndarray,
