@@ -1,1 +1,7 @@
+"""TailorNet (seed 000) and its baseline, in torch.
 
+``lf`` (displacement MLPs, low-frequency model), ``hf`` (K stacked prototype pose
+models), ``shape_style`` (g: canonical garment), ``mixture`` (kernel weights), ``model``
+(:class:`TailorNet`), ``baseline``, ``pose_mask``, ``prototypes`` (greedy choice),
+``train`` (resumable stages, checkpoints, fingerprints), ``evaluate`` (metrics, timing).
+"""
