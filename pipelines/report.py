@@ -1,0 +1,207 @@
+"""``drape report``: fidelity (error against run time) and stability reports of the simulator.
+
+``drape report accuracy`` sweeps solver settings on a garment on the default body and writes
+``accuracy.json`` and ``accuracy_pareto.png``; ``drape report stability`` runs the stiff/extreme
+case matrix and writes ``stability.json`` and ``stability_heatmap.png``. See
+:mod:`simulate.reports.accuracy` and :mod:`simulate.reports.stability` for the protocols.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+DEFAULT_CONFIG = "tailornet-tshirt.yaml"
+
+
+def resolve_device(device: str) -> str:
+    """"auto" -> "cuda:0" when Warp sees a GPU, else "cpu"; "cuda" -> "cuda:0"."""
+    import warp as wp
+
+    if device == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if device.startswith("cuda") and wp.get_cuda_device_count() == 0:
+        raise ValueError(f"--device is {device!r} but Warp finds no CUDA device; use auto or cpu")
+    return "cuda:0" if device == "cuda" else device
+
+
+def production_default(config: Path | None = None):
+    """The production default Setting from a shipped spec's ``simulation`` block (tailornet-tshirt)."""
+    import yaml
+
+    from simulate.reports.accuracy import Setting
+
+    path = config or CONFIG_DIR / DEFAULT_CONFIG
+    with open(path) as f:
+        sim = (yaml.safe_load(f) or {}).get("simulation", {})
+    return Setting(solver=sim.get("solver", "xpbd"), mode=sim.get("xpbd_mode", "gauss_seidel"),
+                   substeps=int(sim.get("substeps", 10)), iterations=int(sim.get("iterations", 10)),
+                   tolerance=float(sim.get("tolerance", 0.01)), precision="float32")
+
+
+def _json_default(value: Any) -> Any:
+    if hasattr(value, "item"):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serializable: {type(value).__name__}")
+
+
+def _clean(value: Any) -> Any:
+    """inf/NaN -> strings so the JSON stays standard."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
+    if isinstance(value, dict):
+        return {k: _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    return value
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(_clean(data), indent=2, default=_json_default))
+    tmp.replace(path)
+
+
+def _poses(text: str) -> list[str]:
+    from simulate.reports.scenes import ACCURACY_POSES, EXTREME_POSES
+
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    known = {**ACCURACY_POSES, **EXTREME_POSES}
+    for name in names:
+        if name not in known:
+            raise ValueError(f"--poses: unknown pose {name!r}; expected names from {', '.join(known)}")
+    if not names:
+        raise ValueError("--poses must name at least one pose")
+    return names
+
+
+def run_accuracy_command(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from simulate.reports.accuracy import REFERENCE_SETTINGS, format_table, run_accuracy, sweep_settings
+    from simulate.reports.pareto import plot_error_vs_time
+    from simulate.reports.scenes import build_scene
+
+    device = resolve_device(args.device)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    poses = _poses(args.poses)
+    t0 = time.perf_counter()
+    scene = build_scene(args.garment, body=args.body, resolution=args.resolution)
+    default = production_default()
+    settings = sweep_settings(args.sweep, default=default)
+    reference = REFERENCE_SETTINGS[args.sweep]
+    sims = len({s.simulation_key() for s in settings}) + 2  # + canonical drape + reference
+    bar = tqdm(total=sims, desc="accuracy: settings", unit="setting", file=sys.stderr, disable=args.no_progress)
+
+    def progress(label: str) -> None:
+        bar.set_postfix_str(label[:40])
+        bar.update(1)
+
+    report = run_accuracy(scene, poses=poses, settings=settings, reference=reference, default=default, device=device,
+                          fabric=args.fabric, max_frames=args.max_frames, reference_max_frames=4 * args.max_frames,
+                          on_progress=progress)
+    bar.close()
+    report["sweep"] = args.sweep
+    report["wall_s"] = time.perf_counter() - t0
+    png = plot_error_vs_time(report["rows"], out / "accuracy_pareto.png", highlight=report["default"],
+                             title=f"{scene.name} ({scene.vertex_count} vertices), {', '.join(poses)} on {device}: "
+                                   f"max vertex error vs time")
+    report["plot"] = str(png)
+    _write_json(out / "accuracy.json", report)
+    print(format_table(report))
+    where = "on" if report["default_on_front"] else ("near" if report["default_near_front"] else "NOT near")
+    print(f"\nsummary: {len(report['rows'])} settings on {scene.name} ({scene.vertex_count} vertices), "
+          f"{len(poses)} poses, {device}; front: {len(report['front'])} settings")
+    print(f"  production default {report['default']} is {where} the Pareto front "
+          f"(time / front time at its error = {report['default_time_ratio']:.2f}, near means <= "
+          f"{report['near_front_time_factor']})")
+    print(f"  wrote {out / 'accuracy.json'} and {png} in {report['wall_s']:.1f} s")
+    return 0
+
+
+def run_stability_command(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from simulate.reports.scenes import build_scene
+    from simulate.reports.stability import (DEFAULT_SCENE, failing_supported, format_table, plot_heatmap,
+                                            run_stability, stability_cases, unexpected_passes)
+
+    device = resolve_device(args.device)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    garment = args.garment or DEFAULT_SCENE.split("@")[0]
+    scene = build_scene(garment, body="anny", resolution=args.resolution)
+    cases = stability_cases(scene, args.size)
+    bar = tqdm(total=len(cases), desc="stability: cells", unit="cell", file=sys.stderr, disable=args.no_progress)
+    report = run_stability(scene, cases, device=device, on_progress=bar.update)
+    bar.close()
+    report["size"] = args.size
+    png = plot_heatmap(report, out / "stability_heatmap.png")
+    report["plot"] = str(png)
+    bad = failing_supported(report)
+    stale = unexpected_passes(report)
+    report["failing_supported"] = [c["cell"] for c in bad]
+    report["unexpected_passes"] = [c["cell"] for c in stale]
+    _write_json(out / "stability.json", report)
+    print(format_table(report))
+    cells = report["cells"]
+    sup = [c for c in cells if c["supported"]]
+    print(f"\nsummary: {len(cells)} cells on {scene.name} ({scene.vertex_count} vertices), {device}, "
+          f"{report['wall_s']:.1f} s; canonical drape {report['canonical_drape']['status']}")
+    print(f"  passed {sum(c['passed'] for c in cells)}/{len(cells)}; supported cells passed "
+          f"{sum(c['passed'] for c in sup)}/{len(sup)}")
+    for c in bad:
+        print(f"  SUPPORTED CELL FAILED: {c['cell']}: {'; '.join(c['reasons'])}")
+    for c in stale:
+        print(f"  unsupported cell passed (declaration may be stale): {c['cell']}")
+    print(f"  wrote {out / 'stability.json'} and {png}")
+    if bad or (args.strict and stale):
+        return 1
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("report", help="fidelity (error vs run time) and stability reports of the simulator",
+                       description="Simulator reports: 'accuracy' sweeps solver settings against a tight reference "
+                       "(table, JSON, Pareto PNG); 'stability' runs the stiff/extreme case matrix (table, JSON, "
+                       "heat-map PNG) and fails when a supported cell fails.")
+    rs = p.add_subparsers(dest="report", metavar="REPORT")
+    a = rs.add_parser("accuracy", help="error against run time over solver settings",
+                      description="Drapes a garment on the default body, moves it to each pose and relaxes it with "
+                      "every setting of the sweep (solver, substeps, iterations, tolerance, float precision); "
+                      "measures wall time per converged frame and the error against a tightly converged reference.")
+    a.add_argument("--garment", default="tshirt",
+                   help="tshirt, shirt, pants, shorts, skirt or shawl (default tshirt)")
+    a.add_argument("--body", default="anny", choices=["anny", "capsule"], help="body (capsule: tiny CI stand-in)")
+    a.add_argument("--resolution", type=int, default=None, help="target cloth vertex count")
+    a.add_argument("--poses", default="arms-up,arms-forward,twist,lean",
+                   help="comma-separated pose names (canonical, arms-up, arms-forward, twist, lean, tilt, or an "
+                   "extreme pose of the stability report)")
+    a.add_argument("--fabric", default="cotton", help="fabric preset (default cotton)")
+    a.add_argument("--sweep", default="small", choices=["small", "full"], help="settings grid (default small)")
+    a.add_argument("--max-frames", type=int, default=600, help="relaxation frame budget per setting (reference: 4x)")
+    a.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
+    a.add_argument("--out", required=True, help="output folder (accuracy.json, accuracy_pareto.png)")
+    a.add_argument("--no-progress", action="store_true", help="no progress bar")
+    a.set_defaults(func=run_accuracy_command)
+    s = rs.add_parser("stability", help="stiff and extreme case matrix",
+                      description="Runs stretch/bending stiffness decades, large time steps, light-to-heavy fabrics, "
+                      "extreme poses and shapes and fast transitions; exits 1 if a cell declared supported fails "
+                      "(--strict: also if a cell declared unsupported passes).")
+    s.add_argument("--size", default="small", choices=["small", "full"], help="matrix size (default small)")
+    s.add_argument("--garment", default=None, help="cloth on the default body (default: the shawl; see README)")
+    s.add_argument("--resolution", type=int, default=None, help="target cloth vertex count")
+    s.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
+    s.add_argument("--out", required=True, help="output folder (stability.json, stability_heatmap.png)")
+    s.add_argument("--strict", action="store_true", help="also fail when an unsupported cell passes (stale table)")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar")
+    s.set_defaults(func=run_stability_command)
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])

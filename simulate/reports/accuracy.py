@@ -1,0 +1,279 @@
+"""Error against run time of the simulator's settings (``drape report accuracy``).
+
+Protocol: the scene's cloth is draped once on the canonical body with the reference settings
+(the *canonical drape*). For each report pose the body then moves from the canonical pose to the
+pose along a slerp path of one frame per 0.1 rad of the largest joint change (the dataset
+pipeline's interpolation threshold) and the cloth relaxes until it converges; all poses run
+together as worlds of one simulator. Every setting runs the same protocol; the *reference* runs
+it with a very tight tolerance and many iterations. Per setting:
+
+* ``ms_per_frame``: wall time [ms] of the whole protocol (path frames + relaxation, device
+  synchronized, kernels compiled beforehand) divided by the number of poses: the cost of one
+  converged frame as a dataset pays it;
+* ``error_max_mm`` / ``error_mean_mm``: max and mean vertex distance to the reference [mm]
+  over all poses (``error_mm`` = ``error_max_mm`` is the value on the Pareto plot);
+* stretch (max / mean edge length ratio), penetration (deepest vertex [mm], share of vertices
+  deeper than 1 mm: :class:`simulate.quality.QualityMeter`), converged share, frames.
+
+Float precision: a ``float16`` row is the same simulation with positions rounded to float16
+relative to the pelvis (the dataset's PC16 storage), so its error adds the rounding error.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.reports.pareto import NEAR_FRONT_TIME_FACTOR, front_time_at_error, pareto_front
+from simulate.reports.scenes import Scene, frame_metrics, named_pose, pose_path, round_float16, run_worlds
+
+__all__ = ["Setting", "DEFAULT_SETTING", "REFERENCE_SETTINGS", "SWEEPS", "sweep_settings", "run_accuracy",
+           "format_table", "PATH_STEP_RAD"]
+
+PATH_STEP_RAD = 0.1
+"""Largest per-joint rotation between consecutive frames of a pose path [rad] (the dataset's
+``simulation.interpolation_threshold`` default)."""
+
+_MODE_SHORT = {"gauss_seidel": "gs", "jacobi": "jac"}
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One simulator setting of the sweep.
+
+    Attributes:
+        solver: "xpbd" or "mass_spring".
+        mode: XPBD sweep, "gauss_seidel" or "jacobi" (ignored by mass-spring).
+        substeps: substeps per 1/60 s frame; None = the solver's choice (mass-spring: stable step).
+        iterations: XPBD iterations per substep (ignored by mass-spring).
+        tolerance: convergence tolerance, max particle speed [m/s].
+        precision: "float32" or "float16" (storage rounding relative to the pelvis).
+    """
+
+    solver: str = "xpbd"
+    mode: str = "gauss_seidel"
+    substeps: int | None = 10
+    iterations: int = 10
+    tolerance: float = 0.01
+    precision: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.solver not in ("xpbd", "mass_spring"):
+            raise ValueError(f"Setting.solver must be 'xpbd' or 'mass_spring' (got {self.solver!r})")
+        if self.mode not in _MODE_SHORT:
+            raise ValueError(f"Setting.mode must be 'gauss_seidel' or 'jacobi' (got {self.mode!r})")
+        if self.precision not in ("float32", "float16"):
+            raise ValueError(f"Setting.precision must be 'float32' or 'float16' (got {self.precision!r})")
+
+    @property
+    def group(self) -> str:
+        """Solver family for plot colours: "xpbd-gs", "xpbd-jac" or "mass-spring"."""
+        return "mass-spring" if self.solver == "mass_spring" else f"xpbd-{_MODE_SHORT[self.mode]}"
+
+    @property
+    def label(self) -> str:
+        """Short unique name, e.g. "xpbd-gs s10 i10 tol0.01 f32"."""
+        sub = "auto" if self.substeps is None else str(self.substeps)
+        its = "" if self.solver == "mass_spring" else f" i{self.iterations}"
+        return f"{self.group} s{sub}{its} tol{self.tolerance:g} {'f16' if self.precision == 'float16' else 'f32'}"
+
+    def sim_settings(self, *, max_frames: int, patience: int = 3) -> SimSettings:
+        return SimSettings(substeps=self.substeps, iterations=self.iterations, xpbd_mode=self.mode,
+                           tolerance=self.tolerance, patience=patience, max_frames=max_frames)
+
+    def simulation_key(self) -> tuple:
+        """Settings that change the simulation (precision does not)."""
+        return (self.solver, self.mode if self.solver == "xpbd" else "-", self.substeps,
+                self.iterations if self.solver == "xpbd" else 0, self.tolerance)
+
+
+DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 10, 10, 0.01, "float32")
+"""The production default (pipelines/configs/tailornet-tshirt.yaml ``simulation`` block)."""
+
+REFERENCE_SETTINGS: dict[str, Setting] = {
+    "ci": Setting("xpbd", "gauss_seidel", 4, 32, 1e-3),
+    "small": Setting("xpbd", "gauss_seidel", 20, 50, 1e-4),
+    "full": Setting("xpbd", "gauss_seidel", 40, 100, 1e-4),
+}
+"""Reference solve per sweep size: Gauss-Seidel XPBD, many substeps and iterations, a tolerance
+100x below the default's."""
+
+
+def sweep_settings(size: str, *, default: Setting = DEFAULT_SETTING) -> list[Setting]:
+    """The settings of a sweep size ("small" or "full"), the default first, no duplicates."""
+    gs, jac = "gauss_seidel", "jacobi"
+    if size == "small":
+        grid = [Setting("xpbd", gs, s, i, 0.01) for s, i in ((5, 5), (5, 10), (10, 5), (20, 10), (10, 20), (20, 20))]
+        grid += [Setting("xpbd", gs, 10, 10, t) for t in (0.05, 0.002)]
+        grid += [Setting("xpbd", jac, 10, i, 0.01) for i in (10, 20)]
+        grid += [Setting("mass_spring", gs, None, 1, 0.01)]
+        grid += [dataclasses.replace(default, precision="float16")]
+    elif size == "full":
+        grid = [Setting("xpbd", gs, s, i, 0.01) for s in (5, 10, 20, 40) for i in (5, 10, 20, 40)]
+        grid += [Setting("xpbd", gs, s, i, t) for s, i in ((10, 10), (20, 20)) for t in (0.05, 0.02, 0.005, 0.002, 0.001)]
+        grid += [Setting("xpbd", jac, s, i, 0.01) for s in (10, 20) for i in (10, 20, 40)]
+        grid += [Setting("mass_spring", gs, None, 1, t) for t in (0.01, 0.002)]
+        grid += [dataclasses.replace(g, precision="float16") for g in list(grid) if g.group == "xpbd-gs"]
+    else:
+        raise ValueError(f"sweep must be 'small' or 'full' (got {size!r})")
+    out: list[Setting] = [default]
+    for g in grid:
+        if g not in out:
+            out.append(g)
+    return out
+
+
+SWEEPS = ("small", "full")
+
+
+def _path_steps(pose: np.ndarray, canonical: np.ndarray) -> int:
+    from simulate.poses import joint_angle_change
+
+    return int(math.ceil(float(joint_angle_change(canonical, pose).max()) / PATH_STEP_RAD - 1e-9))
+
+
+def run_accuracy(
+    scene: Scene,
+    *,
+    poses: Sequence[str],
+    settings: Sequence[Setting],
+    reference: Setting,
+    default: Setting = DEFAULT_SETTING,
+    device: str = "cpu",
+    fabric: str = "cotton",
+    max_frames: int = 600,
+    reference_max_frames: int = 3000,
+    drape_setting: Setting | None = None,
+    on_progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Runs the accuracy protocol (module docstring) and returns the report as a JSON-ready dict.
+
+    Args:
+        scene: report scene.
+        poses: pose names (``simulate.reports.scenes.ACCURACY_POSES`` or ``EXTREME_POSES``); one world each.
+        settings: the sweep (precision variants share one simulation).
+        reference: the tight reference setting.
+        default: the production default (must be among ``settings``).
+        max_frames: relaxation frame budget per setting; reference_max_frames: the reference's.
+        drape_setting: setting of the canonical drape shared by all runs (default: ``reference``).
+        on_progress: called with a setting label after each simulation (progress bars).
+    Returns:
+        {"scene", "device", "poses", "reference", "rows", "default", "front", "default_on_front",
+        "default_time_ratio", "default_near_front"} (see the module docstring for row fields).
+    """
+    if not poses:
+        raise ValueError("poses must name at least one pose")
+    if default not in settings:
+        raise ValueError(f"the default setting {default.label!r} must be part of the sweep")
+    canonical = scene.canonical_pose
+    pose_vecs = [named_pose(p) for p in poses]
+    shape = scene.neutral_shape
+    paths, roots, finals = [], [], []
+    for vec in pose_vecs:
+        body, root = scene.path_bodies(shape, pose_path(canonical, vec, steps=_path_steps(vec, canonical)))
+        paths.append(body)
+        roots.append(root[-1])
+        finals.append(body[-1])
+    finals_arr = np.stack(finals)
+    roots_arr = np.stack(roots)
+    canon_body, _ = scene.body_vertices(shape[None], canonical[None])
+    w = len(poses)
+
+    def simulate(s: Setting, frames: int, start: np.ndarray, use_paths: list[np.ndarray]):
+        return run_worlds(scene, start=start, paths=use_paths, fabrics=[fabric] * len(use_paths),
+                          settings=s.sim_settings(max_frames=frames), solver=s.solver, device=device)
+
+    # Compile and load every kernel variant before anything is timed.
+    for key in sorted({(s.solver, s.mode) for s in [*settings, reference]}):
+        simulate(Setting(key[0], key[1], 1, 1, 0.01), 1, scene.start_vertices, [canon_body])
+    drape_setting = reference if drape_setting is None else drape_setting
+    drape = simulate(drape_setting, reference_max_frames, scene.start_vertices, [canon_body])
+    if drape.status[0] == WorldStatus.EXPLODED or not np.isfinite(drape.positions).all():
+        raise ValueError(f"the canonical drape of {scene.name} exploded ({drape_setting.label}, after "
+                         f"{int(drape.frames[0])} frames); this scene cannot serve as an accuracy reference")
+    start = drape.positions[0]
+    if on_progress:
+        on_progress("canonical drape")
+    ref = simulate(reference, reference_max_frames, start, paths)
+    if on_progress:
+        on_progress(reference.label + " (reference)")
+    ref_metrics = frame_metrics(scene, ref.positions, finals_arr, device=device)
+    reference_out = {
+        "setting": dataclasses.asdict(reference), "label": reference.label, "wall_s": ref.wall_s,
+        "ms_per_frame": 1e3 * ref.wall_s / w, "status": [WorldStatus(int(s)).name for s in ref.status],
+        "frames": ref.frames.tolist(), "stretch_max": max(m["stretch_max"] for m in ref_metrics),
+        "penetration_max_mm": max(m["penetration_max_mm"] for m in ref_metrics),
+        "canonical_drape_setting": drape_setting.label,
+        "canonical_drape_status": WorldStatus(int(drape.status[0])).name, "canonical_drape_frames": int(drape.frames[0]),
+    }
+    runs: dict[tuple, Any] = {}
+    rows: list[dict[str, Any]] = []
+    for s in settings:
+        key = s.simulation_key()
+        if key not in runs:
+            runs[key] = simulate(s, max_frames, start, paths)
+            if on_progress:
+                on_progress(s.label)
+        run = runs[key]
+        x = run.positions if s.precision == "float32" else round_float16(run.positions, roots_arr)
+        metrics = frame_metrics(scene, x, finals_arr, device=device)
+        finite = np.isfinite(x).all(axis=(1, 2))
+        exploded = (run.status == WorldStatus.EXPLODED) | ~finite
+        dist_mm = 1e3 * np.linalg.norm(x - ref.positions, axis=-1)  # (W, V)
+        failed = bool(exploded.any())
+        rows.append({
+            "label": s.label, "group": s.group, **dataclasses.asdict(s),
+            "ms_per_frame": 1e3 * run.wall_s / w,
+            "error_max_mm": float("inf") if failed else float(dist_mm.max()),
+            "error_mean_mm": float("inf") if failed else float(dist_mm.mean()),
+            "error_mm": float("inf") if failed else float(dist_mm.max()),
+            "error_max_mm_per_pose": [float(d.max()) if f else float("inf") for d, f in zip(dist_mm, ~exploded)],
+            "stretch_max": float(np.nanmax([m["stretch_max"] for m in metrics])) if not failed else float("nan"),
+            "stretch_mean": float(np.nanmean([m["stretch_mean"] for m in metrics])) if not failed else float("nan"),
+            "penetration_max_mm": float(max(m["penetration_max_mm"] for m in metrics)) if not failed else float("nan"),
+            "penetration_fraction": float(np.mean([m["penetration_fraction"] for m in metrics])) if not failed else float("nan"),
+            "converged": float(np.mean(run.status == WorldStatus.CONVERGED)),
+            "exploded": int(exploded.sum()),
+            "frames_mean": float(run.frames.mean()),
+            "substeps_used": int(run.substeps),
+        })
+    front = pareto_front(rows)
+    labels = [r["label"] for r in rows]
+    d = rows[labels.index(default.label)]
+    t_front = front_time_at_error(rows, d["error_mm"])
+    ratio = d["ms_per_frame"] / t_front if math.isfinite(t_front) and t_front > 0 else float("inf")
+    return {
+        "scene": {"name": scene.name, "garment": scene.garment, "body": scene.body_kind,
+                  "vertices": scene.vertex_count, "faces": int(len(scene.faces)), "fabric": fabric},
+        "device": str(device),
+        "poses": [{"name": p, "path_frames": int(len(b) - 1)} for p, b in zip(poses, paths)],
+        "reference": reference_out,
+        "rows": rows,
+        "default": default.label,
+        "front": [labels[i] for i in front],
+        "default_on_front": labels.index(default.label) in front,
+        "default_time_ratio": ratio,
+        "near_front_time_factor": NEAR_FRONT_TIME_FACTOR,
+        "default_near_front": bool(ratio <= NEAR_FRONT_TIME_FACTOR),
+    }
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """Plain-text table of the report rows (front points marked '*', the default '<')."""
+    front = set(report["front"])
+    head = (f"{'setting':<34}{'ms/frame':>10}{'err max':>9}{'err mean':>9}{'stretch':>9}{'pen mm':>8}"
+            f"{'conv':>6}{'frames':>8}")
+    lines = [head, f"{'':<34}{'[ms]':>10}{'[mm]':>9}{'[mm]':>9}{'max':>9}{'max':>8}{'[%]':>6}{'mean':>8}", "-" * len(head)]
+    for r in report["rows"]:
+        mark = ("*" if r["label"] in front else " ") + ("<" if r["label"] == report["default"] else " ")
+        lines.append(f"{mark}{r['label']:<32}{r['ms_per_frame']:>10.1f}{r['error_max_mm']:>9.2f}{r['error_mean_mm']:>9.3f}"
+                     f"{r['stretch_max']:>9.4f}{r['penetration_max_mm']:>8.2f}{100 * r['converged']:>6.0f}"
+                     f"{r['frames_mean']:>8.1f}")
+    ref = report["reference"]
+    lines.append(f"reference {ref['label']}: {ref['ms_per_frame']:.1f} ms/frame, status {', '.join(ref['status'])}")
+    lines.append("* = on the Pareto front (error max vs time), < = production default")
+    return "\n".join(lines)
