@@ -353,3 +353,22 @@ def test_frame_arrays_from_dataset_object() -> None:
     with pytest.raises(ValueError, match="pair"):
         frame_arrays_from_dataset(SimpleNamespace(pose=dataset.pose, shape=dataset.shape, style=dataset.style,
                                                   displacements=dataset.displacements))
+
+
+def test_plots_write_pngs(tmp_path: Path) -> None:
+    from learn.tailornet.plots import plot_error_vs_runtime, render_prediction
+
+    points = [{"label": "tailornet gpu b32", "ms_per_frame": 0.05, "error_mm": 11.0},
+              {"label": "simulator", "ms_per_frame": 900.0, "error_mm": 0.0}]
+    figure = plot_error_vs_runtime(points, tmp_path / "error_vs_runtime.png")
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="ms_per_frame"):
+        plot_error_vs_runtime([{"label": "x", "ms_per_frame": 0.0, "error_mm": 1.0}], tmp_path / "bad.png")
+    vertices, faces = grid_mesh(5, 5, spacing=0.05)
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    render = render_prediction(vertices + 0.002, vertices, faces, tmp_path / "render.png",
+                               body_vertices=np.asarray(sphere.vertices), body_faces=np.asarray(sphere.faces),
+                               title="frame 0")
+    assert render.stat().st_size > 1000
+    with pytest.raises(ValueError, match="shape"):
+        render_prediction(vertices[:3], vertices, faces, tmp_path / "bad.png")
