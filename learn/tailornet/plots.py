@@ -110,12 +110,11 @@ def render_prediction(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     figure = plt.figure(figsize=(8.0, 4.4), dpi=120)
-    for column, (vertices, colors, label) in enumerate(
-        (
-            (predicted, colormap(np.clip(face_error / scale, 0.0, 1.0)), f"predicted (mean error {error_mm.mean():.1f} mm)"),
-            (simulated, (0.75, 0.55, 0.45, 1.0), "simulated"),
-        )
-    ):
+    panels = (
+        (predicted, colormap(np.clip(face_error / scale, 0.0, 1.0)), f"predicted (mean error {error_mm.mean():.1f} mm)"),
+        (simulated, (0.75, 0.55, 0.45, 1.0), "simulated"),
+    )
+    for column, (vertices, colors, label) in enumerate(panels):
         axis = figure.add_subplot(1, 2, column + 1, projection="3d")
         if body_vertices is not None and body_faces is not None:
             _mesh_axis(axis, np.asarray(body_vertices), np.asarray(body_faces), (0.8, 0.8, 0.8, 0.35), limits)
