@@ -32,7 +32,7 @@ class BodyCollider:
         *,
         device: wp.context.Devicelike = None,
         thickness: float = 2.0e-3,
-        margin: float = 1.0e-2,
+        margin: float = 2.0e-2,
         world_count: int | None = None,
     ) -> None:
         """
