@@ -201,11 +201,11 @@ class ClothBuilder:
             raise ValueError(f"vertex {missing[0]} is not referenced by any face ({missing.size} unreferenced "
                              "vertices); remove them before add_garment")
         edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-        uniq, counts = np.unique(edges, axis=0, return_counts=True)
+        uniq, counts = np.unique(edges[:, 0] * vcount + edges[:, 1], return_counts=True)  # 1-D keys: fast
         if (counts > 2).any():
-            k = np.nonzero(counts > 2)[0][0]
-            raise ValueError(f"edge {uniq[k].tolist()} is shared by {counts[k]} faces, expected at most 2 "
-                             "(non-manifold mesh)")
+            k = uniq[np.nonzero(counts > 2)[0][0]]
+            raise ValueError(f"edge {[int(k // vcount), int(k % vcount)]} is shared by {counts[counts > 2][0]} faces, "
+                             "expected at most 2 (non-manifold mesh)")
         fab = resolve_fabric(fabric)
         pinned_idx = _index_array("pinned", pinned, vcount)
         attached_idx = _index_array("attached", attached, vcount)
