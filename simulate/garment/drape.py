@@ -75,6 +75,8 @@ def drape_canonical(
     substeps: int = 10,
     iterations: int = 10,
     body_thickness: float = 2.0e-3,
+    damping: float = 2.0,
+    explosion_stretch: float = 10.0,
 ) -> DrapeResult:
     """Drapes garments on the canonical-pose bodies of their shapes, all in one batch.
 
@@ -90,6 +92,10 @@ def drape_canonical(
         tolerance: converged when the fastest particle is slower than this [m/s].
         substeps, iterations: XPBD substeps per frame and iterations per substep.
         body_thickness: contact distance kept from the body surface [m].
+        damping: extra velocity damping [1/s] (quasi-static: settles faster).
+        explosion_stretch: triangle stretch ratio [-] that marks a world EXPLODED; higher
+            than the simulator's default because the few triangles at a garment's
+            first contact (shoulders, waistband) stretch transiently while settling.
     """
     from simulate.cloth import ClothBuilder
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
@@ -119,7 +125,8 @@ def drape_canonical(
     body_faces = body.part_faces(sorted(parts))
     collider = BodyCollider(posed.vertices.astype(np.float64), body_faces, device=device, thickness=body_thickness)
     settings = SimSettings(max_frames=int(max_frames), tolerance=float(tolerance), substeps=int(substeps),
-                           iterations=int(iterations))
+                           iterations=int(iterations), damping=float(damping),
+                           explosion_stretch=float(explosion_stretch))
     sim = QuasiStaticSimulator(model, collider, solver="xpbd", settings=settings)
     world = np.asarray(model.particle_world_np)
     start = sim.positions()
@@ -141,5 +148,6 @@ def drape_canonical(
         max_penetration_m=np.array(depth), penetrating_fraction=np.array(frac),
         start_penetrating_fraction=np.array(frac0), seconds=seconds,
         settings={"fabric": fabric, "device": str(device), "max_frames": int(max_frames), "tolerance": float(tolerance),
-                  "substeps": int(substeps), "iterations": int(iterations), "body_thickness": float(body_thickness)},
+                  "substeps": int(substeps), "iterations": int(iterations), "body_thickness": float(body_thickness),
+                  "damping": float(damping), "explosion_stretch": float(explosion_stretch)},
     )

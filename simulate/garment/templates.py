@@ -66,6 +66,8 @@ WAIST_BELOW_SPINE1_M = 0.01
 SKIRT_SKINNING_NEIGHBOURS = 100
 #: Generated garment vertices are kept at least this far outside the body [m].
 PUSH_CLEARANCE_M = 0.004
+#: An offset point must stay this fraction of its offset away from the body.
+SAFE_OFFSET_RATIO = 0.95
 #: Edges shorter than this fraction of the median edge are collapsed.
 SHORT_EDGE_FRACTION = 0.35
 #: Cut vertices closer than this to a cut are snapped onto it (no slivers) [m].
@@ -525,19 +527,20 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
 
 
 def safe_offsets(surface: np.ndarray, normals: np.ndarray, offset: np.ndarray, faces: np.ndarray,
-                 body_vertices: np.ndarray, body_faces: np.ndarray, *, rounds: int = 5) -> np.ndarray:
-    """Per-vertex offsets [m] (V,) no larger than requested, halved where moving along
+                 body_vertices: np.ndarray, body_faces: np.ndarray, *, rounds: int = 8) -> np.ndarray:
+    """Per-vertex offsets [m] (V,) no larger than requested, shrunk where moving along
     the normal runs toward another part of the body (armpits, crotch, between the legs):
-    there the offset point would be closer to the body than half the offset. The result
-    is smoothed (never increased) so neighbouring rows stay evenly spaced."""
+    there the offset point is closer to the body than SAFE_OFFSET_RATIO times the offset,
+    so two facing surfaces (inner thighs) would cross each other beyond half their gap.
+    The result is smoothed (never increased) so neighbouring rows stay evenly spaced."""
     query = mesh_ops.ClosestPointQuery(body_vertices, body_faces)
     d = np.asarray(offset, dtype=np.float64).copy()
     for _ in range(rounds):
         sd = query.query(surface + normals * d[:, None])[3]
-        bad = sd < 0.5 * d
+        bad = sd < SAFE_OFFSET_RATIO * d
         if not bad.any():
             break
-        d[bad] *= 0.5
+        d[bad] *= 0.6
         d = np.minimum(d, mesh_ops.smooth_vertex_values(d[:, None], faces, iterations=3)[:, 0])
     return d
 
