@@ -24,7 +24,7 @@ class SolverXPBD(SolverBase):
     ``mode="gauss_seidel"`` sweeps the graph colours computed at finalize (one launch per
     colour, in place); ``mode="jacobi"`` projects all elements from the same positions, each
     element taking the share ``jacobi_relaxation / max_k n_k`` of its step (n_k = elements
-    at its corner k), and sums the corrections per particle.  Both are
+    of its kind at its corner k), and sums the corrections per particle.  Both are
     deterministic (no float atomics).
     """
 
