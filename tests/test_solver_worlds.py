@@ -196,3 +196,35 @@ def test_cpu_graph_replay_matches_eager(mode: str, substeps: int) -> None:
         out[graph] = (sim.positions(), sim.velocities())
     assert np.array_equal(out[False][0], out[True][0]), "CPU graph positions differ from eager"
     assert np.array_equal(out[False][1], out[True][1]), "CPU graph velocities differ from eager"
+
+
+def test_driver_and_solver_argument_errors() -> None:
+    from simulate.solvers import make_solver
+
+    model, collider = _sphere_scene(["cotton", "silk"], "cpu", n=5)
+    with pytest.raises(ValueError, match="solver must be one of"):
+        make_solver("implicit_euler", model)
+    with pytest.raises(ValueError, match="mode must be one of"):
+        make_solver("xpbd", model, mode="red_black")
+    with pytest.raises(ValueError, match="iterations must be an integer >= 1"):
+        make_solver("xpbd", model, iterations=0)
+    with pytest.raises(ValueError, match="SimSettings.tolerance is invalid"):
+        SimSettings(tolerance=-1.0)
+    _, one_world = _sphere_scene(["cotton"], "cpu", n=5)
+    with pytest.raises(ValueError, match="collider has 1 worlds but the model has 2"):
+        QuasiStaticSimulator(model, one_world)
+    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=2, iterations=2))
+    with pytest.raises(ValueError, match=r"positions must have shape \(25, 3\)"):
+        sim.set_positions(np.zeros((3, 3)), world=1)
+    with pytest.raises(ValueError, match=r"worlds must be indices in \[0, 2\)"):
+        sim.restart([5])
+    with pytest.raises(ValueError, match="body_contact is on but control.collider is None"):
+        sim.solver.step(sim.state_0, sim.state_1, model.control(), 0.01)
+    # set_positions on one world leaves the other untouched and zeroes that world's velocities.
+    sim.relax(max_frames=3)
+    before = sim.positions()
+    sim.set_positions(model.particle_q_rest[model.world_slice(1)] + 0.01, world=1)
+    after = sim.positions()
+    assert np.array_equal(after[model.world_slice(0)], before[model.world_slice(0)])
+    assert np.allclose(after[model.world_slice(1)], model.particle_q_rest[model.world_slice(1)] + 0.01)
+    assert not sim.velocities()[model.world_slice(1)].any()
