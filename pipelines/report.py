@@ -94,7 +94,7 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     poses = _poses(args.poses)
     t0 = time.perf_counter()
-    scene = build_scene(args.garment, body=args.body, resolution=args.resolution)
+    scene = build_scene(args.garment, body=args.body, resolution=args.resolution, device=device)
     default = production_default()
     settings = sweep_settings(args.sweep, default=default)
     reference = REFERENCE_SETTINGS[args.sweep]
@@ -138,7 +138,7 @@ def run_stability_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     garment = args.garment or DEFAULT_SCENE.split("@")[0]
-    scene = build_scene(garment, body="anny", resolution=args.resolution)
+    scene = build_scene(garment, body="anny", resolution=args.resolution, device=device)
     cases = stability_cases(scene, args.size)
     bar = tqdm(total=len(cases), desc="stability: cells", unit="cell", file=sys.stderr, disable=args.no_progress)
     report = run_stability(scene, cases, device=device, on_progress=bar.update)

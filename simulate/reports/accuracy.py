@@ -159,10 +159,11 @@ def run_accuracy(
         reference: the tight reference setting.
         default: the production default (must be among ``settings``).
         max_frames: relaxation frame budget per setting; reference_max_frames: the reference's.
-        drape_setting: setting of the canonical drape shared by all runs (default: ``reference``).
+        drape_setting: setting of the canonical drape, the common start of all runs (default: ``default``;
+            every run, the reference included, then relaxes each pose with its own setting).
         on_progress: called with a setting label after each simulation (progress bars).
     Returns:
-        {"scene", "device", "poses", "reference", "rows", "default", "front", "default_on_front",
+        {"scene", "device", "poses", "poses_dropped" (reference exploded), "reference", "rows", "default", "front", "default_on_front",
         "default_time_ratio", "default_near_front"} (see the module docstring for row fields).
     """
     if not poses:
@@ -190,7 +191,7 @@ def run_accuracy(
     # Compile and load every kernel variant before anything is timed.
     for key in sorted({(s.solver, s.mode) for s in [*settings, reference]}):
         simulate(Setting(key[0], key[1], 1, 1, 0.01), 1, scene.start_vertices, [canon_body])
-    drape_setting = reference if drape_setting is None else drape_setting
+    drape_setting = default if drape_setting is None else drape_setting
     drape = simulate(drape_setting, reference_max_frames, scene.start_vertices, [canon_body])
     if drape.status[0] == WorldStatus.EXPLODED or not np.isfinite(drape.positions).all():
         raise ValueError(f"the canonical drape of {scene.name} exploded ({drape_setting.label}, after "
@@ -201,6 +202,19 @@ def run_accuracy(
     ref = simulate(reference, reference_max_frames, start, paths)
     if on_progress:
         on_progress(reference.label + " (reference)")
+    # A pose whose reference exploded has no reference: drop it (worlds are independent, so the
+    # other worlds' reference results stand) and say so in the report.
+    keep = (ref.status != WorldStatus.EXPLODED) & np.isfinite(ref.positions).all(axis=(1, 2))
+    dropped = [p for p, k in zip(poses, keep) if not k]
+    if not keep.any():
+        raise ValueError(f"the reference ({reference.label}) exploded in every pose ({', '.join(poses)}) of {scene.name}")
+    if dropped:
+        idx = np.nonzero(keep)[0]
+        poses = [poses[i] for i in idx]
+        paths = [paths[i] for i in idx]
+        finals_arr, roots_arr = finals_arr[idx], roots_arr[idx]
+        ref = dataclasses.replace(ref, positions=ref.positions[idx], status=ref.status[idx], frames=ref.frames[idx])
+        w = len(poses)
     ref_metrics = frame_metrics(scene, ref.positions, finals_arr, device=device)
     reference_out = {
         "setting": dataclasses.asdict(reference), "label": reference.label, "wall_s": ref.wall_s,
@@ -251,6 +265,7 @@ def run_accuracy(
                   "vertices": scene.vertex_count, "faces": int(len(scene.faces)), "fabric": fabric},
         "device": str(device),
         "poses": [{"name": p, "path_frames": int(len(b) - 1)} for p, b in zip(poses, paths)],
+        "poses_dropped": dropped,
         "reference": reference_out,
         "rows": rows,
         "default": default.label,

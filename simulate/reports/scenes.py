@@ -41,12 +41,14 @@ __all__ = [
     "ACCURACY_POSES", "EXTREME_POSES", "GARMENT_CONTACT_PARTS", "SCENE_GARMENTS", "round_float16",
 ]
 
-#: Body parts each cloth can touch (the rest is culled from the collider). Garment types follow
-#: the dataset pipeline's table (pipelines.generate_dataset.CONTACT_PARTS); the shawl keeps the
-#: head so it cannot fall through the torso's open neck.
+#: Body parts each cloth can touch (the rest is culled from the collider). Garment types use the
+#: garment layer's table (``simulate.garment.drape.COLLISION_PARTS``: tops keep the legs and head
+#: so hems and necklines never meet an open cut of the torso mesh); the shawl keeps the head so it
+#: cannot fall through the torso's open neck.
 GARMENT_CONTACT_PARTS: dict[str, tuple[str, ...]] = {
-    "tshirt": ("torso", "arms"), "shirt": ("torso", "arms", "hands"), "pants": ("torso", "legs", "feet"),
-    "shorts": ("torso", "legs"), "skirt": ("torso", "legs"), "shawl": ("torso", "arms", "head"),
+    "tshirt": ("torso", "arms", "legs", "head"), "shirt": ("torso", "arms", "legs", "head"),
+    "pants": ("torso", "legs", "feet"), "shorts": ("torso", "legs"), "skirt": ("torso", "legs"),
+    "shawl": ("torso", "arms", "head"),
 }
 SCENE_GARMENTS: tuple[str, ...] = tuple(GARMENT_CONTACT_PARTS)
 
@@ -198,7 +200,8 @@ def _capsule_scene(resolution: int) -> Scene:
                  shape_ranges=np.array([[0.0, 1.0]], np.float32), shape_names=["radius"], _pose_fn=pose)
 
 
-def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int | None = None) -> Scene:
+def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int | None = None,
+                device: str = "cpu") -> Scene:
     """Builds a report scene.
 
     Args:
@@ -207,6 +210,8 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
         resolution: target cloth vertex count (garments: nearest subdivision level, see
             ``simulate.garment.templates.make_template``; shawl/towel: grid size). Default: garment 2000, shawl 600,
             towel 60.
+        device: Warp device for the garment's canonical drape (garments start from
+            ``simulate.garment.drape.drape_canonical``; the shawl and towel start flat).
     """
     if body == "capsule":
         return _capsule_scene(60 if resolution is None else int(resolution))
@@ -219,7 +224,12 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
     from simulate.body import load_body_model
 
     model = load_body_model("anny")
-    body_faces = np.asarray(model.part_faces(list(GARMENT_CONTACT_PARTS[garment])), np.int64)
+    parts = GARMENT_CONTACT_PARTS[garment]
+    if garment != "shawl":
+        from simulate.garment.drape import COLLISION_PARTS
+
+        parts = COLLISION_PARTS[garment]  # the garment layer's table wins if it changes
+    body_faces = np.asarray(model.part_faces(list(parts)), np.int64)
     canonical = np.asarray(model.canonical_pose, np.float32)
     neutral = np.asarray(model.shape_default, np.float32)
     if garment == "shawl":
@@ -228,18 +238,35 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
         bv = np.asarray(model.pose(neutral[None], canonical[None]).vertices[0])
         torso = np.unique(model.part_faces(["torso"]))
         top = float(bv[torso, 1].max())
-        zc = float(bv[torso, 2].mean())
+        # The neck: torso vertices within 3 cm of its top; the shawl gets a hole the head passes
+        # through (a poncho), else its middle starts inside the head and gets trapped in the neck.
+        neck = bv[torso[bv[torso, 1] > top - 0.03]]
+        centre = neck[:, [0, 2]].mean(axis=0)
+        hole = float(np.linalg.norm(neck[:, [0, 2]] - centre, axis=1).max()) + 0.03
         count = 600 if resolution is None else int(resolution)
-        ny = max(3, int(round(np.sqrt(count / 2.0))))
-        verts, faces = grid_cloth(2 * ny, ny, 0.9, 0.45, plane="xz", origin=(-0.45, top + 0.02, zc - 0.225))
-        rest = start = verts
+        ny = max(5, int(round(np.sqrt(count / 2.0))))
+        verts, faces = grid_cloth(2 * ny, ny, 0.9, 0.45, plane="xz",
+                                  origin=(centre[0] - 0.45, top + 0.02, centre[1] - 0.225))
+        mid = verts[faces].mean(axis=1)
+        faces = faces[np.linalg.norm(mid[:, [0, 2]] - centre, axis=1) > hole]
+        used, faces = np.unique(faces, return_inverse=True)
+        faces = faces.reshape(-1, 3)
+        rest = start = verts[used]
     else:
         from simulate.garment.style import generate_garment
         from simulate.garment.templates import make_template
 
+        from simulate.garment.drape import drape_canonical
+
         template = make_template(garment, model, resolution=2000 if resolution is None else int(resolution))
-        rest = start = np.asarray(generate_garment(garment, None, model, template=template), np.float64)
+        rest = np.asarray(generate_garment(garment, None, model, template=template), np.float64)
         faces = np.asarray(template.faces, np.int64)
+        # The garment layer's own canonical drape (as the dataset pipeline starts from it).
+        draped = drape_canonical([(template, rest)], model, neutral, device=device)
+        if draped.status[0] == "EXPLODED" or not np.isfinite(draped.vertices[0]).all():
+            raise ValueError(f"the canonical drape of garment {garment!r} exploded (simulate.garment.drape); "
+                             "the scene cannot be built")
+        start = np.asarray(draped.vertices[0], np.float64)
     return Scene(name=f"{garment}@anny", garment=garment, body_kind="anny", rest_vertices=np.asarray(rest, np.float64),
                  start_vertices=np.asarray(start, np.float64), faces=faces, body_faces=body_faces,
                  body_vertex_count=int(model.vertex_count), canonical_pose=canonical, neutral_shape=neutral,
