@@ -89,6 +89,7 @@ def sequence_settings(spec: dict):
     s = spec["simulation"]
     sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
                       xpbd_mode=s["xpbd_mode"], tolerance=float(s["tolerance"]), patience=int(s["patience"]),
+                      damping=float(s["damping"]), explosion_stretch=float(s["explosion_stretch"]),
                       max_frames=int(s["max_relax_frames"]))
     return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
                             interpolation_threshold=float(s["interpolation_threshold"]),
@@ -168,12 +169,16 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         remaining.append(len(t.poses))
     filters = spec["filters"]
     weights = tmpl.skinning_weights
+    from simulate.quality import triangle_areas
+
+    rest_areas = {t.style_index: triangle_areas(ctx.style_rest[t.style_index], tmpl.faces) for t in tasks}
 
     def record(frame) -> None:
         t = tasks[frame.task]
         writer = writers[frame.task]
         x = np.asarray(frame.positions, np.float64)
-        metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"])
+        metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
+                                rest_areas=rest_areas[t.style_index])
         reason = drop_reason(metrics, frame.status, filters)
         if reason is None:
             unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]

@@ -42,6 +42,8 @@ records and hashes. Schema (every key optional unless marked required)::
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
       frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
+      damping: float [1/s] = 20          velocity damping: settles quasi-static drapes fast
+      explosion_stretch: float = 10      triangle stretch ratio that marks a world exploded
       shape_transition_frames: int = 10
       interpolation_threshold: float [rad] = 0.1
       min_hold_frames: int = 2          frames each target pose is held at least
@@ -77,7 +79,7 @@ DEFAULTS: dict[str, Any] = {
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "xpbd_mode": "gauss_seidel", "tolerance": 0.01, "patience": 3, "max_relax_frames": 120,
+        "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 10.0, "tolerance": 0.01, "patience": 3, "max_relax_frames": 120,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
     },
@@ -187,6 +189,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.substeps", 1)
     c.integer(f"{sim}.iterations", 1)
     c.number(f"{sim}.tolerance", 0.0, lo_open=True)
+    c.number(f"{sim}.damping", 0.0)
+    c.number(f"{sim}.explosion_stretch", 1.0, lo_open=True)
     c.integer(f"{sim}.patience", 1)
     c.integer(f"{sim}.max_relax_frames", 1)
     c.integer(f"{sim}.shape_transition_frames", 1)

@@ -154,8 +154,11 @@ class QualityMeter:
         return int(self._hits.numpy().sum())
 
     def measure(self, garment_vertices: np.ndarray, body_vertices: np.ndarray, *, collision_depth: float = COLLISION_DEPTH_M,
-                self_intersection: bool = True) -> dict[str, float]:
+                self_intersection: bool = True, rest_areas: np.ndarray | None = None) -> dict[str, float]:
         """All metrics of one frame.
+
+        ``rest_areas`` (F,) [m^2] replaces the constructor's rest areas (e.g. the rest
+        geometry of this garment's style when styles share one topology).
 
         Returns:
             dict with ``finite`` (1/0), ``area_ratio_min``, ``area_ratio_max``,
@@ -166,7 +169,8 @@ class QualityMeter:
         if not np.isfinite(x).all():
             return {"finite": 0.0, "area_ratio_min": float("nan"), "area_ratio_max": float("nan"),
                     "penetration_fraction": float("nan"), "penetration_max_m": float("nan"), "self_intersections": -1.0}
-        ratio = triangle_areas(x, self.faces) / np.maximum(self.rest_areas, 1e-20)
+        rest = self.rest_areas if rest_areas is None else np.asarray(rest_areas)
+        ratio = triangle_areas(x, self.faces) / np.maximum(rest, 1e-20)
         d = self.signed_distance(x, body_vertices)
         return {
             "finite": 1.0,
