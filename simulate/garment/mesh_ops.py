@@ -23,7 +23,10 @@ def unique_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     f = np.asarray(faces, dtype=np.int64)
     half = np.stack([f, np.roll(f, -1, axis=1)], axis=-1).reshape(-1, 2)  # (3F, 2): (c0,c1),(c1,c2),(c2,c0)
     key = np.sort(half, axis=1)
-    edges, inverse = np.unique(key, axis=0, return_inverse=True)
+    n = int(f.max()) + 1 if f.size else 1
+    scalar = key[:, 0] * n + key[:, 1]  # 1-D keys: much faster than np.unique(axis=0)
+    uniq, inverse = np.unique(scalar, return_inverse=True)
+    edges = np.stack([uniq // n, uniq % n], axis=1)
     return edges, inverse.reshape(-1, 3)
 
 
@@ -37,8 +40,9 @@ def boundary_edges_directed(faces: np.ndarray) -> np.ndarray:
     """Boundary half-edges (B, 2), oriented as in their single face."""
     f = np.asarray(faces, dtype=np.int64)
     half = np.stack([f, np.roll(f, -1, axis=1)], axis=-1).reshape(-1, 2)
-    _, inverse, counts = np.unique(np.sort(half, axis=1), axis=0, return_inverse=True, return_counts=True)
-    return half[counts[inverse.ravel()] == 1]
+    _, fe = unique_edges(f)
+    counts = np.bincount(fe.ravel())
+    return half[counts[fe.ravel()] == 1]
 
 
 def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
@@ -438,7 +442,10 @@ def collapse_short_edges(vertices: np.ndarray, faces: np.ndarray, min_length: fl
         if len(short) == 0:
             break
         short = short[np.argsort(length[short])]
-        adj = vertex_adjacency(f, len(v)).tolil().rows
+        csr = vertex_adjacency(f, len(v))
+
+        def nbrs(i: int) -> list[int]:
+            return csr.indices[csr.indptr[i]:csr.indptr[i + 1]].tolist()
         touched = np.zeros(len(v), dtype=bool)
         target = np.arange(len(v))
         done = 0
@@ -449,12 +456,13 @@ def collapse_short_edges(vertices: np.ndarray, faces: np.ndarray, min_length: fl
             boundary_edge = counts[e] == 1
             if on_boundary[a] and on_boundary[b] and not boundary_edge:
                 continue
-            common = set(adj[a]) & set(adj[b])
+            na, nb = nbrs(a), nbrs(b)
+            common = set(na) & set(nb)
             if len(common) != (1 if boundary_edge else 2):
                 continue
             keep, drop = (b, a) if (on_boundary[b] and not on_boundary[a]) else (a, b)
             target[drop] = keep
-            touched[list(adj[a]) + list(adj[b]) + [a, b]] = True
+            touched[na + nb + [a, b]] = True
             done += 1
         if done == 0:
             break

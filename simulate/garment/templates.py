@@ -79,11 +79,23 @@ def _chain(kind: str, side: int) -> list[str]:
     return [f"{s}_shoulder", f"{s}_elbow", f"{s}_wrist"] if kind == "arm" else [f"{s}_hip", f"{s}_knee", f"{s}_ankle"]
 
 
+_JOINTS_CACHE: dict[tuple, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+
+
 def body_joints(body, shape) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Canonical-pose vertices (V, 3) and the 20 posable joints {name: (3,)} [m] for a shape."""
-    posed = body.pose(shape, body.canonical_pose)
-    j = posed.joints[0][body.pose_joint_indices]
-    return posed.vertices[0].astype(np.float64), {n: j[i].astype(np.float64) for i, n in enumerate(POSE_JOINTS)}
+    """Canonical-pose vertices (V, 3) and the 20 posable joints {name: (3,)} [m] for a
+    shape (cached per body and shape values; callers must not modify the arrays)."""
+    shape = np.asarray(shape, dtype=np.float32).reshape(-1)
+    key = (id(body), body.name, shape.tobytes())
+    if key not in _JOINTS_CACHE:
+        if len(_JOINTS_CACHE) > 32:
+            _JOINTS_CACHE.clear()
+        posed = body.pose(shape, body.canonical_pose)
+        j = posed.joints[0][body.pose_joint_indices]
+        verts = posed.vertices[0].astype(np.float64)
+        verts.setflags(write=False)
+        _JOINTS_CACHE[key] = (verts, {n: j[i].astype(np.float64) for i, n in enumerate(POSE_JOINTS)})
+    return _JOINTS_CACHE[key]
 
 
 def limb_coordinate(points: np.ndarray, chain: list[np.ndarray]) -> np.ndarray:
@@ -309,7 +321,20 @@ def _name_loops(garment_type: str, v: np.ndarray, loops: list[np.ndarray]) -> tu
     return list(expected), [loops[i] for i in order]
 
 
+_REGION_CACHE: dict[tuple, tuple] = {}
+
+
 def _body_region(garment_type: str, body, level: int):
+    """Cached :func:`_body_region_uncached` (per body object, type and level)."""
+    key = (id(body), body.name, garment_type, int(level))
+    if key not in _REGION_CACHE:
+        if len(_REGION_CACHE) > 16:
+            _REGION_CACHE.clear()
+        _REGION_CACHE[key] = _body_region_uncached(garment_type, body, level)
+    return tuple(np.array(a, copy=True) for a in _REGION_CACHE[key])
+
+
+def _body_region_uncached(garment_type: str, body, level: int):
     """Cuts, cleans, regularises and subdivides the body region.
 
     Returns (vertices (V, 3) on the canonical body [m], faces (F, 3), body_face (V,),
@@ -521,22 +546,22 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
         ramp = np.clip((u_new - anchor) / max(u_cut - anchor, 1e-9), 0.0, 1.0)
         extra += member * ramp * style["width_profile"]
     normals = mesh_ops.smooth_normals(surf, faces, iterations=10)
-    offset = safe_offsets(surf, normals, style["looseness"] + extra, faces, bv, body.faces)
+    body_query = mesh_ops.ClosestPointQuery(bv, body.faces)
+    offset = safe_offsets(surf, normals, style["looseness"] + extra, faces, body_query)
     verts = surf + normals * offset[:, None]
-    return relax_outside(verts, faces, bv, body.faces).astype(np.float32)
+    return relax_outside(verts, faces, body_query).astype(np.float32)
 
 
 def safe_offsets(surface: np.ndarray, normals: np.ndarray, offset: np.ndarray, faces: np.ndarray,
-                 body_vertices: np.ndarray, body_faces: np.ndarray, *, rounds: int = 8) -> np.ndarray:
+                 body_query: mesh_ops.ClosestPointQuery, *, rounds: int = 8) -> np.ndarray:
     """Per-vertex offsets [m] (V,) no larger than requested, shrunk where moving along
     the normal runs toward another part of the body (armpits, crotch, between the legs):
     there the offset point is closer to the body than SAFE_OFFSET_RATIO times the offset,
     so two facing surfaces (inner thighs) would cross each other beyond half their gap.
     The result is smoothed (never increased) so neighbouring rows stay evenly spaced."""
-    query = mesh_ops.ClosestPointQuery(body_vertices, body_faces)
     d = np.asarray(offset, dtype=np.float64).copy()
     for _ in range(rounds):
-        sd = query.query(surface + normals * d[:, None])[3]
+        sd = body_query.query(surface + normals * d[:, None])[3]
         bad = sd < SAFE_OFFSET_RATIO * d
         if not bad.any():
             break
@@ -545,7 +570,7 @@ def safe_offsets(surface: np.ndarray, normals: np.ndarray, offset: np.ndarray, f
     return d
 
 
-def relax_outside(points: np.ndarray, faces: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, *,
+def relax_outside(points: np.ndarray, faces: np.ndarray, body_query: mesh_ops.ClosestPointQuery, *,
                   rounds: int = 4) -> np.ndarray:
     """Pushes garment vertices out of the body (:func:`push_outside`), then relaxes the
     pushed places (and two rings around them) by Laplacian smoothing, repeatedly, so
@@ -553,7 +578,7 @@ def relax_outside(points: np.ndarray, faces: np.ndarray, body_vertices: np.ndarr
     adj = mesh_ops.vertex_adjacency(faces, len(points))
     out = np.asarray(points, dtype=np.float64)
     for _ in range(rounds):
-        pushed = push_outside(out, body_vertices, body_faces)
+        pushed = push_outside(out, body_query)
         moved = np.linalg.norm(pushed - out, axis=1) > 1e-7
         out = pushed
         if not moved.any():
@@ -567,17 +592,16 @@ def relax_outside(points: np.ndarray, faces: np.ndarray, body_vertices: np.ndarr
     return out
 
 
-def push_outside(points: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, *,
+def push_outside(points: np.ndarray, body_query: mesh_ops.ClosestPointQuery, *,
                  clearance: float = PUSH_CLEARANCE_M) -> np.ndarray:
     """Moves points that are inside the body or closer than ``clearance`` [m] to the body
     surface point nearest them plus ``clearance`` along that face's normal (offsets in
     concave places such as armpits and the crotch otherwise cross the body)."""
-    query = mesh_ops.ClosestPointQuery(body_vertices, body_faces)
-    closest, face, _, sd = query.query(points)
+    closest, face, _, sd = body_query.query(points)
     out = np.asarray(points, dtype=np.float64).copy()
     bad = sd < clearance
     if bad.any():
-        out[bad] = closest[bad] + query.normals[face[bad]] * clearance
+        out[bad] = closest[bad] + body_query.normals[face[bad]] * clearance
     return out
 
 

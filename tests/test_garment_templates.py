@@ -1,0 +1,124 @@
+"""Garment templates: manifold meshes with the expected named boundary loops, the body
+correspondence I, skinning weights, fixed topology across styles, save/load + hash."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from simulate.garment import mesh_ops
+from simulate.garment.style import GARMENT_TYPES, STYLE_SPECS, StyleParams
+from simulate.garment.templates import BOUNDARY_NAMES, GarmentTemplate, apply_style, body_joints, make_template
+
+#: Low resolution (subdivision level 0 / a small skirt grid) keeps the tests fast.
+TEST_RESOLUTION = 500
+#: Max distance from a garment vertex to its body vertex I beyond looseness + flare [m]
+#: (the body's own edge length around the garment is up to ~4 cm).
+I_DISTANCE_TOLERANCE_M = 0.045
+ATOL_WEIGHT_SUM = 1e-4
+
+
+@pytest.fixture(scope="module")
+def templates(anny_body):
+    return {t: make_template(t, anny_body, resolution=TEST_RESOLUTION) for t in GARMENT_TYPES}
+
+
+@pytest.mark.parametrize("garment_type", GARMENT_TYPES)
+def test_template_is_manifold_with_named_loops(templates, garment_type):
+    tpl = templates[garment_type]
+    ok, reason = mesh_ops.is_manifold(tpl.faces, tpl.vertex_count)
+    assert ok, f"{garment_type}: {reason}"
+    _, counts = mesh_ops.edge_face_counts(tpl.faces)
+    assert set(np.unique(counts)) <= {1, 2}, f"{garment_type}: edges used by {set(np.unique(counts))} faces"
+    loops = mesh_ops.boundary_loops(tpl.faces)
+    assert len(loops) == len(BOUNDARY_NAMES[garment_type]), f"{garment_type}: {len(loops)} loops"
+    assert tpl.boundary_names == list(BOUNDARY_NAMES[garment_type])
+    assert sorted(map(len, loops)) == sorted(map(len, tpl.boundary_loops)), "stored loops differ from the mesh's"
+    assert np.unique(tpl.faces).size == tpl.vertex_count, f"{garment_type}: unreferenced vertices"
+    centre = {n: tpl.vertices[tpl.boundary(n)].mean(0) for n in tpl.boundary_names}
+    if garment_type in ("tshirt", "shirt"):
+        assert centre["neck"][1] > centre["hem"][1], "neck loop is not above the hem"
+        assert centre["left_sleeve"][0] > 0 > centre["right_sleeve"][0], "sleeves are on the wrong sides (left is +x)"
+    elif garment_type in ("pants", "shorts"):
+        assert centre["waist"][1] > max(centre["left_hem"][1], centre["right_hem"][1])
+        assert centre["left_hem"][0] > 0 > centre["right_hem"][0]
+    else:
+        assert centre["waist"][1] > centre["hem"][1]
+
+
+@pytest.mark.parametrize("garment_type", GARMENT_TYPES)
+def test_body_correspondence_and_skinning(templates, anny_body, garment_type):
+    tpl = templates[garment_type]
+    w = tpl.skinning_weights
+    assert w.shape == (tpl.vertex_count, anny_body.joint_count)
+    assert (w >= 0).all() and np.allclose(w.sum(1), 1.0, atol=ATOL_WEIGHT_SUM), "skinning weights not convex"
+    if garment_type == "skirt":
+        assert (tpl.body_vertex_index == -1).all(), "the skirt does not follow body topology: I must be -1"
+        assert len(tpl.attachment) > 0
+        return
+    body_v, _ = body_joints(anny_body, anny_body.shape_default)
+    idx = tpl.body_vertex_index
+    assert idx.min() >= 0 and idx.max() < anny_body.vertex_count, "I points outside the body"
+    # I belongs to the longest cut (shorter styles slide rows away from their I vertex).
+    longest = StyleParams(garment_type, {k: 1.0 for k in STYLE_SPECS[garment_type] if k.endswith("length")})
+    verts = apply_style(tpl, longest, anny_body)
+    limit = longest["looseness"] + longest["width_profile"] + I_DISTANCE_TOLERANCE_M
+    dist = np.linalg.norm(verts - body_v[idx], axis=1)
+    assert dist.max() < limit, f"{garment_type}: vertex {dist.argmax()} is {dist.max():.3f} m from its body vertex (limit {limit:.3f})"
+    if garment_type in ("pants", "shorts"):
+        waist = tpl.vertices[tpl.boundary("waist")][:, 1].mean()
+        assert len(tpl.attachment) > 0 and (tpl.vertices[tpl.attachment, 1] > waist - 0.05).all(), "attachment is not a waistband"
+
+
+@pytest.mark.parametrize("garment_type", GARMENT_TYPES)
+def test_styles_keep_topology_and_move_hems(templates, anny_body, garment_type):
+    tpl = templates[garment_type]
+    spec = STYLE_SPECS[garment_type]
+    length = "length" if "length" in spec else "leg_length"
+    short = apply_style(tpl, StyleParams(garment_type, {length: 0.0}), anny_body)
+    long = apply_style(tpl, StyleParams(garment_type, {length: 1.0}), anny_body)
+    assert short.shape == long.shape == tpl.vertices.shape and np.isfinite(short).all()
+    hem = "hem" if garment_type in ("tshirt", "shirt", "skirt") else "left_hem"
+    assert short[tpl.boundary(hem), 1].mean() > long[tpl.boundary(hem), 1].mean() + 0.02, f"{length}=0 hem not shorter"
+    if "sleeve_length" in spec:
+        a = apply_style(tpl, StyleParams(garment_type, {"sleeve_length": 0.0}), anny_body)
+        b = apply_style(tpl, StyleParams(garment_type, {"sleeve_length": 1.0}), anny_body)
+        assert a[tpl.boundary("left_sleeve"), 0].mean() < b[tpl.boundary("left_sleeve"), 0].mean() - 0.02
+    loose = apply_style(tpl, StyleParams(garment_type, {"looseness": spec["looseness"][1]}), anny_body)
+    tight = apply_style(tpl, StyleParams(garment_type, {"looseness": spec["looseness"][0]}), anny_body)
+    body_v, _ = body_joints(anny_body, anny_body.shape_default)
+    centre = body_v.mean(0)
+    spread = lambda v: np.linalg.norm((v - centre)[:, [0, 2]], axis=1).mean()  # noqa: E731
+    assert spread(loose) > spread(tight) + 0.01, "looser style is not wider"
+
+
+def test_other_shape_follows_the_body(templates, anny_body):
+    tpl = templates["tshirt"]
+    tall = np.array(anny_body.shape_default, dtype=np.float32)
+    tall[anny_body.shape_names.index("height")] = 0.9
+    v = apply_style(tpl, StyleParams("tshirt", {}), anny_body, shape=tall)
+    _, joints = body_joints(anny_body, tall)
+    _, neutral = body_joints(anny_body, anny_body.shape_default)
+    shift = joints["neck"][1] - neutral["neck"][1]
+    assert shift > 0.02
+    assert abs(v[tpl.boundary("neck"), 1].mean() - tpl.vertices[tpl.boundary("neck"), 1].mean() - shift) < 0.02
+
+
+def test_save_load_and_hash(templates, tmp_path):
+    tpl = templates["shorts"]
+    path = tpl.save(tmp_path / "shorts.npz")
+    back = GarmentTemplate.load(path)
+    assert back.content_hash() == tpl.content_hash()
+    assert np.array_equal(back.faces, tpl.faces) and back.boundary_names == tpl.boundary_names
+    assert all(np.array_equal(a, b) for a, b in zip(back.boundary_loops, tpl.boundary_loops))
+    back.vertices = back.vertices.copy()
+    back.vertices[0, 0] += 1e-3
+    assert back.content_hash() != tpl.content_hash(), "hash ignores vertex positions"
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        GarmentTemplate.load(tmp_path / "missing.npz")
+
+
+def test_bad_inputs(anny_body):
+    with pytest.raises(ValueError, match="tshirt, shirt, pants, shorts, skirt"):
+        make_template("dress", anny_body)
+    with pytest.raises(ValueError, match="resolution"):
+        make_template("skirt", anny_body, resolution=3)
