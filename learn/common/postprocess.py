@@ -36,7 +36,12 @@ from learn.common.mesh import uniform_laplacian
 
 SURFACE_OFFSET_M = 1.0e-3
 COLLISION_WEIGHT = 100.0
-STAY_WEIGHT = 1.0e-3
+# eps trades locality against shape keeping. Measured on a 1.6k-vertex torso garment with
+# 1-7 penetrating vertices per frame: eps = 1e-3 moved 10 % of the vertices by > 1 mm,
+# 1e-2 moved 4 %, 1e-1 1.4 %, 1 (the authors' identity weight) 0.6 %; on a wrinkled cap
+# whose troughs dip 5 mm into a sphere, the Laplacian changed by 7 %, 29 %, 66 % and 97 %
+# of what independent projection changes. 1e-2 keeps wrinkles and stays local.
+STAY_WEIGHT = 1.0e-2
 MAX_RELEASE_SOLVES = 10
 
 # A callable answering body queries for one frame: points (N, 3) [m] ->
@@ -88,7 +93,8 @@ def remove_body_penetration(
         offset: distance [m] outside the body surface that pushed vertices are sent to.
         collision_weight: penalty weight w of the constraints (dimensionless, relative to
             the Laplacian term).
-        stay_weight: weight eps keeping vertices near their input.
+        stay_weight: weight eps keeping vertices near their input (see
+            :data:`STAY_WEIGHT` for the trade-off).
         threshold: [m] a vertex is counted as colliding when its signed distance is
             below -threshold; every vertex with distance < 0 is pushed out.
         rounds: maximum active-set rounds (stops early once nothing changes).
