@@ -372,3 +372,38 @@ def test_plots_write_pngs(tmp_path: Path) -> None:
     assert render.stat().st_size > 1000
     with pytest.raises(ValueError, match="shape"):
         render_prediction(vertices[:3], vertices, faces, tmp_path / "bad.png")
+
+
+@pytest.mark.parametrize("interval_s, expected_epoch", [(0.0, 2), (1e9, None)])
+def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, expected_epoch: int | None) -> None:
+    """A crash in epoch 3 leaves the epoch-2 checkpoint when saving every epoch, none
+    when the interval has not elapsed; the log keeps only checkpointed epochs on resume."""
+    from learn.tailornet.train import load_checkpoint, run_epochs
+
+    calls = []
+
+    def epoch_fn(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("simulated crash")
+        loss = model(torch.zeros(1, POSE_SIZE), torch.zeros(1, 0), torch.zeros(1, 0)).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return float(loss.detach())
+
+    torch.manual_seed(0)
+    model = low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
+    hyper = {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 1, "epochs": 4, "checkpoint_interval_s": interval_s}
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run_epochs("stage", model, epoch_fn, run_dir=tmp_path, hyperparameters=hyper, fingerprint=None, progress=False)
+    path = tmp_path / "stage.pt"
+    if expected_epoch is None:
+        assert not path.exists(), "checkpoint written although the interval had not elapsed"
+    else:
+        assert load_checkpoint(path)["epoch"] == expected_epoch
+    assert not (tmp_path / "stage.done").exists()
+    run_epochs("stage", model, epoch_fn, run_dir=tmp_path, hyperparameters=hyper, fingerprint=None, progress=False)
+    rows = (tmp_path / "stage_loss.csv").read_text().strip().splitlines()[1:]
+    assert [r.split(",")[0] for r in rows] == ["1", "2", "3", "4"], rows
+    assert load_checkpoint(path)["epoch"] == 4 and (tmp_path / "stage.done").exists()
