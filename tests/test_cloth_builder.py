@@ -123,3 +123,41 @@ def test_greedy_colour_and_dihedral_naive_twins() -> None:
     x = np.array([[0.0, 0.0, 1.0], [np.sin(angle) * 1.0, 0.0, -np.cos(angle)], [0.0, -1.0, 0.0], [0.0, 1.0, 0.0]])
     theta = dihedral_angles(x, np.array([[0, 1, 2, 3]]))[0]
     assert np.isclose(abs(theta), angle, atol=1e-9), f"dihedral {theta} vs {angle}"
+
+
+RTOL_BENDING_ENERGY = 0.03
+"""Discrete bending energy of a bent equilateral sheet against 1/2 B kappa^2 area (edge effects)."""
+
+
+def _equilateral_sheet(n: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+    rows = [[i * h + (j % 2) * h / 2.0, 0.0, j * h * np.sqrt(3.0) / 2.0] for j in range(n) for i in range(n)]
+    verts = np.asarray(rows)
+    verts -= verts.mean(axis=0)
+    faces = []
+    for j in range(n - 1):
+        for i in range(n - 1):
+            a, b, c, d = j * n + i, j * n + i + 1, (j + 1) * n + i, (j + 1) * n + i + 1
+            faces += [[a, b, c], [b, d, c]] if j % 2 == 0 else [[a, b, d], [a, d, c]]
+    return verts, np.asarray(faces)
+
+
+@pytest.mark.parametrize("direction_deg", [0.0, 30.0, 45.0, 90.0])
+def test_bending_energy_of_a_cylinder_matches_continuum(direction_deg: float) -> None:
+    """Oracle for the bending stiffness: an equilateral sheet bent into a cylinder of radius R
+    stores 1/2 B (1/R)^2 area, whichever direction it is bent in."""
+    verts, faces = _equilateral_sheet(61, 0.005)
+    fabric = Fabric(bending_stiffness=2.0e-5)
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric=fabric)
+    model = builder.finalize("cpu", features=Features(body_contact=False))
+    radius = 1.5
+    d = np.array([np.cos(np.radians(direction_deg)), 0.0, np.sin(np.radians(direction_deg))])
+    s = verts @ d
+    bent = verts - np.outer(s, d) + np.outer(radius * np.sin(s / radius), d)
+    bent[:, 1] = radius * (1.0 - np.cos(s / radius))
+    theta = dihedral_angles(bent, model.bend_indices.numpy())
+    energy = 0.5 * np.sum(theta ** 2 / model.bend_compliance.numpy().astype(np.float64))
+    area = 0.5 * np.linalg.norm(np.cross(verts[faces[:, 1]] - verts[faces[:, 0]], verts[faces[:, 2]] - verts[faces[:, 0]]),
+                                axis=1).sum()
+    expected = 0.5 * fabric.bending_stiffness * area / radius ** 2
+    assert abs(energy / expected - 1.0) < RTOL_BENDING_ENERGY, f"bending energy {energy:.4e} vs {expected:.4e} J"

@@ -9,9 +9,11 @@ deformation gradient columns ``f1, f2`` (material directions of the triangle's r
       + 1/2 * shear_stiffness   * A * (f1 . f2)^2
 
 and per interior edge ``e`` with adjacent rest areas ``A1, A2`` and dihedral angle ``theta``
-(discrete shells, Grinspun et al. 2003):
+(discrete shells, Grinspun et al. 2003, normalized so that a cylinder of curvature kappa on an
+equilateral mesh stores 1/2 * bending_stiffness * kappa^2 per unit area in every direction;
+on right-triangle grids bending across the diagonals is ~3x stiffer than along the axes):
 
-    E = 1/2 * bending_stiffness * 3 |e|^2 / (A1 + A2) * (theta - theta_rest)^2
+    E = 1/2 * bending_stiffness * |e|^2 / (A1 + A2) * (theta - theta_rest)^2
 
 So ``stretch_stiffness`` is a membrane Young's modulus times thickness [N/m] (Poisson ratio 0,
 as is usual for woven fabric), ``shear_stiffness`` an in-plane shear modulus times thickness
