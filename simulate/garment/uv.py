@@ -3,9 +3,11 @@ UV-image learner (seed 001: garment values stored as images on "cloth pixels").
 
 Layout. Faces are split into a ``front`` and a ``back`` panel by the sign of the z
 component of heavily smoothed normals (the seam runs along the sides of the torso and
-limbs and over the shoulders, like a side-seam pattern). Each panel is flattened by a
+limbs and over the shoulders, like a side-seam pattern); trousers (pants, shorts) are
+also split at x = 0 into one front and one back piece per leg, as trouser patterns are. Each panel is flattened by a
 least-squares conformal map (LSCM, Levy et al. 2002; sparse normal equations, two pinned
-vertices, scale kept metric), then the panels are packed into [0, 1]^2 with one common
+vertices, scale kept metric), refined by as-rigid-as-possible iterations (ARAP, Liu et
+al. 2008) and untangled (local Laplacian relaxation of any flipped triangle), then the panels are packed into [0, 1]^2 with one common
 scale (uniform texel density) and a margin between them.
 
 Storage. Seam vertices belong to two panels, so UVs are kept per face corner
@@ -19,48 +21,73 @@ u = (col + 0.5) / W, v = 1 - (row + 0.5) / H (v up, row 0 at the top).
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse.linalg  # noqa: F401  (sparse.linalg.factorized)
 from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
 from simulate.garment import mesh_ops
 
 PANEL_NAMES = ("front", "back")
+#: Local/global ARAP iterations after the LSCM initialisation.
+ARAP_ITERATIONS = 15
+#: Raster size of the per-panel overlap check.
+OVERLAP_CHECK_SIZE = 1024
 #: Gap between panels and around the atlas, in UV units.
 UV_MARGIN = 0.03
 
 
-def split_panels(vertices: np.ndarray, faces: np.ndarray, *, smoothing: int = 80) -> np.ndarray:
-    """Panel per face (F,): 0 front, 1 back.
+def face_neighbours(faces: np.ndarray) -> np.ndarray:
+    """Edge-adjacent face of each face edge (F, 3), -1 on the boundary."""
+    _, fe = mesh_ops.unique_edges(faces)
+    flat = fe.ravel()
+    order = np.argsort(flat, kind="stable")
+    sorted_e = flat[order]
+    nbr = np.full(flat.shape, -1, dtype=np.int64)
+    same = sorted_e[1:] == sorted_e[:-1]
+    a, b = order[:-1][same], order[1:][same]
+    nbr[a] = b // 3
+    nbr[b] = a // 3
+    return nbr.reshape(-1, 3)
 
-    The split field is the z component of vertex normals diffused over the mesh
-    (``smoothing`` iterations), so the seam follows the sides of the torso and limbs; a
-    face goes to the side of its corners' mean. Then, until nothing changes, faces with
-    two or more edges on the seam ("ears" of a staircase seam) and components smaller
-    than the largest one of their panel move to the other panel.
+
+def split_panels(vertices: np.ndarray, faces: np.ndarray, *, smoothing: int = 80, split_x: bool = False) -> np.ndarray:
+    """Panel per face (F,): 0 front, 1 back (z component of vertex normals diffused over
+    the mesh for ``smoothing`` iterations, so the seam follows the sides of the torso and
+    limbs); with ``split_x`` also left/right (x >= 0 / x < 0): 0 front-left, 1 front-right,
+    2 back-left, 3 back-right (trouser patterns are one piece per leg and side).
+
+    Then, until nothing changes, faces with two or more edges on a seam toward the same
+    panel ("ears" of a staircase seam) and components smaller than their panel's largest
+    move to the neighbouring panel.
     """
     n = mesh_ops.smooth_normals(vertices, faces, iterations=smoothing)
     panel = (n[faces, 2].mean(1) < 0).astype(np.int64)
-    edges, fe = mesh_ops.unique_edges(faces)
+    if split_x:
+        panel = 2 * panel + (np.asarray(vertices)[faces, 0].mean(1) < 0)
+    count = int(panel.max()) + 1
+    nbr = face_neighbours(faces)
     for _ in range(50):
         changed = False
-        # ears: faces whose 2+ edges are shared with faces of the other panel
-        other = np.zeros(len(edges), dtype=np.int64)
-        np.add.at(other, fe.ravel(), np.repeat(panel, 3))
-        uses = np.bincount(fe.ravel(), minlength=len(edges))
-        seam_edge = (uses == 2) & (other == 1)  # one face in each panel
-        ears = seam_edge[fe].sum(1) >= 2
-        if ears.any():
-            panel[ears] = 1 - panel[ears]
-            changed = True
-        for p in (0, 1):
+        nb_panel = np.where(nbr >= 0, panel[np.maximum(nbr, 0)], -1)  # (F, 3)
+        for target in range(count):
+            votes = ((nb_panel == target) & (panel[:, None] != target)).sum(1)
+            ears = votes >= 2
+            if ears.any():
+                panel[ears] = target
+                changed = True
+                nb_panel = np.where(nbr >= 0, panel[np.maximum(nbr, 0)], -1)
+        for p in range(count):
             idx = np.nonzero(panel == p)[0]
             if len(idx) == 0:
                 continue
             labels = mesh_ops.face_components(faces[idx])
             sizes = np.bincount(labels)
             if len(sizes) > 1:
-                small = labels != np.argmax(sizes)
-                panel[idx[small]] = 1 - p
+                small = idx[labels != np.argmax(sizes)]
+                nb = nb_panel[small]
+                for fi, row in zip(small, nb):
+                    cand = row[(row >= 0) & (row != p)]
+                    panel[fi] = np.bincount(cand).argmax() if len(cand) else (p + 1) % count
                 changed = True
         if not changed:
             break
@@ -116,7 +143,83 @@ def lscm(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     uv = np.stack([full[:nv], full[nv:]], 1)
     if signed_areas(uv, f).sum() < 0:
         uv[:, 1] = -uv[:, 1]
-    return untangle(uv, f)
+    return uv
+
+
+def chart_overlaps(uv: np.ndarray, faces: np.ndarray, *, size: int = OVERLAP_CHECK_SIZE) -> int:
+    """Pixel centres covered by 2+ triangles when the chart fills a size x size raster."""
+    c = uv - uv.min(0)
+    c = 0.02 + 0.96 * c / max(float(c.max()), 1e-15)
+    return int((pixel_map(c[faces], size)[2] > 1).sum())
+
+
+def flatten_panel(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """LSCM, then ARAP refinement, untangled; the most ARAP iterations (of
+    ARAP_ITERATIONS, ARAP_ITERATIONS // 3, 0) whose chart has no flipped triangles and no
+    overlaps is kept (ARAP can fold a boundary over itself; LSCM with untangling rarely does)."""
+    base = lscm(vertices, faces)
+    for iterations in (ARAP_ITERATIONS, ARAP_ITERATIONS // 3, 0):
+        uv = untangle(arap(vertices, faces, base, iterations=iterations) if iterations else base, faces)
+        if (signed_areas(uv, faces) > 0).all() and chart_overlaps(uv, faces) == 0:
+            return uv
+    return uv
+
+
+def arap(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, *, iterations: int = ARAP_ITERATIONS) -> np.ndarray:
+    """As-rigid-as-possible refinement of a chart (Liu et al. 2008 local/global):
+    per-triangle best rotations, then one sparse cotangent-Laplacian solve per
+    iteration; removes most of a conformal map's area distortion. (V, 2) -> (V, 2)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    p0, p1, p2 = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    e1 = p1 - p0
+    l1 = np.maximum(np.linalg.norm(e1, axis=1), 1e-15)
+    e1 = e1 / l1[:, None]
+    n = np.cross(p1 - p0, p2 - p0)
+    n = n / np.maximum(np.linalg.norm(n, axis=1), 1e-15)[:, None]
+    e2 = np.cross(n, e1)
+    local = np.zeros((len(f), 3, 2))  # isometric flattening of each triangle
+    local[:, 1, 0] = l1
+    local[:, 2, 0] = ((p2 - p0) * e1).sum(1)
+    local[:, 2, 1] = ((p2 - p0) * e2).sum(1)
+    # cotangent of the angle at corner k weights the opposite edge (k+1, k+2)
+    cot = np.zeros((len(f), 3))
+    for k in range(3):
+        a = local[:, (k + 1) % 3] - local[:, k]
+        b = local[:, (k + 2) % 3] - local[:, k]
+        cross = np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+        cot[:, k] = np.clip((a * b).sum(1) / np.maximum(cross, 1e-15), 1e-3, 1e3)
+    i_idx = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    j_idx = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+    w = np.concatenate([cot[:, 0], cot[:, 1], cot[:, 2]])
+    nv = len(v)
+    lap = sparse.csr_matrix((np.concatenate([w, w, -w, -w]),
+                             (np.concatenate([i_idx, j_idx, i_idx, j_idx]), np.concatenate([i_idx, j_idx, j_idx, i_idx]))),
+                            shape=(nv, nv))
+    lap = lap + sparse.identity(nv) * 1e-9  # fixes the free translation
+    solve = sparse.linalg.factorized(lap.tocsc())
+    u = np.asarray(uv, dtype=np.float64).copy()
+    ci = [(1, 2), (2, 0), (0, 1)]  # edge opposite corner k
+    for _ in range(iterations):
+        cov = np.zeros((len(f), 2, 2))
+        for k, (a, b) in enumerate(ci):
+            du = u[f[:, a]] - u[f[:, b]]
+            dx = local[:, a] - local[:, b]
+            cov += cot[:, k, None, None] * du[:, :, None] * dx[:, None, :]
+        uu, _, vt = np.linalg.svd(cov)
+        rot = uu @ vt
+        flip = np.linalg.det(rot) < 0
+        uu[flip, :, 1] *= -1
+        rot = uu @ vt
+        rhs = np.zeros((nv, 2))
+        for k, (a, b) in enumerate(ci):
+            r = cot[:, k, None] * np.einsum("fij,fj->fi", rot, local[:, a] - local[:, b])
+            np.add.at(rhs, f[:, a], r)
+            np.add.at(rhs, f[:, b], -r)
+        centre = u.mean(0)
+        u = np.stack([solve(rhs[:, 0]), solve(rhs[:, 1])], 1)
+        u += centre - u.mean(0)
+    return u
 
 
 def untangle(uv: np.ndarray, faces: np.ndarray, *, max_rounds: int = 200) -> np.ndarray:
@@ -169,35 +272,53 @@ def _orient_panel(uv: np.ndarray, vertices: np.ndarray, panel: int) -> np.ndarra
     return c @ rot
 
 
+def _pack(sizes: np.ndarray) -> tuple[float, np.ndarray]:
+    """Common scale and lower-left offsets (P, 2) placing panels of (width, height)
+    ``sizes`` in rows (in order) inside [0, 1]^2 with UV_MARGIN gaps; the row count
+    with the largest scale wins."""
+    count = len(sizes)
+    best = (-1.0, None)
+    for rows in range(1, count + 1):
+        per_row = int(np.ceil(count / rows))
+        groups = [list(range(i, min(i + per_row, count))) for i in range(0, count, per_row)]
+        widths = [sizes[g, 0].sum() for g in groups]
+        heights = [sizes[g, 1].max() for g in groups]
+        scale = min((1 - (per_row + 1) * UV_MARGIN) / max(widths), (1 - (len(groups) + 1) * UV_MARGIN) / sum(heights))
+        if scale > best[0]:
+            offsets = np.zeros((count, 2))
+            y = 1 - UV_MARGIN
+            for g, h in zip(groups, heights):
+                y -= h * scale
+                x = UV_MARGIN
+                for i in g:
+                    offsets[i] = (x, y)
+                    x += sizes[i, 0] * scale + UV_MARGIN
+                y -= UV_MARGIN
+            best = (scale, offsets)
+    return best
+
+
 def build_uv(template) -> None:
     """Computes and stores panels and UVs of a template in place (see module docstring)."""
     v = np.asarray(template.vertices, dtype=np.float64)
     f = np.asarray(template.faces, dtype=np.int64)
-    face_panel = split_panels(v, f)
+    split_x = template.garment_type in ("pants", "shorts")
+    face_panel = split_panels(v, f, split_x=split_x)
+    names = ["front_left", "front_right", "back_left", "back_right"] if split_x else list(PANEL_NAMES)
     charts = []
-    for p in (0, 1):
+    for p in range(len(names)):
         fidx = np.nonzero(face_panel == p)[0]
         sub, used = mesh_ops.remove_unused_vertices(f[fidx], len(v))
-        uv = _orient_panel(lscm(v[used], sub), v[used], p)
+        uv = _orient_panel(flatten_panel(v[used], sub), v[used], p // 2 if split_x else p)
         charts.append((fidx, sub, used, uv - uv.min(0)))
-    sizes = np.array([c[3].max(0) for c in charts])  # (2, 2) width, height
-    # Layout: side by side or stacked, whichever gives the larger common scale.
-    row_w, row_h = sizes[:, 0].sum(), sizes[:, 1].max()
-    col_w, col_h = sizes[:, 0].max(), sizes[:, 1].sum()
-    avail_row = (1 - 3 * UV_MARGIN, 1 - 2 * UV_MARGIN)
-    avail_col = (1 - 2 * UV_MARGIN, 1 - 3 * UV_MARGIN)
-    s_row = min(avail_row[0] / row_w, avail_row[1] / row_h)
-    s_col = min(avail_col[0] / col_w, avail_col[1] / col_h)
+    sizes = np.array([c[3].max(0) for c in charts])  # (P, 2) width, height
+    scale, offsets = _pack(sizes)
     face_uv = np.zeros((len(f), 3, 2))
-    offset = np.array([UV_MARGIN, UV_MARGIN])
-    s = max(s_row, s_col)
-    for fidx, sub, used, uv in charts:
-        face_uv[fidx] = (uv * s + offset)[sub]
-        offset = offset + (np.array([sizes[0, 0] * s + UV_MARGIN, 0.0]) if s_row >= s_col
-                           else np.array([0.0, sizes[0, 1] * s + UV_MARGIN]))
+    for (fidx, sub, _, uv), off in zip(charts, offsets):
+        face_uv[fidx] = (uv * scale + off)[sub]
     vertex_uv = np.zeros((len(v), 2))
     vertex_panel = np.full(len(v), -1, dtype=np.int64)
-    for p in (1, 0):  # front written last: a seam vertex's main chart is the front
+    for p in reversed(range(len(names))):  # lower panel ids written last: a seam vertex's main chart
         sel = face_panel == p
         vertex_uv[f[sel].ravel()] = face_uv[sel].reshape(-1, 2)
         vertex_panel[f[sel].ravel()] = p
@@ -205,7 +326,7 @@ def build_uv(template) -> None:
     template.uv = vertex_uv.astype(np.float32)
     template.face_panel = face_panel
     template.vertex_panel = vertex_panel
-    template.panel_names = list(PANEL_NAMES)
+    template.panel_names = names
 
 
 # --------------------------------------------------------------------- raster maps
