@@ -196,6 +196,7 @@ def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
     subset = evaluate_split(trained["tailornet"], test, posing=posing, postprocess_frames=2)
     assert subset["postprocess_frames_evaluated"] == 2, subset
     assert subset["collision_rate_postprocessed"] < subset["collision_rate_subset"], subset
+    assert subset["posed_error_mm_subset"] > 0 and subset["postprocessed_posed_error_mm"] > 0, subset
     # Posing is a translation here, so posed and unposed errors coincide.
     assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 1e-3, metrics
     timing = time_inference(trained["tailornet"], test.pose, test.shape, test.style, batch_sizes=(1, 4), repeats=3)

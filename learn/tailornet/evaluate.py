@@ -92,8 +92,9 @@ def evaluate_split(
     posed garment and body. The post-process (a sparse solve per frame on the CPU, about
     a second for 10k vertices) runs on at most ``postprocess_frames`` evenly spaced
     frames when given; ``postprocess_frames_evaluated`` reports how many, and the
-    post-processed rates and errors refer to those frames (``collision_rate_subset``
-    gives the raw rate on the same frames, for a like-for-like comparison).
+    post-processed rates and errors refer to those frames (``collision_rate_subset`` and
+    ``posed_error_mm_subset`` give the raw values on the same frames, for a like-for-like
+    comparison).
     """
     if postprocess_frames is not None and postprocess_frames < 1:
         raise ValueError(f"postprocess_frames must be >= 1 or None, got {postprocess_frames}")
@@ -110,7 +111,7 @@ def evaluate_split(
     result: dict[str, Any] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
     if posing is None:
         return result
-    posed_errors, posed_pp_errors = [], []
+    posed_errors, posed_pp_errors, posed_subset_errors = [], [], []
     colliding = colliding_pp = colliding_truth = colliding_subset = 0
     vertex_total = pp_vertex_total = 0
     if postprocess_frames is None or postprocess_frames >= data.frame_count:
@@ -151,10 +152,10 @@ def evaluate_split(
                 colliding_subset += int(mask[chosen].sum())
                 pp_vertex_total += chosen.size * posed.shape[1]
                 if data.posed_vertices is not None:
-                    posed_pp_errors.append(
-                        per_vertex_error_mm(
-                            torch.from_numpy(fixed), torch.from_numpy(data.posed_vertices[start:stop][chosen])
-                        ).numpy()
+                    truth_chosen = torch.from_numpy(data.posed_vertices[start:stop][chosen])
+                    posed_pp_errors.append(per_vertex_error_mm(torch.from_numpy(fixed), truth_chosen).numpy())
+                    posed_subset_errors.append(
+                        per_vertex_error_mm(torch.from_numpy(posed[chosen]), truth_chosen).numpy()
                     )
     result["collision_rate"] = colliding / vertex_total
     if data.posed_vertices is not None:
@@ -165,6 +166,7 @@ def evaluate_split(
         result["collision_rate_subset"] = colliding_subset / pp_vertex_total
         result["collision_rate_postprocessed"] = colliding_pp / pp_vertex_total
         if posed_pp_errors:
+            result["posed_error_mm_subset"] = float(np.concatenate(posed_subset_errors).mean())
             result["postprocessed_posed_error_mm"] = float(np.concatenate(posed_pp_errors).mean())
     return result
 
