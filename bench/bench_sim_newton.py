@@ -1,8 +1,9 @@
 """Side by side with Newton (pip `newton`, extra `peers`): SolverVBD and SolverXPBD against our
 XPBD (Gauss-Seidel and Jacobi) on the identical cloth, body and stopping rule.
 
-Scene: the benchmark drape (resolution^2-vertex square cloth falling onto the default body in
-a non-trivial pose; capsule stand-in without simulate.body), --worlds copies in one model.
+Scene: the benchmark cape (pinned behind the neck of the default body in a non-trivial pose,
+swinging down onto the back; --scene shawl for the square cloth dropped over the shoulders;
+capsule stand-in without simulate.body), --worlds copies in one model.
 Identical for every solver: geometry, areal density, gravity (-9.81 y), contact distance
 (collider thickness + half fabric thickness), Coulomb friction, velocity damping (fabric +
 --damping, applied to Newton's velocities by a kernel after every substep) and the stopping
@@ -17,7 +18,7 @@ Because the energies differ, each solver's error is measured against its own tig
 the least wall time of a sweep configuration whose mean error is <= --target-error-mm, and how
 far each reference is from ours.  One JSON line per run, a summary line per solver.
 
-    python bench/bench_sim_newton.py --device cuda:0 --resolution 100 --worlds 1
+    python bench/bench_sim_newton.py --device cuda:0 --resolution 135 --worlds 1     # cape, 10k vertices
 """
 from __future__ import annotations
 
@@ -68,6 +69,8 @@ class NewtonRun:
             cloth_args.update(tri_ke=0.0, tri_ka=0.0, tri_kd=0.0, add_springs=True, spring_ke=young / 3.0,
                               spring_kd=0.0)
         sub.add_cloth_mesh(**cloth_args)
+        for i in scene.get("pinned", []):
+            sub.particle_mass[int(i)] = 0.0  # cloth particles come first in `sub`; mass 0 pins them
         builder = newton.ModelBuilder(up_axis=newton.Axis.Y)
         builder.replicate(sub, args.worlds, spacing=(4.0, 0.0, 0.0))
         if solver == "newton_vbd":
@@ -170,7 +173,9 @@ def run_newton(newton, scene: dict, fabric, args, solver: str, substeps: int, it
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda:0" if wp.get_cuda_device_count() else "cpu")
-    parser.add_argument("--resolution", type=int, default=100)
+    parser.add_argument("--scene", default="cape", choices=["cape", "shawl"])
+    parser.add_argument("--resolution", type=int, default=135,
+                        help="cape: vertices along its length (135 -> 10k); shawl: per side (100 -> 10k)")
     parser.add_argument("--worlds", type=int, default=1)
     parser.add_argument("--body", default="default", choices=["default", "capsule"])
     parser.add_argument("--fabric", default="cotton")
@@ -193,7 +198,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from simulate.cloth.fabric import resolve_fabric
-    from simulate.cloth.scenes import shawl_scene
+    from simulate.cloth.scenes import cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
 
@@ -211,9 +216,10 @@ def main() -> None:
         emit({"bench": "sim_newton", "skipped": "newton", "reason": f"import newton failed: {exc}; "
               "install the 'peers' extra (pip install -e .[peers])"})
     fabric = resolve_fabric(args.fabric)
-    scene = shawl_scene(args.resolution, body=args.body)
+    scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
     base = {"bench": "sim_newton", "device": str(wp.get_device(args.device)), "worlds": args.worlds,
-            "vertices": int(len(scene["cloth_vertices"])), "body": scene["body_kind"], "fabric": fabric.name,
+            "vertices": int(len(scene["cloth_vertices"])), "body": scene["body_kind"], "scene": args.scene,
+            "fabric": fabric.name,
             "tolerance": args.tolerance, "patience": args.patience}
     references = {}
     summary = {}

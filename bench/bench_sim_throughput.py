@@ -23,7 +23,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda:0" if wp.get_cuda_device_count() else "cpu")
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 2, 4, 8, 16, 32, 64, 128, 256, 512])
-    parser.add_argument("--resolution", type=int, default=100, help="cloth vertices per side (100 -> 10k)")
+    parser.add_argument("--scene", default="shawl", choices=["shawl", "cape"])
+    parser.add_argument("--resolution", type=int, default=100,
+                        help="shawl: vertices per side (100 -> 10k); cape: along its length (135 -> 10k)")
     parser.add_argument("--body", default="default", choices=["default", "capsule"])
     parser.add_argument("--solver", default="xpbd", choices=["xpbd", "mass_spring"])
     parser.add_argument("--mode", default="gauss_seidel", choices=["gauss_seidel", "jacobi"])
@@ -37,10 +39,10 @@ def main() -> None:
     args = parser.parse_args()
 
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-    from simulate.cloth.scenes import batched_drape, shawl_scene
+    from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
-    scene = shawl_scene(args.resolution, body=args.body)
+    scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
     vertices = len(scene["cloth_vertices"])
     device = str(wp.get_device(args.device))
     for worlds in args.worlds:
@@ -64,7 +66,7 @@ def main() -> None:
         record = {
             "bench": "sim_throughput", "device": device, "solver": args.solver,
             "mode": args.mode if args.solver == "xpbd" else None, "worlds": worlds, "vertices_per_world": vertices,
-            "body": scene["body_kind"], "substeps": sim.substeps, "iterations": args.iterations,
+            "body": scene["body_kind"], "scene": args.scene, "substeps": sim.substeps, "iterations": args.iterations,
             "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),

@@ -164,6 +164,42 @@ def shawl_scene(resolution: int = 100, *, size: float = 1.4, body: str = "defaul
             "body_kind": kind}
 
 
+def cape_scene(resolution: int = 100, *, width: float = 0.5, length: float = 0.9, body: str = "default",
+               parts: tuple[str, ...] = ("torso", "arms", "head", "legs")) -> dict:
+    """Benchmark scene with a near-unique rest state: a cape pinned along its top edge just behind
+    the neck of the body in :data:`BENCH_POSE`, starting horizontal (pointing backwards), that
+    swings down and comes to rest on the back.
+
+    Args:
+        resolution: vertices along the length (the width gets ``resolution * width / length``,
+            at least 2); 100 gives ~5.5k vertices, 135 ~10k.
+        width, length: cape size [m].
+        body, parts: as in :func:`shawl_scene`.
+    Returns:
+        dict as :func:`shawl_scene` plus ``pinned`` (indices of the top edge).
+    """
+    scene = shawl_scene(2, body=body, parts=parts)
+    body_v, body_f = scene["body_vertices"], scene["body_faces"]
+    used = body_v[np.unique(body_f)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    centre_x = float(used[np.argmax(used[:, 1]), 0])  # the top of the head marks the mid-plane
+    # Shoulder height: the highest body point 10-18 cm to the side of the mid-plane (x), i.e.
+    # beside the neck and inside the arms.
+    side = used[(np.abs(used[:, 0] - centre_x) > 0.10) & (np.abs(used[:, 0] - centre_x) < 0.18)]
+    top_y = float(side[:, 1].max()) + 0.03
+    # Just behind the neck: the most backward point of the neck (5 cm around the mid-plane, up to
+    # 10 cm above the edge) minus 1 cm; the upper back bulges further back, so the cape rests on it.
+    neck = used[(np.abs(used[:, 0] - centre_x) < 0.05) & (used[:, 1] > top_y) & (used[:, 1] < top_y + 0.10)]
+    back_z = float(neck[:, 2].min()) - 0.01
+    nx = max(2, int(round(resolution * width / length)))
+    cloth_v, cloth_f = grid_cloth(nx, resolution, width, length, plane="xz",
+                                  origin=(centre_x - width / 2.0, top_y, back_z))
+    cloth_v[:, 2] = back_z - (cloth_v[:, 2] - back_z)  # extend backwards (-z), the body faces +z
+    cloth_f = cloth_f[:, ::-1].copy()  # keep the winding consistent after the mirror
+    return {"cloth_vertices": cloth_v, "cloth_faces": cloth_f, "body_vertices": body_v, "body_faces": body_f,
+            "body_kind": scene["body_kind"], "pinned": np.arange(nx)}
+
+
 def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotton", jitter: float = 0.0,
                   seed: int = 0, thickness: float = 2.0e-3, features=None):
     """Model and collider with ``worlds`` copies of ``scene`` (see :func:`shawl_scene`).
@@ -173,7 +209,7 @@ def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotto
         worlds: number of worlds.
         device: Warp device.
         fabric: fabric preset for every world.
-        jitter: per-world random horizontal shift of the cloth [m] (seeded), so worlds differ.
+        jitter: per-world random sideways (x) shift of the cloth [m] (seeded), so worlds differ.
         seed: RNG seed for the jitter.
         thickness: body contact thickness [m].
         features: simulate.cloth.Features or None.
@@ -188,8 +224,9 @@ def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotto
     for _ in range(worlds):
         shift = np.zeros(3)
         if jitter > 0.0:
-            shift[[0, 2]] = rng.uniform(-jitter, jitter, size=2)
-        builder.add_garment(scene["cloth_vertices"] + shift, scene["cloth_faces"], fabric=fabric)
+            shift[0] = rng.uniform(-jitter, jitter)
+        builder.add_garment(scene["cloth_vertices"] + shift, scene["cloth_faces"], fabric=fabric,
+                            pinned=scene.get("pinned"))
     model = builder.finalize(device, features=features)
     collider = BodyCollider(scene["body_vertices"], scene["body_faces"], device=device, world_count=worlds,
                             thickness=thickness)
