@@ -21,7 +21,7 @@ DEVICES = ["cpu"] + (["cuda:0"] if HAS_CUDA else [])
 MAX_STRETCH_RATIO = 1.5
 """Stability matrix: no triangle may stretch beyond this ratio at rest [-]."""
 ATOL_CPU_CUDA_M = 1.0e-3
-"""CPU vs CUDA after 20 frames of a drape [m]: both are float32 with the same operation order
+"""CPU vs CUDA after 12 frames of a drape (cloth lands on the sphere at frame ~6) [m]: both are float32 with the same operation order
 per element, but CUDA contracts multiply-adds (FMA) and evaluates transcendental functions
 differently, so results drift apart by rounding amplified by contact events."""
 
@@ -154,11 +154,11 @@ def test_cpu_and_cuda_agree(mode: str) -> None:
     for device in ("cpu", "cuda:0"):
         model, collider = _sphere_scene(["cotton", "denim"], device)
         sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=5, xpbd_mode=mode))
-        for _ in range(20):
+        for _ in range(12):
             sim.step_frame()
         out[device] = sim.positions()
     diff = np.abs(out["cpu"] - out["cuda:0"]).max()
-    assert diff < ATOL_CPU_CUDA_M, f"CPU and CUDA differ by {diff * 1e3:.3f} mm after 20 frames"
+    assert diff < ATOL_CPU_CUDA_M, f"CPU and CUDA differ by {diff * 1e3:.3f} mm after 12 frames"
 
 
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")

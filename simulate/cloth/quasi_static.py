@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import warnings
 
 import numpy as np
 import warp as wp
@@ -225,10 +226,17 @@ class QuasiStaticSimulator:
             if self._graph is None:
                 # The first frame runs eagerly so every kernel is compiled and loaded before capture.
                 self._simulate_frame()
-                with wp.ScopedCapture(device=self.model.device) as capture:
-                    self._simulate_frame()
-                self._graph = capture.graph
-                # Capture recorded but did not execute the second frame's work.
+                states = (self.state_0, self.state_1)
+                try:
+                    with wp.ScopedCapture(device=self.model.device) as capture:
+                        self._simulate_frame()
+                    self._graph = capture.graph
+                    # Capture recorded but did not execute the second frame's work.
+                except Exception as exc:  # keep simulating eagerly rather than fail a long job
+                    self.state_0, self.state_1 = states
+                    self._use_graph = False
+                    warnings.warn(f"CUDA graph capture failed ({type(exc).__name__}: {exc}); running eagerly",
+                                  RuntimeWarning, stacklevel=2)
             else:
                 wp.capture_launch(self._graph)
         elif self._use_cpu_graph:
