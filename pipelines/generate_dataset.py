@@ -139,11 +139,12 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
 
 
 def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard: Callable[[Any], None] | None = None,
-                   on_progress: Callable[[int], None] | None = None) -> list[dict]:
+                   on_progress: Callable[[int], None] | None = None, skip: set[str] | frozenset = frozenset()) -> list[dict]:
     """Simulates a batch of tasks as parallel worlds and writes their shards.
 
-    Returns the manifest records of the shards written (also passed to ``on_shard``
-    as soon as each shard is complete).
+    Tasks in ``skip`` are simulated (so the batch is the same as in an uninterrupted
+    run) but their finished shards are not rewritten. Returns the manifest records of
+    the shards written (also passed to ``on_shard`` as soon as each shard is complete).
     """
     import torch
 
@@ -161,6 +162,10 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     writers, remaining, records = [], [], []
     t_start = time.perf_counter()
     for t in tasks:
+        if t.task_id in skip:
+            writers.append(None)
+            remaining.append(len(t.poses))
+            continue
         task_dict = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
                      "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
                      "fabric": spec["garment"]["fabric"]}
@@ -176,6 +181,8 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     def record(frame) -> None:
         t = tasks[frame.task]
         writer = writers[frame.task]
+        if writer is None:  # finished in an earlier run
+            return
         x = np.asarray(frame.positions, np.float64)
         metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
                                 rest_areas=rest_areas[t.style_index])
@@ -184,7 +191,9 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]
             base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
             metrics = dict(metrics, status=float(frame.status), frames=float(frame.frames))
-            writer.write_frame(x, unposed - base, t.poses[frame.key], metrics, frame_index=int(t.pose_ids[frame.key]))
+            # frame_index: position in the visiting order; pose_id: index into the split's pose set
+            writer.write_frame(x, unposed - base, t.poses[frame.key], metrics, frame_index=int(frame.key),
+                               pose_id=np.array([t.pose_ids[frame.key]], np.float32))
         else:
             writer.record_dropped(reason)
         remaining[frame.task] -= 1
@@ -203,7 +212,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                           device=ctx.device, on_frame=record, on_progress=on_progress)
     except BaseException:
         for w in writers:
-            if w.record is None:
+            if w is not None and w.record is None:
                 w.abort()
         raise
     return [r if isinstance(r, dict) else r.to_dict() if hasattr(r, "to_dict") else r for r in records]
@@ -245,16 +254,20 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
     manifest = Manifest.load_or_create(out_dir, name=spec["name"], spec=spec, template_sha256=template_sha256(ctx.template_dict),
                                        precision=spec["output"]["precision"], provenance=provenance, splits=splits)
     remove_orphan_temporaries(out_dir)
-    pending = [t for t in ctx.plan.tasks if not manifest.is_complete(t.task_id)]
-    skipped = len(ctx.plan.tasks) - len(pending)
-    if skipped:
-        log(f"resuming: {skipped} of {len(ctx.plan.tasks)} shards already complete")
+    # Batches are a function of the spec alone (tasks sorted by sequence length, so worlds
+    # of a batch finish together): a resumed or distributed run simulates every task in the
+    # same company as an uninterrupted one, so its frames are bitwise identical. A batch with
+    # any unfinished task runs again whole; finished shards are not rewritten.
+    ordered = sorted(ctx.plan.tasks, key=lambda t: (-len(t.poses), t.task_id))
+    worlds = int(spec["simulation"]["worlds"])
+    all_batches = [[t.task_id for t in ordered[i:i + worlds]] for i in range(0, len(ordered), worlds)]
+    done = {t.task_id for t in ctx.plan.tasks if manifest.is_complete(t.task_id)}
+    batches = [b for b in all_batches if not set(b) <= done]
+    pending = [ctx.tasks[t] for b in batches for t in b if t not in done]
+    if done:
+        log(f"resuming: {len(done)} of {len(ctx.plan.tasks)} shards already complete")
     # which sampled poses self-intersected (dropped before simulation), for the record
     np.savez(out_dir / "pruned_poses.npz", poses=ctx.plan.pruned_poses)
-    worlds = int(spec["simulation"]["worlds"])
-    # similar-length sequences together keep worlds busy until the batch ends
-    pending.sort(key=lambda t: (-len(t.poses), t.task_id))
-    batches = [[t.task_id for t in pending[i:i + worlds]] for i in range(0, len(pending), worlds)]
     total_keys = sum(len(t.poses) for t in pending)
     from tqdm import tqdm
 
@@ -272,9 +285,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
 
     t_sim = time.perf_counter()
     if executor == "local":
-        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress)
+        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress, skip=done)
     else:
-        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress, address=ray_address)
+        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress, address=ray_address,
+                skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     if pending and int(spec["audit"]["samples"]) > 0:

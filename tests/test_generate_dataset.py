@@ -24,7 +24,7 @@ TINY_SPEC = {
     "pairs": {"train": 1, "test": 1},
     "poses": {"range_scale": 0.25, "train_count": 2, "test_count": 1},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 1, "test_test": 1},
-    "simulation": {"device": "cpu", "worlds": 4, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
+    "simulation": {"device": "cpu", "worlds": 2, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
                    "shape_transition_frames": 3, "interpolation_threshold": 0.25},
     "filters": {"require_converged": False},
     "audit": {"samples": 1},
@@ -73,8 +73,10 @@ def test_dataset_is_valid_and_frame_counts_add_up(reference):
 
 def test_reader_returns_what_the_simulation_recorded(reference):
     reader = DatasetReader(reference)
-    arrays = reader.load_split("train_train")
+    split = max(reader.splits, key=reader.num_frames)
+    arrays = reader.load_split(split)
     v = arrays["posed_vertices"]
+    assert len(v) > 0
     assert v.ndim == 3 and np.isfinite(v).all()
     # the garment hangs on a body standing at the origin: it must lie within body height
     assert -0.9 < v[..., 1].min() and v[..., 1].max() < 0.9
@@ -116,7 +118,7 @@ def test_kill_then_resume_equals_uninterrupted_run(reference, tmp_path):
     import yaml
 
     spec_path = tmp_path / "tiny.yaml"
-    spec_path.write_text(yaml.safe_dump(_with(simulation__worlds=1)))  # one task per batch: shards land one by one
+    spec_path.write_text(yaml.safe_dump(_with()))
     out = tmp_path / "killed"
     proc = _run_cli(spec_path, out)
     deadline = time.time() + 600
@@ -130,7 +132,9 @@ def test_kill_then_resume_equals_uninterrupted_run(reference, tmp_path):
     partial = _shard_hashes(out)
     assert 0 < len(partial) < 5
     report = validate_dataset(out)
-    assert not report.errors, "a killed run must leave no listed shard that fails validation"
+    broken = [e for e in report.errors if e.kind != "pending"]
+    assert not broken, f"a killed run must leave no listed shard that fails validation: {broken}"
+    assert report.errors, "the killed dataset must be reported as unfinished (pending tasks)"
     resumed = _run_cli(spec_path, out)
     log = resumed.communicate(timeout=900)[0].decode()
     assert resumed.returncode == 0, log
@@ -142,6 +146,6 @@ def test_ray_executor_matches_local(reference, tmp_path):
     pytest.importorskip("ray")
     from pipelines.generate_dataset import generate
 
-    generate(_with(simulation__worlds=3), tmp_path, executor="ray", progress=False, log=lambda m: None)
+    generate(_with(), tmp_path, executor="ray", progress=False, log=lambda m: None)
     assert _shard_hashes(tmp_path) == _shard_hashes(reference)
     assert validate_dataset(tmp_path).ok
