@@ -97,6 +97,9 @@ class NewtonRun:
         self.max_speed = wp.zeros(1, dtype=float, device=self.device)
         self.graph = None
         self.particles_per_world = len(cloth_v)
+        # replicate() places worlds around the origin: remember world 0's shift to undo it.
+        start = self.state_0.particle_q.numpy()[: len(cloth_v)]
+        self.world0_shift = (start - cloth_v).mean(axis=0)
 
     def _frame(self) -> None:
         for _ in range(self.substeps):
@@ -138,8 +141,8 @@ class NewtonRun:
         return max_frames, "MAX_STEPS"
 
     def positions(self) -> np.ndarray:
-        """World 0's cloth positions [m] (Newton adds cloth particles after nothing else here)."""
-        return self.state_0.particle_q.numpy()[: self.particles_per_world]
+        """World 0's cloth positions [m] in the scene's frame (its particles come first)."""
+        return self.state_0.particle_q.numpy()[: self.particles_per_world] - self.world0_shift
 
 
 def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tolerance: float, max_frames: int):
