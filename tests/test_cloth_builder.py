@@ -161,3 +161,15 @@ def test_bending_energy_of_a_cylinder_matches_continuum(direction_deg: float) ->
                                 axis=1).sum()
     expected = 0.5 * fabric.bending_stiffness * area / radius ** 2
     assert abs(energy / expected - 1.0) < RTOL_BENDING_ENERGY, f"bending energy {energy:.4e} vs {expected:.4e} J"
+
+
+def test_benchmark_scenes_build_valid_worlds() -> None:
+    from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
+
+    for scene in (shawl_scene(8, body="capsule"), cape_scene(12, body="capsule")):
+        model, collider = batched_drape(scene, 3, "cpu", jitter=0.01)
+        assert model.world_count == collider.world_count == 3
+        q = model.particle_q_rest
+        depth = collider.signed_distance(q, model.particle_world_np)
+        assert depth.min() > collider.thickness, f"scene cloth starts {depth.min():.4f} m from the body"
+    assert (model.particle_inv_mass.numpy() == 0.0).sum() == 3 * len(scene["pinned"])
