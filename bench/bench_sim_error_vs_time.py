@@ -156,6 +156,8 @@ def main() -> None:
             ax.scatter([p[0] for p in pts], [p[1] for p in pts], label=name)
             for t, e, r in pts:
                 ax.annotate(f"{r['substeps']}x{r['iterations'] or '-'}", (t, e), fontsize=6)
+        ax.axhline(float(floor.mean()), color="gray", linestyle="--", linewidth=1,
+                   label=f"chaotic floor ({max(1, args.ref_substeps - 5)}x{args.ref_iterations} vs reference)")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("wall time to rest [s]")
