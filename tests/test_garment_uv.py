@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from simulate.garment import mesh_ops, uv
-from simulate.garment.templates import make_template
+from simulate.garment.templates import make_template, template_surface
 
 TEST_RESOLUTION = 500
 #: Mean |log area ratio| of UV vs 3D triangles (after global scale) must stay below this.
@@ -23,7 +23,7 @@ def templates(anny_body):
 
 
 @pytest.mark.parametrize("garment_type", TYPES)
-def test_charts_valid(templates, garment_type):
+def test_charts_valid(templates, anny_body, garment_type):
     tpl = templates[garment_type]
     fuv = tpl.face_uv.astype(np.float64)
     assert fuv.min() >= 0.0 and fuv.max() <= 1.0, f"UVs outside [0,1]^2: [{fuv.min()}, {fuv.max()}]"
@@ -41,7 +41,7 @@ def test_charts_valid(templates, garment_type):
     match = np.all(np.isclose(fuv, tpl.uv[tpl.faces]), axis=-1)
     first[tpl.faces[match]] = True
     assert first.all(), "per-vertex uv is not one of the vertex's corner uvs"
-    dist = uv.uv_distortion(tpl)
+    dist = uv.uv_distortion(tpl, template_surface(tpl, anny_body))
     assert dist["flipped_fraction"] == 0.0
     assert dist["area_log_mean"] < MAX_AREA_DISTORTION, f"area distortion {dist['area_log_mean']:.3f}"
 
@@ -82,3 +82,15 @@ def test_rasterize_bad_input(templates):
         uv.rasterize(np.zeros((tpl.vertex_count + 1, 3)), tpl)
     with pytest.raises(ValueError, match="images must have shape"):
         uv.sample(np.zeros((1, 3, 8, 9)), tpl)
+
+
+def test_subdivided_template_keeps_the_pattern(anny_body, templates):
+    fine = make_template("pants", anny_body, resolution=5000)
+    coarse = templates["pants"]
+    assert fine.vertex_count > 3 * coarse.vertex_count and fine.panel_names == coarse.panel_names
+    area = uv.signed_areas(fine.face_uv.astype(np.float64), None)
+    assert (area > 0).all(), f"{(area <= 0).sum()} flipped triangles after subdivision"
+    _, _, count = uv.pixel_map(fine.face_uv, 512)
+    assert count.max() <= 1, "subdivided charts overlap"
+    _, _, coarse_count = uv.pixel_map(coarse.face_uv, 512)
+    assert abs((count > 0).sum() - (coarse_count > 0).sum()) < 0.02 * (coarse_count > 0).sum(), "pattern changed"

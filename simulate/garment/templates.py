@@ -338,7 +338,9 @@ def _body_region_uncached(garment_type: str, body, level: int):
     """Cuts, cleans, regularises and subdivides the body region.
 
     Returns (vertices (V, 3) on the canonical body [m], faces (F, 3), body_face (V,),
-    body_bary (V, 3)): each vertex's closest point on the body (its embedding).
+    body_bary (V, 3): each vertex's closest point on the body (its embedding),
+    coarse_face (F,): the level-0 face each face lies in, coarse_bary (F, 3, 3): its
+    corners' barycentrics in that level-0 face (UV charts are made at level 0)).
     """
     v0, joints = body_joints(body, body.shape_default)
     f0 = np.asarray(body.faces, dtype=np.int64)
@@ -372,11 +374,14 @@ def _body_region_uncached(garment_type: str, body, level: int):
     f = f[mesh_ops.clean_submesh(f, len(v))]
     f, used = mesh_ops.remove_unused_vertices(f, len(v))
     v = v[used]
+    coarse_face = np.arange(len(f))
+    coarse_bary = np.tile(np.eye(3)[None], (len(f), 1, 1))
     for _ in range(level):
-        v, f, _, _ = mesh_ops.midpoint_subdivide(v, f)
+        v, f, parent, coarse_bary = mesh_ops.midpoint_subdivide(v, f, coarse_bary)
+        coarse_face = coarse_face[parent]
         v = query.query(v)[0]
     closest, face, bary, _ = query.query(v)
-    return closest, f, region_index[face], bary
+    return closest, f, region_index[face], bary, coarse_face, coarse_bary
 
 
 def embedded_points(body_vertices: np.ndarray, body_faces: np.ndarray, body_face: np.ndarray,
@@ -384,6 +389,16 @@ def embedded_points(body_vertices: np.ndarray, body_faces: np.ndarray, body_face
     """Barycentric points on a body mesh: (..., Vb, 3) vertices -> (..., V, 3) [m]."""
     tri = np.asarray(body_vertices)[..., body_faces[body_face], :]  # (..., V, 3, 3)
     return np.einsum("vk,...vkd->...vd", body_bary, tri)
+
+
+def template_surface(template: GarmentTemplate, body, *, shape=None) -> np.ndarray:
+    """Zero-offset garment surface (V, 3) [m] on the canonical body of ``shape``: the
+    body-surface points a body-topology garment is embedded at (for the skirt: its
+    default-style vertices)."""
+    if not template.follows_body_topology:
+        return apply_style(template, StyleParams(template.garment_type, template.default_style), body, shape=shape)
+    bv, _ = body_joints(body, body.shape_default if shape is None else shape)
+    return embedded_points(bv, body.faces, template.body_face, template.body_bary)
 
 
 def _segments(garment_type: str, part_of_vertex: np.ndarray, side_of_vertex: np.ndarray) -> np.ndarray:
@@ -608,7 +623,7 @@ def push_outside(points: np.ndarray, body_query: mesh_ops.ClosestPointQuery, *,
 # ------------------------------------------------------------------------- builder
 def subdivision_level_for(garment_type: str, body, resolution: int) -> int:
     """Subdivision level (0-2) whose vertex count is nearest ``resolution`` in log scale."""
-    _, base_faces, _, _ = _body_region(garment_type, body, 0)
+    base_faces = _body_region(garment_type, body, 0)[1]
     v0 = len(np.unique(base_faces))
     e0 = len(mesh_ops.unique_edges(base_faces)[0])
     f0 = len(base_faces)
@@ -662,7 +677,7 @@ def make_template(garment_type: str, body, *, resolution: int | None = None,
         tpl.skinning_weights = skirt_skinning_weights(body, tpl.vertices)
     else:
         level = subdivision_level_for(garment_type, body, int(resolution))
-        surf, faces, body_face, body_bary = _body_region(garment_type, body, level)
+        surf, faces, body_face, body_bary, coarse_face, coarse_bary = _body_region(garment_type, body, level)
         bv, joints = body_joints(body, body.shape_default)
         corner = np.argmax(body_bary, axis=1)
         nearest_in_face = body.faces[body_face, corner]
@@ -685,7 +700,15 @@ def make_template(garment_type: str, body, *, resolution: int | None = None,
             y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
             tpl.attachment = np.nonzero(surf[:, 1] > y_waist - 0.02)[0].astype(np.int64)
         tpl.vertices = apply_style(tpl, style, body)
-    uv_mod.build_uv(tpl)
+    if garment_type == "skirt":
+        uv_mod.build_uv(tpl)
+    else:
+        # Charts of the level-0 body region, carried to finer levels by the subdivision's
+        # barycentrics: the same pattern at every resolution.
+        v0, f0 = _body_region(garment_type, body, 0)[:2]
+        face_uv0, panel0, names = uv_mod.compute_uv(v0, f0, garment_type)
+        face_uv = np.einsum("fkc,fcd->fkd", coarse_bary, face_uv0[coarse_face])
+        uv_mod.assign_uv(tpl, face_uv, panel0[coarse_face], names)
     return tpl
 
 

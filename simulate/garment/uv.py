@@ -298,11 +298,12 @@ def _pack(sizes: np.ndarray) -> tuple[float, np.ndarray]:
     return best
 
 
-def build_uv(template) -> None:
-    """Computes and stores panels and UVs of a template in place (see module docstring)."""
-    v = np.asarray(template.vertices, dtype=np.float64)
-    f = np.asarray(template.faces, dtype=np.int64)
-    split_x = template.garment_type in ("pants", "shorts")
+def compute_uv(vertices: np.ndarray, faces: np.ndarray, garment_type: str
+               ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Panels and packed charts of a mesh: (face_uv (F, 3, 2), face_panel (F,), panel names)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    split_x = garment_type in ("pants", "shorts")
     face_panel = split_panels(v, f, split_x=split_x)
     names = ["front_left", "front_right", "back_left", "back_right"] if split_x else list(PANEL_NAMES)
     charts = []
@@ -316,17 +317,28 @@ def build_uv(template) -> None:
     face_uv = np.zeros((len(f), 3, 2))
     for (fidx, sub, _, uv), off in zip(charts, offsets):
         face_uv[fidx] = (uv * scale + off)[sub]
-    vertex_uv = np.zeros((len(v), 2))
-    vertex_panel = np.full(len(v), -1, dtype=np.int64)
+    return face_uv, face_panel, names
+
+
+def assign_uv(template, face_uv: np.ndarray, face_panel: np.ndarray, names: list[str]) -> None:
+    """Stores per-corner UVs, panels and the per-vertex main-chart UV on a template."""
+    f = np.asarray(template.faces, dtype=np.int64)
+    vertex_uv = np.zeros((template.vertex_count, 2))
+    vertex_panel = np.full(template.vertex_count, -1, dtype=np.int64)
     for p in reversed(range(len(names))):  # lower panel ids written last: a seam vertex's main chart
         sel = face_panel == p
         vertex_uv[f[sel].ravel()] = face_uv[sel].reshape(-1, 2)
         vertex_panel[f[sel].ravel()] = p
-    template.face_uv = face_uv.astype(np.float32)
+    template.face_uv = np.asarray(face_uv, dtype=np.float32)
     template.uv = vertex_uv.astype(np.float32)
-    template.face_panel = face_panel
+    template.face_panel = np.asarray(face_panel, dtype=np.int64)
     template.vertex_panel = vertex_panel
-    template.panel_names = names
+    template.panel_names = list(names)
+
+
+def build_uv(template) -> None:
+    """Computes and stores panels and UVs of a template from its own vertices."""
+    assign_uv(template, *compute_uv(template.vertices, template.faces, template.garment_type))
 
 
 # --------------------------------------------------------------------- raster maps
@@ -468,10 +480,13 @@ def sample(images, template) -> np.ndarray:
     return out.transpose(0, 2, 1).astype(np.float32)
 
 
-def uv_distortion(template) -> dict[str, float]:
-    """Area and angle distortion of the charts: mean |log(area_uv / area_3d * k)| where
-    k normalises total areas, and the fraction of flipped (negative) UV triangles."""
-    v = np.asarray(template.vertices, dtype=np.float64)
+def uv_distortion(template, vertices: np.ndarray | None = None) -> dict[str, float]:
+    """Area distortion of the charts: mean |log(area_uv / area_3d * k)| where k
+    normalises total areas, and the fraction of flipped (negative) UV triangles.
+    ``vertices`` (V, 3): the 3D mesh to compare with (default the template's rest
+    vertices; charts of body-topology templates are made on the zero-offset body region,
+    see :func:`simulate.garment.templates.template_surface`)."""
+    v = np.asarray(template.vertices if vertices is None else vertices, dtype=np.float64)
     a3 = 0.5 * np.linalg.norm(np.cross(v[template.faces[:, 1]] - v[template.faces[:, 0]],
                                        v[template.faces[:, 2]] - v[template.faces[:, 0]]), axis=1)
     a2 = signed_areas(np.asarray(template.face_uv, dtype=np.float64), None)
