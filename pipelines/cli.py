@@ -12,10 +12,14 @@ import sys
 
 #: (command name, module, one-line help). Modules register their own arguments.
 SUBCOMMAND_MODULES: list[tuple[str, str, str]] = [
+    ("quickstart", "pipelines.quickstart", "generate the tiny dataset, train briefly, evaluate (end to end)"),
     ("info", "pipelines.info", "versions, devices and kernel cache location"),
     ("body", "pipelines.body", "pose and shape a body, write OBJ/PLY and a PNG preview"),
     ("generate-dataset", "pipelines.generate_dataset", "simulate a dataset spec into sharded HDF5 + manifest"),
     ("dataset", "data_manifest.cli", "validate, summarize and export generated datasets"),
+    ("train", "pipelines.train", "train a learner (tailornet, baseline) on a dataset"),
+    ("evaluate", "pipelines.evaluate", "errors, collisions and timings of a trained run on a dataset's test splits"),
+    ("predict", "pipelines.predict", "predict one garment with a trained model and write OBJ/PLY"),
 ]
 
 

@@ -65,6 +65,25 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.set_defaults(func=run_style_space)
 
 
+#: Body faces closer than this to the garment, on its inner side, are hidden in previews [m].
+PREVIEW_HIDE_DISTANCE_M = 0.03
+
+
+def visible_body_faces(body_vertices: np.ndarray, body_faces: np.ndarray, garment_vertices: np.ndarray,
+                       garment_faces: np.ndarray) -> np.ndarray:
+    """Body faces (F', 3) not covered by the garment: the painter's-algorithm preview
+    would otherwise show body triangles through cloth resting millimetres above them."""
+    from scipy.spatial import cKDTree
+
+    from simulate.body.mesh_utils import vertex_normals
+
+    centroids = np.asarray(body_vertices)[body_faces].mean(1)
+    dist, nearest = cKDTree(garment_vertices).query(centroids)
+    normals = vertex_normals(garment_vertices, garment_faces)
+    inner = ((centroids - garment_vertices[nearest]) * normals[nearest]).sum(1) < 0
+    return body_faces[~((dist < PREVIEW_HIDE_DISTANCE_M) & inner)]
+
+
 def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     import trimesh
 
@@ -107,7 +126,7 @@ def run_garment(args: argparse.Namespace) -> int:
     if args.preview:
         from simulate.viz import MeshLayer, render_png
 
-        render_png(args.preview, [MeshLayer(body_v, body.faces),
+        render_png(args.preview, [MeshLayer(body_v, visible_body_faces(body_v, body.faces, vertices, template.faces)),
                                   MeshLayer(vertices, template.faces, color=(0.25, 0.45, 0.8))],
                    titles=[f"{args.garment_type} on {body.name}"])
         summary["preview"] = args.preview

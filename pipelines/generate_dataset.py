@@ -273,7 +273,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
 
     bar = tqdm(total=total_keys, desc=f"{spec['name']}: target poses", unit="frame", disable=not progress, file=sys.stderr)
 
+    kept_this_run = [0]
+
     def on_shard(record) -> None:
+        kept_this_run[0] += int(record["frame_count"] if isinstance(record, dict) else record.frame_count)
         manifest.add_shard(record)
         manifest.save()
         bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}")
@@ -291,10 +294,17 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                 skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
-    if pending and int(spec["audit"]["samples"]) > 0:
-        from pipelines.audit import audit_dataset
+    if pending:
+        audit = dict(manifest.audit or {})
+        if int(spec["audit"]["samples"]) > 0:
+            from pipelines.audit import audit_dataset
 
-        manifest.audit = audit_dataset(ctx, out_dir, manifest, log=log)
+            audit.update(audit_dataset(ctx, out_dir, manifest, log=log))
+        # amortized simulation cost of this run (what drape evaluate compares learners with)
+        audit["simulation"] = {"seconds": round(sim_seconds, 3), "target_frames": int(total_keys),
+                               "kept_frames": int(kept_this_run[0]), "device": ctx.device,
+                               "worlds": int(spec["simulation"]["worlds"])}
+        manifest.audit = audit
     manifest.finish()
     manifest.save()
     log(_summary_table(manifest, sim_seconds, total_keys))

@@ -1,0 +1,152 @@
+"""``drape evaluate RUN --data DIR``: predicted against simulated drapes.
+
+For every test split (train_test, test_train, test_test) and every model in RUN
+(tailornet, baseline): mean per-vertex error in mm on unposed displacements (as
+TailorNet reports) and on posed vertices, the collision rate (share of garment vertices
+deeper than 1 mm inside the body along the nearest face normal) without and with the
+Laplacian-preserving post-process, and inference ms/frame at batch 1 and batched on
+the CPU and on the GPU when there is one. The simulator's amortized ms per kept frame
+comes from the dataset's manifest; the speed-up is their ratio. Writes
+``RUN/evaluation/evaluation.json``, ``error_vs_time.png`` (learners and the simulator in
+one picture; the simulator's settings sweep is added when ``--accuracy-report`` points
+at a ``drape report accuracy`` JSON) and a few renders of predicted vs simulated drapes
+coloured by per-vertex error.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+TEST_SPLITS = ("train_test", "test_train", "test_test")
+
+
+def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
+    from learn.tailornet.train import load_learner
+
+    models = {}
+    for name, file in (("tailornet", "tailornet_model.pt"), ("baseline", "baseline_model.pt")):
+        if (run_dir / file).is_file():
+            models[name] = load_learner(run_dir / file, fingerprint=fingerprint, require_same_manifest=False, device=device)
+    if not models:
+        raise FileNotFoundError(f"no trained model in {run_dir} (expected tailornet_model.pt or baseline_model.pt; "
+                                "run drape train first)")
+    return models
+
+
+def simulator_ms_per_frame(manifest) -> float | None:
+    """Amortized simulation wall time per kept frame [ms] recorded by generate-dataset."""
+    sim = (manifest.audit or {}).get("simulation") if manifest.audit else None
+    if not sim or not sim.get("kept_frames"):
+        return None
+    return 1e3 * float(sim["seconds"]) / float(sim["kept_frames"])
+
+
+def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out: str | Path | None = None,
+             postprocess_frames: int | None = 32, renders: int = 3, accuracy_report: str | None = None,
+             log=print) -> dict:
+    import torch
+
+    from data_manifest.reader import DatasetReader
+    from learn.common.skinning import garment_posing_functions
+    from learn.data import DrapeDataset
+    from learn.tailornet.evaluate import PosingContext, evaluate_models, predict_vertices
+    from learn.tailornet.plots import plot_error_vs_runtime, render_prediction
+    from learn.tailornet.train import check_fingerprint, dataset_fingerprint, frame_arrays_from_dataset
+    from simulate.body import load_body_model
+
+    run_dir, data = Path(run_dir), Path(data)
+    out = Path(out) if out else run_dir / "evaluation"
+    out.mkdir(parents=True, exist_ok=True)
+    reader = DatasetReader(data)
+    template = reader.template
+    fingerprint = dataset_fingerprint(data, template)
+    models = _load_models(run_dir, fingerprint, device)
+    info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
+    body_spec = info.get("body", {"backend": "anny", "path": None})
+    body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
+    posing = PosingContext(*garment_posing_functions(body, template["body_vertex_index"], template["skinning_weights"],
+                                                     rest_vertices=template["rest_vertices"]), body.faces, template["faces"])
+    splits = {s: frame_arrays_from_dataset(DrapeDataset(data, s, frequencies=False))
+              for s in TEST_SPLITS if s in reader.splits and reader.num_frames(s) > 0}
+    if not splits:
+        raise ValueError(f"dataset {data} has no frames in any test split ({', '.join(TEST_SPLITS)})")
+    timing_devices = ("cpu", "cuda") if torch.cuda.is_available() else ("cpu",)
+    t0 = time.perf_counter()
+    results = evaluate_models(models, splits, posing=posing, postprocess=True, postprocess_frames=postprocess_frames,
+                              device=device, timing_devices=timing_devices, timing_batch_sizes=(1, 32))
+    sim_ms = simulator_ms_per_frame(reader.manifest)
+    results["simulator"] = {"ms_per_kept_frame": sim_ms, "device": reader.manifest.provenance.get("device"),
+                            "audit_mean_mm": (reader.manifest.audit or {}).get("mean_mm")}
+    speedups = {}
+    for name, per_dev in results["timing"].items():
+        for dev, t in per_dev.items():
+            ms = t.get("ms_per_frame_batch_32")
+            if sim_ms and ms:
+                speedups[f"{name}@{dev}"] = sim_ms / ms
+    results["speedup_over_simulator"] = speedups
+    results["seconds"] = round(time.perf_counter() - t0, 2)
+    (out / "evaluation.json").write_text(json.dumps(results, indent=2, default=float))
+
+    points = []
+    first = next(iter(splits))
+    for name, per_dev in results["timing"].items():
+        err = results["splits"][first][name]["unposed_error_mm"]
+        for dev, t in per_dev.items():
+            for key, label in (("ms_per_frame_batch_1", "batch 1"), ("ms_per_frame_batch_32", "batch 32")):
+                if t.get(key):
+                    points.append({"label": f"{name} {dev} {label}", "ms_per_frame": float(t[key]), "error_mm": float(err)})
+    if sim_ms:
+        audit = (reader.manifest.audit or {}).get("mean_mm", {})
+        points.append({"label": "simulator (dataset settings)", "ms_per_frame": sim_ms,
+                       "error_mm": float(audit.get("median", 0.0)) or 1e-3})
+    if accuracy_report and Path(accuracy_report).is_file():
+        from simulate.reports.pareto import plot_error_vs_time
+
+        acc = json.loads(Path(accuracy_report).read_text())
+        sim_points = [p for p in acc.get("points", acc.get("settings", [])) if "ms_per_frame" in p and "error_mm" in p]
+        plot_error_vs_time(sim_points, out / "error_vs_time.png", extra_points=points,
+                           title="learners vs simulator settings")
+    else:
+        plot_error_vs_runtime(points, out / "error_vs_time.png",
+                              title=f"error ({first}, unposed mean per vertex) vs time per frame")
+    split_for_renders = "test_test" if "test_test" in splits else first
+    frames = splits[split_for_renders]
+    name = "tailornet" if "tailornet" in models else next(iter(models))
+    for k, i in enumerate(np.linspace(0, frames.frame_count - 1, min(renders, frames.frame_count)).astype(int)):
+        pred = predict_vertices(models[name], frames.pose[i], frames.shape[i], frames.style[i], posing=posing, device=device)[0]
+        body_v = body.pose(frames.shape[i], frames.pose[i]).vertices[0]
+        render_prediction(pred, frames.posed_vertices[i], template["faces"], out / f"render_{split_for_renders}_{k}.png",
+                          body_vertices=body_v, body_faces=body.faces, title=f"{name}, {split_for_renders} frame {i}")
+    table = [f"{'split':<12}{'model':<11}{'unposed mm':>11}{'posed mm':>10}{'coll %':>8}{'coll pp %':>10}"]
+    for split, per_model in results["splits"].items():
+        for m, r in per_model.items():
+            table.append(f"{split:<12}{m:<11}{r['unposed_error_mm']:>11.2f}{r.get('posed_error_mm', float('nan')):>10.2f}"
+                         f"{100 * r.get('collision_rate', float('nan')):>8.2f}{100 * r.get('collision_rate_postprocessed', float('nan')):>10.2f}")
+    log("\n".join(table))
+    if speedups:
+        log("speed-up over the simulator: " + ", ".join(f"{k} {v:.0f}x" for k, v in speedups.items()))
+    log(f"report: {out / 'evaluation.json'}  plot: {out / 'error_vs_time.png'}")
+    return results
+
+
+def run(args: argparse.Namespace) -> int:
+    evaluate(args.run, args.data, device=args.device, out=args.out, postprocess_frames=args.postprocess_frames,
+             renders=args.renders, accuracy_report=args.accuracy_report)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("evaluate", help="errors, collisions and timings of a trained run on a dataset's test splits",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", help="run directory from drape train")
+    p.add_argument("--data", required=True, help="dataset directory (same template as the run)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--out", default=None, help="report directory (default RUN/evaluation)")
+    p.add_argument("--postprocess-frames", type=int, default=32, help="frames per split to post-process (slow part)")
+    p.add_argument("--renders", type=int, default=3, help="predicted-vs-simulated renders to write")
+    p.add_argument("--accuracy-report", default=None, help="accuracy.json from drape report accuracy (adds the simulator sweep)")
+    p.set_defaults(func=run)

@@ -1,0 +1,83 @@
+"""``drape predict RUN --pose ... --shape ... --style ... --out mesh.obj``: one garment
+from a trained model, posed on its body (or unposed with ``--unposed``)."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def _vector(text: str | None, size: int, field: str, default: np.ndarray) -> np.ndarray:
+    if text is None:
+        return np.asarray(default, np.float32)
+    path = Path(text)
+    if path.suffix == ".npy" and path.is_file():
+        v = np.load(path).astype(np.float32).reshape(-1)
+    else:
+        try:
+            v = np.array([float(x) for x in text.replace(",", " ").split()], np.float32)
+        except ValueError as exc:
+            raise ValueError(f"--{field} must be numbers separated by commas (or a .npy file), got {text!r}") from exc
+    if v.size != size:
+        raise ValueError(f"--{field} must have {size} values, got {v.size}")
+    return v
+
+
+def run(args: argparse.Namespace) -> int:
+    import trimesh
+
+    from learn.common.skinning import garment_posing_functions
+    from learn.tailornet.evaluate import PosingContext, predict_vertices
+    from learn.tailornet.train import load_learner
+    from simulate.body import load_body_model
+
+    run_dir = Path(args.run)
+    file = run_dir / f"{args.learner}_model.pt"
+    if not file.is_file():
+        raise FileNotFoundError(f"no {args.learner} model in {run_dir} (expected {file.name}; run drape train first)")
+    if not (run_dir / "template.npz").is_file():
+        raise FileNotFoundError(f"{run_dir} has no template.npz (written by drape train)")
+    with np.load(run_dir / "template.npz") as z:
+        template = {k: z[k] for k in z.files}
+    info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
+    model = load_learner(file, device=args.device)
+    body_spec = info.get("body", {"backend": "anny", "path": None})
+    body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
+    cfg = getattr(model, "config", {}) or {}
+    style_size = int(cfg.get("low_frequency", cfg).get("style_components", 0))
+    pose = _vector(args.pose, body.pose_size, "pose", body.canonical_pose)
+    shape = _vector(args.shape, body.shape_size, "shape", body.shape_default)
+    style = _vector(args.style, style_size, "style", np.zeros(style_size)) if args.style is not None else None
+    if style is None:
+        raise ValueError(f"--style is required: {style_size} style values (the dataset's style vector)")
+    posing = None if args.unposed else PosingContext(
+        *garment_posing_functions(body, template["body_vertex_index"], template["skinning_weights"],
+                                  rest_vertices=template["rest_vertices"]), body.faces, template["faces"])
+    vertices = predict_vertices(model, pose, shape, style, posing=posing, postprocess=args.postprocess,
+                                device=args.device)[0]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.Trimesh(vertices, template["faces"], process=False).export(out)
+    if args.with_body and not args.unposed:
+        posed = body.pose(shape, pose)
+        trimesh.Trimesh(posed.vertices[0], body.faces, process=False).export(out.with_name(out.stem + "_body" + out.suffix))
+    print(json.dumps({"out": str(out), "vertices": int(len(vertices)), "learner": args.learner, "posed": not args.unposed}))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("predict", help="predict one garment with a trained model and write OBJ/PLY",
+                       description=__doc__)
+    p.add_argument("run", help="run directory from drape train")
+    p.add_argument("--pose", default=None, help="60 axis-angle values or a .npy (default: canonical pose)")
+    p.add_argument("--shape", default=None, help="body shape values (default: neutral)")
+    p.add_argument("--style", required=True, help="style vector (as stored in the dataset's shards)")
+    p.add_argument("--learner", default="tailornet", choices=["tailornet", "baseline"])
+    p.add_argument("--out", required=True, help="output mesh (.obj or .ply)")
+    p.add_argument("--unposed", action="store_true", help="write the unposed displacement garment instead")
+    p.add_argument("--postprocess", action="store_true", help="push vertices inside the body out (Laplacian-preserving)")
+    p.add_argument("--with-body", action="store_true", help="also write the posed body next to the garment")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=run)
