@@ -66,7 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 #: Body faces closer than this to the garment, on its inner side, are hidden in previews [m].
-PREVIEW_HIDE_DISTANCE_M = 0.03
+PREVIEW_HIDE_DISTANCE_M = 0.015
 
 
 def visible_body_faces(body_vertices: np.ndarray, body_faces: np.ndarray, garment_vertices: np.ndarray,
@@ -77,11 +77,12 @@ def visible_body_faces(body_vertices: np.ndarray, body_faces: np.ndarray, garmen
 
     from simulate.body.mesh_utils import vertex_normals
 
-    centroids = np.asarray(body_vertices)[body_faces].mean(1)
-    dist, nearest = cKDTree(garment_vertices).query(centroids)
+    points = np.asarray(body_vertices)
+    dist, nearest = cKDTree(garment_vertices).query(points)
     normals = vertex_normals(garment_vertices, garment_faces)
-    inner = ((centroids - garment_vertices[nearest]) * normals[nearest]).sum(1) < 0
-    return body_faces[~((dist < PREVIEW_HIDE_DISTANCE_M) & inner)]
+    inner = ((points - garment_vertices[nearest]) * normals[nearest]).sum(1) < 0
+    covered = (dist < PREVIEW_HIDE_DISTANCE_M) & inner  # per body vertex
+    return body_faces[~covered[body_faces].all(1)]
 
 
 def _write_mesh(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:

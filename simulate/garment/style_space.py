@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from simulate.garment.style import StyleParams, sample_styles
+from simulate.garment.style import sample_styles
 from simulate.garment.templates import GarmentTemplate, body_joints
 
 #: Components kept while alternating sampling and draping (before the final cut).
