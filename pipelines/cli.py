@@ -20,6 +20,9 @@ SUBCOMMAND_MODULES: list[tuple[str, str, str]] = [
     ("train", "pipelines.train", "train a learner (tailornet, baseline) on a dataset"),
     ("evaluate", "pipelines.evaluate", "errors, collisions and timings of a trained run on a dataset's test splits"),
     ("predict", "pipelines.predict", "predict one garment with a trained model and write OBJ/PLY"),
+    ("garment", "pipelines.garment", "generate a garment style, drape it on a body, write OBJ/PLY + PNG"),
+    ("style-space", "pipelines.garment", "build a garment style PCA space and choose prototypes"),
+    ("report", "pipelines.report", "accuracy (error vs run time) and stability reports of the simulator"),
 ]
 
 
@@ -29,10 +32,14 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         description="Garment drape datasets with a Warp cloth simulator, and the learners trained on them.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    registered: set[str] = set()
     for name, module, help_text in SUBCOMMAND_MODULES:
         if only is None or only == name:
-            importlib.import_module(module).register(sub)
-        else:
+            if module not in registered:
+                importlib.import_module(module).register(sub)
+                registered.add(module)
+    for name, module, help_text in SUBCOMMAND_MODULES:
+        if name not in sub.choices:
             sub.add_parser(name, help=help_text)
     return parser
 
