@@ -145,3 +145,31 @@ def test_cloth_draped_over_body_comes_to_rest(device: str, body: str) -> None:
     assert depth.min() > -ATOL_PENETRATION_M, f"{kind}: vertex {depth.argmin()} {-depth.min() * 1e3:.2f} mm inside"
     assert q[:, 1].max() < hi[1] + 0.03, f"{kind}: cloth did not fall onto the body"
     assert (depth < 0.01).sum() > 10, f"{kind}: fewer than 10 vertices touch the body"
+
+
+ATOL_SECOND_OPINION_M = 1.0e-3
+"""XPBD and mass-spring rest shapes of the same model may differ by this much [m]."""
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_xpbd_and_mass_spring_agree_on_a_rest_shape(device: str) -> None:
+    """Both solvers minimize the same energy: a soft square hung by two corners (stretch, shear
+    and bending all active, ~4 cm sag) must come to the same rest shape."""
+    fabric = Fabric("soft", density=0.1, stretch_stiffness=5.0, shear_stiffness=0.5, bending_stiffness=1e-6,
+                    damping=0.0, friction=0.0, thickness=5e-4)
+    verts, faces = grid_cloth(9, 9, 0.3, 0.3, plane="xy", origin=(0.0, 1.0, 0.0))
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric=fabric, pinned=[0, 8])
+    model = builder.finalize(device, features=Features(body_contact=False))
+    rest = {}
+    for solver, substeps, iterations in (("xpbd", 10, 20), ("mass_spring", None, 1)):
+        sim = QuasiStaticSimulator(model, None, solver=solver,
+                                   settings=SimSettings(substeps=substeps, iterations=iterations, damping=5.0,
+                                                        tolerance=1e-3, max_frames=1500))
+        status = sim.relax()
+        assert status[0] == WorldStatus.CONVERGED, f"{solver}: {WorldStatus(status[0]).name}"
+        rest[solver] = sim.positions()
+    sag = (verts[:, 1] - rest["xpbd"][:, 1]).max()
+    assert sag > 0.02, f"test scene too stiff to be informative (sag {sag * 1e3:.1f} mm)"
+    gap = np.linalg.norm(rest["xpbd"] - rest["mass_spring"], axis=1).max()
+    assert gap < ATOL_SECOND_OPINION_M, f"XPBD and mass-spring rest shapes differ by {gap * 1e3:.3f} mm"
