@@ -231,7 +231,7 @@ def failing_supported(report: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def unexpected_passes(report: dict[str, Any]) -> list[dict[str, Any]]:
-    """Cells declared unsupported (or not declared) that passed: the SUPPORTED table is stale for them."""
+    """Cells declared unsupported (or not declared) that passed (flaky cells, or a stale SUPPORTED entry)."""
     return [c for c in report["cells"] if not c["supported"] and c["passed"]]
 
 
@@ -290,25 +290,36 @@ def plot_heatmap(report: dict[str, Any], out_png: str | Path) -> Path:
 # Declared support per scene: cell -> (supported, why / note). Filled from measured runs (see the
 # README's Reports section); a cell that is not listed counts as unsupported.
 _OK = (True, "")
+_FLAKY = "passes or fails depending on the run (world index in the batch changes float rounding and the " \
+         "frictional sliding amplifies it): "
 SUPPORTED: dict[str, dict[str, tuple[bool, str]]] = {
+    # Measured on CPU (2 cores), shawl of 282 vertices, small and full matrices (see the README).
     "shawl@anny": {
         **{f"stretch/x{k:g}": _OK for k in (0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)},
         **{f"bending/x{k:g}": _OK for k in (0.01, 0.1, 1.0, 10.0, 100.0, 1000.0, 10000.0)},
         "timestep/x1": _OK, "timestep/x2": _OK, "timestep/x3.33333": _OK,
         "timestep/x5": (True, "marginal: max edge ratio 1.24 against the 1.25 limit (2 substeps per frame)"),
         "timestep/x10": (False, "1 substep per 1/60 s frame: 10 Gauss-Seidel iterations leave cotton stretched "
-                                "1.97x where the shawl hangs over the arms; use >= 2 substeps per frame"),
+                                "1.86-1.97x where the shawl hangs over the arms; use >= 2 substeps per frame"),
         **{f"fabric/{n}": _OK for n in ("silk", "cotton", "denim", "leather")},
-        **{f"pose/{n}": _OK for n in ("arms-overhead", "deep-squat", "arms-crossed", "twisted-spine")},
-        **{f"shape/{n}-{e}": _OK for n in ("gender", "muscle", "weight", "height", "proportions") for e in ("min", "max")},
+        "pose/arms-overhead": (False, _FLAKY + "the shawl keeps sliding on the raised shoulders, converged after 121 "
+                                               "frames in one run and still moving after 300 in another"),
+        **{f"pose/{n}": _OK for n in ("deep-squat", "arms-crossed", "twisted-spine")},
+        **{f"shape/{n}-{e}": _OK for n in ("gender", "muscle", "weight", "proportions") for e in ("min", "max")},
         "shape/age-min": (False, "the body shrinks to anny's youngest (child) end in 10 frames: the adult-sized cloth "
-                                 "slides off the shoulders and is trapped inside the arms (73 mm deep, 1.86x stretch, "
-                                 "no convergence in 300 frames); cloth must be generated for the target shape"),
-        "shape/age-max": _OK,
-        "transition/arms-up-1-frame": (True, "1.2 rad in one frame: passes (1.9 mm deepest vertex, 0.35 % > 1 mm)"),
-        "transition/arms-up-2-frame": (False, "1.2 rad in two frames: the shawl edge is caught under the rising upper "
-                                              "arm and friction holds it 1.39x stretched at rest; keep the dataset's "
-                                              "0.1 rad/frame interpolation"),
+                                 "slides off the shoulders (no convergence in 300 frames; in one run trapped inside "
+                                 "the arms, 73 mm deep); cloth must be generated for the target shape"),
+        "shape/age-max": (True, "stretch 1.11-1.22 of the 1.25 limit"),
+        "shape/height-min": _OK,
+        "shape/height-max": (False, "tallest body: the cloth is held 1.32x stretched over the shoulders at rest"),
+        "transition/arms-up-1-frame": (True, "1.2 rad in one frame: passed both measured runs"),
+        "transition/arms-up-2-frame": (False, _FLAKY + "the shawl edge is caught under the rising arm (1.39x "
+                                                       "stretched at rest in one run, 1.05x in another)"),
+        "transition/arms-overhead-1-frame": (False, "1.9 rad in one frame: the arm sweeps through the cloth (2.3x "
+                                                    "stretch, 16 mm deep, still moving after 300 frames); keep the "
+                                                    "dataset's 0.1 rad/frame interpolation"),
+        "transition/twisted-spine-1-frame": (False, "0.3 rad per spine joint in one frame: the shawl is still sliding "
+                                                    "after 300 frames"),
     },
     "towel@capsule": {
         "stretch/x1000": (True, ""),
