@@ -228,3 +228,21 @@ def test_driver_and_solver_argument_errors() -> None:
     assert np.array_equal(after[model.world_slice(0)], before[model.world_slice(0)])
     assert np.allclose(after[model.world_slice(1)], model.particle_q_rest[model.world_slice(1)] + 0.01)
     assert not sim.velocities()[model.world_slice(1)].any()
+
+
+@pytest.mark.parametrize("solver", ["xpbd", "mass_spring"])
+def test_nan_world_is_flagged_and_frozen(solver: str) -> None:
+    model, collider = _sphere_scene(["cotton", "cotton"], "cpu", n=5)
+    sim = QuasiStaticSimulator(model, collider, solver=solver,
+                               settings=SimSettings(substeps=4 if solver == "xpbd" else None, iterations=2,
+                                                    max_frames=5))
+    bad = sim.positions()
+    bad[model.world_particle_start[0] + 3] = np.nan
+    sim.state_0.particle_q.assign(bad)
+    status = sim.step_frame()
+    assert status[0] == WorldStatus.EXPLODED and status[1] == WorldStatus.RUNNING, status
+    frozen = sim.positions()[model.world_slice(0)].copy()
+    sim.relax()
+    after = sim.positions()
+    assert np.array_equal(after[model.world_slice(0)], frozen, equal_nan=True), "exploded world kept moving"
+    assert np.all(np.isfinite(after[model.world_slice(1)])), "NaN leaked into world 1"
