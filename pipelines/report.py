@@ -107,7 +107,7 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
 
     report = run_accuracy(scene, poses=poses, settings=settings, reference=reference, default=default, device=device,
                           fabric=args.fabric, max_frames=args.max_frames, reference_max_frames=4 * args.max_frames,
-                          on_progress=progress)
+                          explosion_stretch=args.explosion_stretch, on_progress=progress)
     bar.close()
     report["sweep"] = args.sweep
     report["wall_s"] = time.perf_counter() - t0
@@ -141,7 +141,7 @@ def run_stability_command(args: argparse.Namespace) -> int:
     scene = build_scene(garment, body="anny", resolution=args.resolution, device=device)
     cases = stability_cases(scene, args.size)
     bar = tqdm(total=len(cases), desc="stability: cells", unit="cell", file=sys.stderr, disable=args.no_progress)
-    report = run_stability(scene, cases, device=device, on_progress=bar.update)
+    report = run_stability(scene, cases, device=device, explosion_stretch=args.explosion_stretch, on_progress=bar.update)
     bar.close()
     report["size"] = args.size
     png = plot_heatmap(report, out / "stability_heatmap.png")
@@ -188,6 +188,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--fabric", default="cotton", help="fabric preset (default cotton)")
     a.add_argument("--sweep", default="small", choices=["small", "full"], help="settings grid (default small)")
     a.add_argument("--max-frames", type=int, default=600, help="relaxation frame budget per setting (reference: 4x)")
+    a.add_argument("--explosion-stretch", type=float, default=None,
+                   help="triangle stretch ratio that flags a world EXPLODED (default: the simulator's, as the dataset "
+                   "pipeline uses it; the garment layer's canonical drape uses 10)")
     a.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
     a.add_argument("--out", required=True, help="output folder (accuracy.json, accuracy_pareto.png)")
     a.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -199,6 +202,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--size", default="small", choices=["small", "full"], help="matrix size (default small)")
     s.add_argument("--garment", default=None, help="cloth on the default body (default: the shawl; see README)")
     s.add_argument("--resolution", type=int, default=None, help="target cloth vertex count")
+    s.add_argument("--explosion-stretch", type=float, default=None,
+                   help="triangle stretch ratio that flags a world EXPLODED (default: the simulator's, as the dataset "
+                   "pipeline uses it; the garment layer's canonical drape uses 10)")
     s.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
     s.add_argument("--out", required=True, help="output folder (stability.json, stability_heatmap.png)")
     s.add_argument("--strict", action="store_true", help="exit 1 when any cell fails, supported or not")

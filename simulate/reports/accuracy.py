@@ -81,9 +81,11 @@ class Setting:
         its = "" if self.solver == "mass_spring" else f" i{self.iterations}"
         return f"{self.group} s{sub}{its} tol{self.tolerance:g} {'f16' if self.precision == 'float16' else 'f32'}"
 
-    def sim_settings(self, *, max_frames: int, patience: int = 3) -> SimSettings:
+    def sim_settings(self, *, max_frames: int, patience: int = 3, explosion_stretch: float | None = None) -> SimSettings:
+        """SimSettings of this setting (``explosion_stretch`` None: the simulator's default)."""
+        extra = {} if explosion_stretch is None else {"explosion_stretch": float(explosion_stretch)}
         return SimSettings(substeps=self.substeps, iterations=self.iterations, xpbd_mode=self.mode,
-                           tolerance=self.tolerance, patience=patience, max_frames=max_frames)
+                           tolerance=self.tolerance, patience=patience, max_frames=max_frames, **extra)
 
     def simulation_key(self) -> tuple:
         """Settings that change the simulation (precision does not)."""
@@ -148,6 +150,7 @@ def run_accuracy(
     max_frames: int = 600,
     reference_max_frames: int = 3000,
     drape_setting: Setting | None = None,
+    explosion_stretch: float | None = None,
     on_progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Runs the accuracy protocol (module docstring) and returns the report as a JSON-ready dict.
@@ -161,6 +164,8 @@ def run_accuracy(
         max_frames: relaxation frame budget per setting; reference_max_frames: the reference's.
         drape_setting: setting of the canonical drape, the common start of all runs (default: ``default``;
             every run, the reference included, then relaxes each pose with its own setting).
+        explosion_stretch: triangle stretch ratio that marks a world EXPLODED, for every run (None: the
+            simulator's default, as the dataset pipeline uses it).
         on_progress: called with a setting label after each simulation (progress bars).
     Returns:
         {"scene", "device", "poses", "poses_dropped" (reference exploded), "reference", "rows", "default", "front", "default_on_front",
@@ -186,7 +191,8 @@ def run_accuracy(
 
     def simulate(s: Setting, frames: int, start: np.ndarray, use_paths: list[np.ndarray]):
         return run_worlds(scene, start=start, paths=use_paths, fabrics=[fabric] * len(use_paths),
-                          settings=s.sim_settings(max_frames=frames), solver=s.solver, device=device)
+                          settings=s.sim_settings(max_frames=frames, explosion_stretch=explosion_stretch),
+                          solver=s.solver, device=device)
 
     # Compile and load every kernel variant before anything is timed.
     for key in sorted({(s.solver, s.mode) for s in [*settings, reference]}):
@@ -264,6 +270,7 @@ def run_accuracy(
         "scene": {"name": scene.name, "garment": scene.garment, "body": scene.body_kind,
                   "vertices": scene.vertex_count, "faces": int(len(scene.faces)), "fabric": fabric},
         "device": str(device),
+        "explosion_stretch": SimSettings().explosion_stretch if explosion_stretch is None else float(explosion_stretch),
         "poses": [{"name": p, "path_frames": int(len(b) - 1)} for p, b in zip(poses, paths)],
         "poses_dropped": dropped,
         "reference": reference_out,

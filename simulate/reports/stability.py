@@ -20,7 +20,7 @@ transition      a large pose change (arms up 1.2 rad, arms overhead) in 1 or 2 f
 ==============  ===========================================================================
 
 A cell *passes* when its world did not explode (no NaN, no speed above 50 m/s, no triangle
-stretched 3x), converged within :data:`MAX_RELAX_FRAMES` frames, its longest edge is at most
+stretched beyond ``SimSettings.explosion_stretch``, 3x by default), converged within :data:`MAX_RELAX_FRAMES` frames, its longest edge is at most
 :data:`STRETCH_LIMIT` times its rest length, and its deepest vertex is at most
 :data:`PENETRATION_LIMIT_MM` inside the body with at most :data:`PENETRATION_FRACTION_LIMIT` of the
 vertices deeper than 1 mm (the dataset filter). :data:`SUPPORTED` says which cells the project
@@ -153,9 +153,13 @@ def run_stability(
     *,
     device: str = "cpu",
     max_frames: int = MAX_RELAX_FRAMES,
+    explosion_stretch: float | None = None,
     on_progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Runs every cell (cells with the same substeps run together as worlds) and judges it.
+
+    ``explosion_stretch`` (None: the simulator's default) is the triangle stretch ratio that marks a
+    world EXPLODED.
 
     Returns:
         {"scene", "device", "criteria", "canonical_drape", "cells": [per-cell dict], "wall_s"};
@@ -164,9 +168,10 @@ def run_stability(
         batch_wall_s / batch_cells (the batch it ran in), ms_per_frame (batch wall / batch frames).
     """
     t_all = time.perf_counter()
+    base = _BASE if explosion_stretch is None else dataclasses.replace(_BASE, explosion_stretch=float(explosion_stretch))
     canon_body, _ = scene.body_vertices(scene.neutral_shape[None], scene.canonical_pose[None])
     drape = run_worlds(scene, start=scene.start_vertices, paths=[canon_body], fabrics=["cotton"],
-                       settings=dataclasses.replace(_BASE, max_frames=max(max_frames, 600)), device=device)
+                       settings=dataclasses.replace(base, max_frames=max(max_frames, 600)), device=device)
     drape_status = WorldStatus(int(drape.status[0])).name
     start = drape.positions[0] if np.isfinite(drape.positions).all() else scene.start_vertices
     supported = SUPPORTED.get(scene.name, {})
@@ -181,7 +186,7 @@ def run_stability(
             paths.append(body)
             finals.append(body[-1])
         run = run_worlds(scene, start=start, paths=paths, fabrics=[cases[i].fabric for i in idx],
-                         settings=dataclasses.replace(_BASE, substeps=sub, max_frames=max_frames), device=device)
+                         settings=dataclasses.replace(base, substeps=sub, max_frames=max_frames), device=device)
         metrics = frame_metrics(scene, run.positions, np.stack(finals), device=device)
         for j, i in enumerate(idx):
             c, m = cases[i], metrics[j]
@@ -218,7 +223,7 @@ def run_stability(
         "device": str(device),
         "criteria": {"stretch_limit": STRETCH_LIMIT, "penetration_limit_mm": PENETRATION_LIMIT_MM,
                      "penetration_fraction_limit": PENETRATION_FRACTION_LIMIT, "max_relax_frames": max_frames,
-                     "base_settings": dataclasses.asdict(_BASE)},
+                     "base_settings": dataclasses.asdict(base)},
         "canonical_drape": {"status": drape_status, "frames": int(drape.frames[0])},
         "cells": cells,
         "wall_s": time.perf_counter() - t_all,
