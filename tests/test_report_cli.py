@@ -1,0 +1,39 @@
+"""``drape report`` argument parsing, the production default read from the shipped spec, JSON cleaning."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import pytest
+
+from pipelines import report
+from simulate.reports.accuracy import DEFAULT_SETTING
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="drape")
+    report.register(parser.add_subparsers(dest="command"))
+    return parser.parse_args(argv)
+
+
+def test_subcommands_parse_with_documented_defaults() -> None:
+    a = _parse(["report", "accuracy", "--out", "x"])
+    assert (a.garment, a.sweep, a.device, a.poses) == ("tshirt", "small", "auto", "arms-up,arms-forward,twist,lean")
+    assert a.func is report.run_accuracy_command and a.explosion_stretch is None
+    s = _parse(["report", "stability", "--out", "y", "--size", "full", "--strict"])
+    assert (s.size, s.strict, s.garment) == ("full", True, None) and s.func is report.run_stability_command
+    with pytest.raises(SystemExit):
+        _parse(["report", "stability", "--out", "y", "--size", "huge"])
+
+
+def test_production_default_matches_the_shipped_spec() -> None:
+    assert report.production_default() == DEFAULT_SETTING, (
+        f"tailornet-tshirt.yaml simulation block gives {report.production_default()}, the reports declare {DEFAULT_SETTING}")
+
+
+def test_pose_names_and_json_cleaning() -> None:
+    assert report._poses("arms-up, twist") == ["arms-up", "twist"]
+    with pytest.raises(ValueError, match="unknown pose 'moonwalk'"):
+        report._poses("arms-up,moonwalk")
+    text = json.dumps(report._clean({"a": [float("inf"), float("nan"), 1.5], "b": {"c": -float("inf")}}))
+    assert json.loads(text) == {"a": ["inf", "nan", 1.5], "b": {"c": "-inf"}}
