@@ -122,3 +122,9 @@ def test_bad_inputs(anny_body):
         make_template("dress", anny_body)
     with pytest.raises(ValueError, match="resolution"):
         make_template("skirt", anny_body, resolution=3)
+
+
+def test_templates_are_deterministic(templates, anny_body):
+    for garment_type in ("skirt", "shorts"):
+        again = make_template(garment_type, anny_body, resolution=TEST_RESOLUTION)
+        assert again.content_hash() == templates[garment_type].content_hash(), f"{garment_type} differs between builds"

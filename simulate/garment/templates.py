@@ -135,7 +135,8 @@ class GarmentTemplate:
         vertex_panel: panel of each vertex's main chart, (V,); face_panel: (F,).
         panel_names: names of the panels ("front", "back").
         boundary_names / boundary_loops: named ordered vertex loops (neck, hem, ...).
-        attachment: vertex indices attached to the body (waistband), (A,).
+        attachment: vertex indices attached to the body (waistband of pants, shorts and
+            skirt), (A,); empty for tops, which hang on the shoulders.
         skinning_weights: (V, J) float32, rows sum to 1.
         body_vertex_index: I, nearest body vertex of each garment vertex, (V,); -1 for the skirt.
         body_face / body_bary: embedding of each vertex in a body triangle, (V,), (V, 3);
