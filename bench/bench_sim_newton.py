@@ -151,7 +151,8 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
 
     model, collider = batched_drape(scene, args.worlds, args.device, fabric=args.fabric, thickness=args.thickness)
     settings = SimSettings(frame_dt=args.frame_dt, substeps=substeps, iterations=iterations,
-                           xpbd_mode="gauss_seidel" if solver == "ours_xpbd_gs" else "jacobi", damping=args.damping,
+                           xpbd_mode="jacobi" if solver == "ours_xpbd_jacobi" else "gauss_seidel",
+                           gs_relaxation=args.sor if solver == "ours_xpbd_gs_sor" else 1.0, damping=args.damping,
                            tolerance=tolerance, patience=args.patience, max_frames=max_frames)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     wp.synchronize_device(model.device)
@@ -182,7 +183,10 @@ def main() -> None:
     parser.add_argument("--worlds", type=int, default=1)
     parser.add_argument("--body", default="default", choices=["default", "capsule"])
     parser.add_argument("--fabric", default="cotton")
-    parser.add_argument("--solvers", nargs="+", default=["ours_xpbd_gs", "ours_xpbd_jacobi", "newton_vbd", "newton_xpbd"])
+    parser.add_argument("--solvers", nargs="+",
+                        default=["ours_xpbd_gs", "ours_xpbd_gs_sor", "ours_xpbd_jacobi", "newton_vbd", "newton_xpbd"],
+                        choices=["ours_xpbd_gs", "ours_xpbd_gs_sor", "ours_xpbd_jacobi", "newton_vbd", "newton_xpbd"])
+    parser.add_argument("--sor", type=float, default=1.6, help="gs_relaxation of ours_xpbd_gs_sor")
     parser.add_argument("--substeps", type=int, nargs="+", default=[5, 10])
     parser.add_argument("--iterations", type=int, nargs="+", default=[5, 10])
     parser.add_argument("--ref-substeps", type=int, default=20)

@@ -57,6 +57,9 @@ class SimSettings:
     """XPBD iterations per substep."""
     xpbd_mode: str = "gauss_seidel"
     """XPBD sweep: "gauss_seidel" (graph colouring) or "jacobi"."""
+    gs_relaxation: float = 1.0
+    """XPBD Gauss-Seidel over-relaxation in (0, 2); 1.5-1.6 roughly halves the error at equal
+    substeps x iterations on the cape drape (1.8 can oscillate at few iterations)."""
     damping: float = 5.0
     """Velocity damping rate [1/s] added to each fabric's damping.  Quasi-static relaxation only
     needs the rest state, so this is strong (velocities decay e-fold in 0.2 s): a 10k-vertex
@@ -87,6 +90,7 @@ class SimSettings:
             "max_frames": int(self.max_frames) == self.max_frames and self.max_frames >= 1,
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
+            "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
         }
         for name, ok in checks.items():
             if not ok:
@@ -128,6 +132,7 @@ class QuasiStaticSimulator:
         if solver == "xpbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("mode", s.xpbd_mode)
+            opts.setdefault("gs_relaxation", s.gs_relaxation)
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:
             self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10

@@ -48,6 +48,7 @@ def solve_triangles_gs(
     inv_mass: wp.array(dtype=float),
     world_active: wp.array(dtype=wp.int32),
     inv_dt2: float,
+    relaxation: float,
     # In/out:
     tri_lambda: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
@@ -59,7 +60,7 @@ def solve_triangles_gs(
     i1 = tri_indices[t, 1]
     i2 = tri_indices[t, 2]
     d0, d1, d2, lam = triangle_constraint_deltas(x[i0], x[i1], x[i2], inv_mass[i0], inv_mass[i1], inv_mass[i2],
-                                                 tri_dm_inv[t], tri_compliance[t], tri_lambda[t], inv_dt2, 1.0)
+                                                 tri_dm_inv[t], tri_compliance[t], tri_lambda[t], inv_dt2, relaxation)
     x[i0] = x[i0] + d0
     x[i1] = x[i1] + d1
     x[i2] = x[i2] + d2
@@ -114,6 +115,7 @@ def solve_bending_gs(
     inv_mass: wp.array(dtype=float),
     world_active: wp.array(dtype=wp.int32),
     inv_dt2: float,
+    relaxation: float,
     # In/out:
     bend_lambda: wp.array(dtype=float),
     x: wp.array(dtype=wp.vec3),
@@ -126,7 +128,8 @@ def solve_bending_gs(
     i3 = bend_indices[b, 2]
     i4 = bend_indices[b, 3]
     d1, d2, d3, d4, lam = bending_deltas(x[i1], x[i2], x[i3], x[i4], inv_mass[i1], inv_mass[i2], inv_mass[i3],
-                                         inv_mass[i4], bend_rest_angle[b], bend_compliance[b], bend_lambda[b], inv_dt2, 1.0)
+                                         inv_mass[i4], bend_rest_angle[b], bend_compliance[b], bend_lambda[b], inv_dt2,
+                                         relaxation)
     x[i1] = x[i1] + d1
     x[i2] = x[i2] + d2
     x[i3] = x[i3] + d3

@@ -35,6 +35,7 @@ class SolverXPBD(SolverBase):
         iterations: int = 10,
         mode: str = "gauss_seidel",
         jacobi_relaxation: float = 1.0,
+        gs_relaxation: float = 1.0,
         body_contact: bool | None = None,
         extra_damping: float = 0.0,
         self_contact: bool | None = None,
@@ -45,6 +46,7 @@ class SolverXPBD(SolverBase):
             iterations: constraint iterations per substep (>= 1).
             mode: "gauss_seidel" (graph colouring) or "jacobi" (averaged).
             jacobi_relaxation: over-relaxation of the averaged Jacobi correction (0, 2).
+            gs_relaxation: successive over-relaxation of the Gauss-Seidel multiplier steps (0, 2).
             body_contact: contact with ``control.collider`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             self_contact: vertex-triangle self-contact (default from model.features).
@@ -58,7 +60,10 @@ class SolverXPBD(SolverBase):
             raise ValueError(f"jacobi_relaxation must be in (0, 2) (got {jacobi_relaxation!r})")
         self.iterations = int(iterations)
         self.mode = mode
+        if not 0.0 < gs_relaxation < 2.0:
+            raise ValueError(f"gs_relaxation must be in (0, 2) (got {gs_relaxation!r})")
         self.jacobi_relaxation = float(jacobi_relaxation)
+        self.gs_relaxation = float(gs_relaxation)
         dev = self.device
         self.tri_lambda = wp.zeros(max(model.tri_count, 1), dtype=wp.vec3, device=dev)
         self.bend_lambda = wp.zeros(max(model.bend_count, 1), dtype=float, device=dev)
@@ -114,12 +119,14 @@ class SolverXPBD(SolverBase):
                 for offset, count in self._tri_ranges:
                     wp.launch(kernels.solve_triangles_gs, dim=count,
                               inputs=[offset, m.tri_indices, m.tri_dm_inv, m.tri_compliance, m.tri_world,
-                                      m.particle_inv_mass, control.world_active, inv_dt2, self.tri_lambda, x],
+                                      m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation,
+                                      self.tri_lambda, x],
                               device=dev)
                 for offset, count in self._bend_ranges:
                     wp.launch(kernels.solve_bending_gs, dim=count,
                               inputs=[offset, m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.bend_world,
-                                      m.particle_inv_mass, control.world_active, inv_dt2, self.bend_lambda, x],
+                                      m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation,
+                                      self.bend_lambda, x],
                               device=dev)
             if self.self_contact is not None:
                 self.self_contact.project(x, control.world_active)
