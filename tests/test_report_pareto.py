@@ -80,3 +80,18 @@ def test_plot_writes_png_with_highlight_and_extra_points(tmp_path) -> None:
         plot_error_vs_time(pts, tmp_path / "x.png", highlight="nope")
     with pytest.raises(ValueError, match="error_mm"):
         plot_error_vs_time(pts, tmp_path / "y.png", extra_points=[{"label": "l", "ms_per_frame": 1.0}])
+
+
+def test_rows_read_back_from_accuracy_json_plot(tmp_path) -> None:
+    """accuracy.json stores failed settings' errors as the strings "inf"/"nan" (standard JSON); they still plot."""
+    import json
+
+    from pipelines.report import _clean
+
+    rows = _pts([(1.0, 2.0), (2.0, float("inf")), (3.0, 0.5)])
+    back = json.loads(json.dumps(_clean(rows)))
+    assert back[1]["error_mm"] == "inf"
+    assert pareto_front(back) == [0, 2]
+    out = plot_error_vs_time(back, tmp_path / "p.png", highlight="p1", error_key="error_mm",
+                             extra_points=[{"label": "learner", "ms_per_frame": 0.5, "error_mm": 3.0}])
+    assert out.is_file()
