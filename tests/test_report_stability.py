@@ -50,3 +50,26 @@ def test_every_declared_cell_exists_and_bad_sizes_raise() -> None:
         for cell, (ok, why) in table.items():
             assert "/" in cell and isinstance(ok, bool), f"{name}: bad entry {cell!r}"
             assert ok or why, f"{name}: unsupported cell {cell} must say why"
+
+
+def test_every_full_matrix_cell_of_the_default_scene_is_declared() -> None:
+    """The cells of ``--size full`` on the default scene all have a SUPPORTED entry (no silent 'undeclared')."""
+    import numpy as np
+
+    from simulate.reports.scenes import Scene
+    from simulate.reports.stability import DEFAULT_SCENE
+
+    names = ["gender", "age", "muscle", "weight", "height", "proportions"]  # anny's shape parameters
+    fake = Scene(name=DEFAULT_SCENE, garment="shawl", body_kind="anny", rest_vertices=np.zeros((3, 3)),
+                 start_vertices=np.zeros((3, 3)), faces=np.array([[0, 1, 2]]), body_faces=np.array([[0, 1, 2]]),
+                 body_vertex_count=3, canonical_pose=np.zeros(60, np.float32), neutral_shape=np.full(6, 0.5, np.float32),
+                 shape_ranges=np.tile([0.0, 1.0], (6, 1)).astype(np.float32), shape_names=names,
+                 _pose_fn=lambda s, p: (np.zeros((len(s), 3, 3)), np.zeros((len(s), 3))))
+    table = SUPPORTED[DEFAULT_SCENE]
+    for size in ("small", "full"):
+        cells = [c.cell for c in stability_cases(fake, size)]
+        assert len(cells) == len(set(cells)), f"{size}: duplicate cells"
+        missing = [c for c in cells if c not in table]
+        assert not missing, f"{size}: cells without a SUPPORTED entry: {missing}"
+    families = {c.split("/")[0] for c in table}
+    assert families == {"stretch", "bending", "timestep", "fabric", "pose", "shape", "transition"}
