@@ -32,10 +32,20 @@ def _shape(body, text: str | None) -> np.ndarray:
     return shape
 
 
+def _parser(sub: argparse._SubParsersAction, name: str, help_text: str, description: str) -> argparse.ArgumentParser:
+    """The subparser ``name``: a placeholder already added (lazy CLI) is filled in, else a new one."""
+    if name in sub.choices:
+        parser = sub.choices[name]
+        parser.description = description
+        return parser
+    return sub.add_parser(name, help=help_text, description=description)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("garment", help="generate a garment style, drape it on a body, write OBJ/PLY + PNG",
-                       description="Generates a garment of a type and style on the canonical body of a shape, drapes "
-                       "it quasi-statically with the cloth simulator and writes garment and body meshes.")
+    """Adds ``garment`` and ``style-space`` (filling in placeholders of those names)."""
+    p = _parser(sub, "garment", "generate a garment style, drape it on a body, write OBJ/PLY + PNG",
+                "Generates a garment of a type and style on the canonical body of a shape, drapes "
+                "it quasi-statically with the cloth simulator and writes garment and body meshes.")
     p.add_argument("--type", dest="garment_type", required=True, choices=GARMENT_TYPES)
     p.add_argument("--style", default=None, help="NAME=VALUE,... e.g. length=0.6,looseness=0.02 (default: type defaults)")
     p.add_argument("--shape", default=None, help="body shape values (anny: gender age muscle weight height proportions)")
@@ -48,9 +58,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="cpu", help="Warp device (cpu, cuda:0)")
     p.set_defaults(func=run_garment)
 
-    s = sub.add_parser("style-space", help="build a garment style PCA space and choose prototypes",
-                       description="TailorNet Sec. 4.2/4.4: drape sampled styles, PCA, resample, PCA again; then drape "
-                       "style-shape pairs on the 9 training shapes and greedily choose prototypes.")
+    s = _parser(sub, "style-space", "build a garment style PCA space and choose prototypes",
+                "TailorNet Sec. 4.2/4.4: drape sampled styles, PCA, resample, PCA again; then drape "
+                "style-shape pairs on the 9 training shapes and greedily choose prototypes.")
     s.add_argument("--type", dest="garment_type", required=True, choices=GARMENT_TYPES)
     s.add_argument("--samples", type=int, default=20)
     s.add_argument("--rounds", type=int, default=2)

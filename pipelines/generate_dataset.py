@@ -47,7 +47,7 @@ def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any])
         return "nan"
     if filters["require_converged"] and status != WorldStatus.CONVERGED:
         return "not_converged"
-    if metrics["area_ratio_min"] < 1.0 - filters["max_area_shrink"] or metrics["area_ratio_max"] > 1.0 + filters["max_area_growth"]:
+    if metrics["distorted_fraction"] > filters["max_distorted_fraction"]:
         return "distortion"
     if metrics["penetration_fraction"] > filters["max_penetration_fraction"]:
         return "penetration"
@@ -185,7 +185,8 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             return
         x = np.asarray(frame.positions, np.float64)
         metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
-                                rest_areas=rest_areas[t.style_index])
+                                rest_areas=rest_areas[t.style_index],
+                                area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
         reason = drop_reason(metrics, frame.status, filters)
         if reason is None:
             unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]

@@ -49,7 +49,11 @@ records and hashes. Schema (every key optional unless marked required)::
       min_hold_frames: int = 2          frames each target pose is held at least
       contact: {thickness [m], friction, self_contact: bool}
     filters:
-      max_area_shrink: 0.75  max_area_growth: 1.0  collision_depth [m]: 0.001
+      max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
+      max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
+                                        (0 = the seed's "any triangle"; a few triangles at hems and
+                                        armpits of our body-derived garments briefly exceed the bounds)
+      collision_depth [m]: 0.001
       max_penetration_fraction: 0.01    max_self_intersections: 0  require_converged: true
     output: {precision: float32|float16, compression: gzip|lzf}
     audit: {samples: int = 4, tolerance_factor: float = 0.1}
@@ -83,7 +87,7 @@ DEFAULTS: dict[str, Any] = {
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
     },
-    "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "collision_depth": 0.001,
+    "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
     "output": {"precision": "float32", "compression": "gzip"},
     "audit": {"samples": 4, "tolerance_factor": 0.1},
@@ -202,6 +206,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         c.fail(f"{sim}.contact.self_contact", "true or false")
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)
+    c.number("filters.max_distorted_fraction", 0.0, 1.0)
     c.number("filters.collision_depth", 0.0)
     c.number("filters.max_penetration_fraction", 0.0, 1.0)
     c.integer("filters.max_self_intersections", 0)

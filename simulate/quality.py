@@ -154,7 +154,8 @@ class QualityMeter:
         return int(self._hits.numpy().sum())
 
     def measure(self, garment_vertices: np.ndarray, body_vertices: np.ndarray, *, collision_depth: float = COLLISION_DEPTH_M,
-                self_intersection: bool = True, rest_areas: np.ndarray | None = None) -> dict[str, float]:
+                self_intersection: bool = True, rest_areas: np.ndarray | None = None,
+                area_bounds: tuple[float, float] = (0.25, 2.0)) -> dict[str, float]:
         """All metrics of one frame.
 
         ``rest_areas`` (F,) [m^2] replaces the constructor's rest areas (e.g. the rest
@@ -162,12 +163,13 @@ class QualityMeter:
 
         Returns:
             dict with ``finite`` (1/0), ``area_ratio_min``, ``area_ratio_max``,
+            ``distorted_fraction`` (share of triangles whose area ratio is outside ``area_bounds``),
             ``penetration_fraction`` (share of vertices deeper than ``collision_depth``),
             ``penetration_max_m`` (deepest vertex, >= 0), ``self_intersections`` (count, -1 if skipped).
         """
         x = np.asarray(garment_vertices, np.float64)
         if not np.isfinite(x).all():
-            return {"finite": 0.0, "area_ratio_min": float("nan"), "area_ratio_max": float("nan"),
+            return {"finite": 0.0, "area_ratio_min": float("nan"), "area_ratio_max": float("nan"), "distorted_fraction": float("nan"),
                     "penetration_fraction": float("nan"), "penetration_max_m": float("nan"), "self_intersections": -1.0}
         rest = self.rest_areas if rest_areas is None else np.asarray(rest_areas)
         ratio = triangle_areas(x, self.faces) / np.maximum(rest, 1e-20)
@@ -176,6 +178,7 @@ class QualityMeter:
             "finite": 1.0,
             "area_ratio_min": float(ratio.min()),
             "area_ratio_max": float(ratio.max()),
+            "distorted_fraction": float(((ratio < area_bounds[0]) | (ratio > area_bounds[1])).mean()),
             "penetration_fraction": float((d < -collision_depth).mean()),
             "penetration_max_m": float(max(0.0, -d.min())),
             "self_intersections": float(self.self_intersections(x)) if self_intersection else -1.0,
