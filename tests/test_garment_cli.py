@@ -59,3 +59,12 @@ def test_style_space_command(tmp_path, capsys):
     assert (np.diff(errors) <= 1e-9).all()
     for name in ("template.npz", "style_space.npz", "prototypes.npz", "prototype_error.png", "summary.json"):
         assert (tmp_path / name).exists(), name
+
+
+def test_register_fills_placeholders():
+    parser = argparse.ArgumentParser(prog="drape")
+    sub = parser.add_subparsers(dest="command")
+    sub.add_parser("style-space", help="placeholder")
+    garment_cli.register(sub)
+    args = parser.parse_args(["style-space", "--type", "skirt", "--out", "x"])
+    assert args.func is garment_cli.run_style_space and args.samples == 20 and args.rounds == 2
