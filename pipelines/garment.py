@@ -151,7 +151,7 @@ def run_style_space(args: argparse.Namespace) -> int:
     from simulate.body import load_body_model
     from simulate.garment.drape import drape_canonical
     from simulate.garment.shapes import training_shapes
-    from simulate.garment.style_space import build_style_space, select_prototypes
+    from simulate.garment.style_space import build_style_space, outside_body, select_prototypes
     from simulate.garment.templates import apply_style, make_template
 
     out = Path(args.out)
@@ -182,21 +182,26 @@ def run_style_space(args: argparse.Namespace) -> int:
             else:  # skirt: regenerate the default style on this shape, plus the style offset
                 garment = apply_style(template, template_style(template), body, shape=shape) + (
                     disp - space.mean)
-            pairs.append((template, garment))
+            pairs.append((template, outside_body(template, garment, body, shape=shape)))
             pair_shapes.append(shape)
             pair_gamma.append(g)
     result = drape_canonical(pairs, body, np.stack(pair_shapes), device=args.device, **opts)
+    # Exploded drapes are not garments: they take no part in the prototype choice.
+    kept = np.array([i for i, st in enumerate(result.status) if st != "EXPLODED"], dtype=np.int64)
+    if len(kept) == 0:
+        raise RuntimeError(f"every style-shape drape exploded (statuses {result.status})")
     disp = []
-    for (tpl, _), v, shape in zip(pairs, result.vertices, pair_shapes):
+    for i in kept:
+        tpl, v, shape = pairs[i][0], result.vertices[i], pair_shapes[i]
         ref = (body.pose(shape, body.canonical_pose).vertices[0][tpl.body_vertex_index]
                if tpl.follows_body_topology else np.zeros_like(v))
         disp.append(v - ref)
     disp = np.stack(disp)
     k = min(args.prototypes, len(disp))
     choice = select_prototypes(disp, k)
-    np.savez_compressed(out / "prototypes.npz", indices=choice.indices, mean_error_mm=choice.mean_error_mm,
-                        max_error_mm=choice.max_error_mm, shapes=np.stack(pair_shapes), gammas=np.stack(pair_gamma),
-                        displacements=disp.astype(np.float32))
+    np.savez_compressed(out / "prototypes.npz", indices=kept[choice.indices], mean_error_mm=choice.mean_error_mm,
+                        max_error_mm=choice.max_error_mm, pair_index=kept, shapes=np.stack(pair_shapes)[kept],
+                        gammas=np.stack(pair_gamma)[kept], displacements=disp.astype(np.float32))
     import matplotlib
 
     matplotlib.use("Agg")
@@ -216,7 +221,8 @@ def run_style_space(args: argparse.Namespace) -> int:
     summary = {"type": args.garment_type, "vertices": template.vertex_count, "template_sha256": template.content_hash(),
                "style_space": str(out / "style_space.npz"), "variances_m2": [float(v) for v in space.variances],
                "rounds": space.history, "shape_parameters": shape_params, "pairs": len(disp),
-               "pair_status": result.status, "prototype_indices": [int(i) for i in choice.indices],
+               "pair_status": result.status, "pairs_kept": int(len(kept)),
+               "prototype_indices": [int(i) for i in kept[choice.indices]],
                "mean_error_mm": [round(float(e), 3) for e in choice.mean_error_mm],
                "plot": str(out / "prototype_error.png"), "seconds": round(time.perf_counter() - t0, 2)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

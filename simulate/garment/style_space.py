@@ -167,8 +167,20 @@ def build_style_space(
             progress(history[-1])
         if r < rounds - 1:
             gamma = rng.normal(size=(samples, space.size)) * np.sqrt(var)[None]
-            garments = list(space.gamma_to_garment(gamma))
+            garments = [outside_body(template, g, body) for g in space.gamma_to_garment(gamma)]
     return space, drapes
+
+
+def outside_body(template: GarmentTemplate, vertices: np.ndarray, body, *, shape=None) -> np.ndarray:
+    """A garment (V, 3) [m] sampled from the PCA (or moved to another shape) pushed out of
+    the canonical body of ``shape`` and relaxed, so the drape starts without deep
+    interpenetration (see :func:`simulate.garment.templates.relax_outside`)."""
+    from simulate.garment import mesh_ops
+    from simulate.garment.templates import relax_outside
+
+    bv, _ = body_joints(body, body.shape_default if shape is None else shape)
+    query = mesh_ops.ClosestPointQuery(bv, body.faces)
+    return relax_outside(np.asarray(vertices, dtype=np.float64), template.faces, query).astype(np.float32)
 
 
 def select_prototypes(drapes: np.ndarray, count: int, *, initial=None):
