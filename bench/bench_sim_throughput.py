@@ -32,6 +32,8 @@ def main() -> None:
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--gs-relaxation", type=float, default=1.0, help="XPBD Gauss-Seidel over-relaxation")
+    parser.add_argument("--bending-mode", default=None, choices=["gauss_seidel", "jacobi"],
+                        help="XPBD bending sweep (default: same as --mode)")
     parser.add_argument("--frames", type=int, default=30, help="timed frames for raw throughput")
     parser.add_argument("--relax", action="store_true", help="also time relaxation to rest")
     parser.add_argument("--tolerance", type=float, default=0.01)
@@ -53,7 +55,7 @@ def main() -> None:
         substeps = None if args.solver == "mass_spring" else args.substeps
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
         raw = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode, tolerance=1e-12,
-                          gs_relaxation=args.gs_relaxation,
+                          gs_relaxation=args.gs_relaxation, xpbd_bending_mode=args.bending_mode,
                           max_frames=10 ** 9)
         sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw)
         sim.step_frame()  # compile + first frame
@@ -69,7 +71,7 @@ def main() -> None:
             "bench": "sim_throughput", "device": device, "solver": args.solver,
             "mode": args.mode if args.solver == "xpbd" else None, "worlds": worlds, "vertices_per_world": vertices,
             "body": scene["body_kind"], "scene": args.scene, "substeps": sim.substeps, "iterations": args.iterations,
-            "gs_relaxation": args.gs_relaxation,
+            "gs_relaxation": args.gs_relaxation, "bending_mode": args.bending_mode or args.mode,
             "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),
@@ -80,7 +82,8 @@ def main() -> None:
         if args.relax:
             collider.set_pose(scene["body_vertices"])
             settings = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode,
-                                   gs_relaxation=args.gs_relaxation, tolerance=args.tolerance,
+                                   gs_relaxation=args.gs_relaxation, xpbd_bending_mode=args.bending_mode,
+                                   tolerance=args.tolerance,
                                    max_frames=args.max_frames)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings)
             wp.synchronize_device(model.device)

@@ -21,9 +21,10 @@ DEVICES = ["cpu"] + (["cuda:0"] if HAS_CUDA else [])
 MAX_STRETCH_RATIO = 1.5
 """Stability matrix: no triangle may stretch beyond this ratio at rest [-]."""
 ATOL_CPU_CUDA_M = 1.0e-3
-"""CPU vs CUDA after 12 frames of a drape (cloth lands on the sphere at frame ~6) [m]: both are float32 with the same operation order
-per element, but CUDA contracts multiply-adds (FMA) and evaluates transcendental functions
-differently, so results drift apart by rounding amplified by contact events."""
+"""CPU vs CUDA after 12 frames of a drape (cloth lands on the sphere at frame ~6) [m]: both are
+float32 with the same operation order per element, but CUDA contracts multiply-adds (FMA) and
+evaluates transcendental functions differently, so results drift apart by rounding amplified
+by contact events."""
 
 
 def _sphere_scene(fabrics: list, device: str, *, n: int = 9, collider_worlds: int | None = None):

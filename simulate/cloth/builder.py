@@ -227,7 +227,8 @@ class ClothBuilder:
             return self._colour_cache[key]
         # Interior edges -> (opposite 0, opposite 1, edge 0, edge 1).
         f_count = len(faces)
-        half = np.concatenate([faces[:, [0, 1, 2]], faces[:, [1, 2, 0]], faces[:, [2, 0, 1]]])  # (3F, 3): a, b, opposite
+        # Half-edges (3F, 3): edge start, edge end, opposite vertex.
+        half = np.concatenate([faces[:, [0, 1, 2]], faces[:, [1, 2, 0]], faces[:, [2, 0, 1]]])
         key_e = np.sort(half[:, :2], axis=1)
         order = np.lexsort((key_e[:, 1], key_e[:, 0]))
         ks = key_e[order]
@@ -293,7 +294,8 @@ class ClothBuilder:
                 # Adjacent face areas from the two triangles (opp, e0, e1).
                 for k in (0, 1):
                     a = g.vertices[bend[:, k]]
-                    face_area += 0.5 * np.linalg.norm(np.cross(g.vertices[bend[:, 2]] - a, g.vertices[bend[:, 3]] - a), axis=1)
+                    e0, e1 = g.vertices[bend[:, 2]] - a, g.vertices[bend[:, 3]] - a
+                    face_area += 0.5 * np.linalg.norm(np.cross(e0, e1), axis=1)
                 # k_e = B |e|^2 / (A1 + A2): on an equilateral lattice bent into a cylinder of
                 # curvature kappa, sum_e 1/2 k_e theta_e^2 = 1/2 B kappa^2 area in every direction
                 # (tests/test_cloth_builder.py); Grinspun's 3 |e|^2 / (A1 + A2) is 3x stiffer.

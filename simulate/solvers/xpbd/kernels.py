@@ -4,9 +4,9 @@ Gauss-Seidel kernels run over one graph colour at a time (``offset`` + thread id
 positions in place: elements of one colour share no particle, so there is no race.  Jacobi
 kernels read positions and write one correction per (element, corner) slot; the particle
 pass sums them.  Each Jacobi element takes the share ``relaxation / max_k n_k`` of its
-multiplier step (n_k = elements of its kind, triangle or bending, touching corner k), so a particle's summed correction is an
-average-like step while multiplier and positions stay consistent.
-"""
+multiplier step (n_k = elements of its kind, triangle or bending, touching corner k), so a
+particle's summed correction is an average-like step while multiplier and positions stay
+consistent."""
 
 from __future__ import annotations
 
