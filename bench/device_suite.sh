@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
+#   bash bench/device_suite.sh tests|sim|peers|dataset|learn|reports  OUTDIR
+# Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
+set -uo pipefail
+stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
+export PYTHONUNBUFFERED=1 TQDM_DISABLE=1
+log="$out/$stage.log"; jl="$out/$stage.jsonl"
+run() { echo "+ $*" >>"$log"; timeout "${T:-400}" "$@" >>"$log" 2>&1; echo "rc=$?" >>"$log"; }
+case $stage in
+  tests)
+    T=300 run python -m pytest -q -p no:cacheprovider tests/test_cloth_oracles.py tests/test_cloth_builder.py \
+      tests/test_solver_worlds.py tests/test_contact_collider.py tests/test_contact_self.py tests/test_quality.py \
+      tests/test_learn_common.py tests/test_tailornet_model.py ;;
+  sim)
+    T=200 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 1 4 16 64 128 256 512 --frames 20 --out "$jl"
+    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 64 --relax --max-frames 400 --out "$jl"
+    T=220 run python bench/bench_sim_error_vs_time.py --device cuda:0 --plot "$out/error_vs_time.png" --out "$jl" ;;
+  peers)
+    T=420 run python bench/bench_sim_newton.py --device cuda:0 --out "$jl"
+    T=150 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs newton_vbd \
+      --substeps 10 --iterations 10 --out "$jl" ;;
+  dataset)
+    T=520 run python bench/bench_dataset.py --spec tailornet-tshirt --poses 40 --test-poses 10 --device cuda:0 ;;
+  learn)
+    T=300 run python -m pipelines.cli generate-dataset tailornet-tshirt --out /tmp/tn --no-progress --device cuda:0
+    T=200 run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs 40 --no-progress
+    T=90 run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
+  reports)
+    T=300 run python -m pipelines.cli report accuracy --device cuda:0 --out "$out/accuracy"
+    T=280 run python -m pipelines.cli report stability --device cuda:0 --out "$out/stability" ;;
+  *) echo "unknown stage $stage"; exit 2 ;;
+esac
+grep -h '^{' "$log" >>"$jl" 2>/dev/null || true
+tail -c 6000 "$log"
