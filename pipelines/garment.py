@@ -218,16 +218,34 @@ def run_style_space(args: argparse.Namespace) -> int:
     fig.tight_layout()
     fig.savefig(out / "prototype_error.png")
     plt.close(fig)
+    _plot_components(out / "style_components.png", space, template, body)
     summary = {"type": args.garment_type, "vertices": template.vertex_count, "template_sha256": template.content_hash(),
                "style_space": str(out / "style_space.npz"), "variances_m2": [float(v) for v in space.variances],
                "rounds": space.history, "shape_parameters": shape_params, "pairs": len(disp),
                "pair_status": result.status, "pairs_kept": int(len(kept)),
                "prototype_indices": [int(i) for i in kept[choice.indices]],
                "mean_error_mm": [round(float(e), 3) for e in choice.mean_error_mm],
-               "plot": str(out / "prototype_error.png"), "seconds": round(time.perf_counter() - t0, 2)}
+               "plot": str(out / "prototype_error.png"), "components_plot": str(out / "style_components.png"), "seconds": round(time.perf_counter() - t0, 2)}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def _plot_components(path: Path, space, template, body) -> None:
+    """TailorNet Fig. 3: each style component at -1.5, 0, +1.5 standard deviations."""
+    from simulate.viz import MeshLayer, render_png
+
+    body_v = body.pose(body.shape_default, body.canonical_pose).vertices[0]
+    panels, titles = [], []
+    for k in range(min(space.size, 2)):
+        for z in (-1.5, 0.0, 1.5):
+            gamma = np.zeros(space.size)
+            gamma[k] = z * np.sqrt(space.variances[k])
+            garment = space.gamma_to_garment(gamma)[0]
+            panels.append([MeshLayer(body_v, visible_body_faces(body_v, body.faces, garment, template.faces)),
+                           MeshLayer(garment, template.faces, color=(0.25, 0.45, 0.8))])
+            titles.append(f"gamma{k + 1} {z:+.1f} sd")
+    render_png(path, panels, views=(0.0,), titles=titles, size_px=500)
 
 
 def template_style(template):

@@ -57,7 +57,8 @@ def test_style_space_command(tmp_path, capsys):
     assert summary["pairs"] == 9 and len(set(summary["prototype_indices"])) == 5
     errors = np.array(summary["mean_error_mm"])
     assert (np.diff(errors) <= 1e-9).all()
-    for name in ("template.npz", "style_space.npz", "prototypes.npz", "prototype_error.png", "summary.json"):
+    for name in ("template.npz", "style_space.npz", "prototypes.npz", "prototype_error.png", "style_components.png",
+                 "summary.json"):
         assert (tmp_path / name).exists(), name
 
 
