@@ -21,10 +21,10 @@ case $stage in
     T=150 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs newton_vbd \
       --substeps 10 --iterations 10 --out "$jl" ;;
   dataset)
-    T=520 run python bench/bench_dataset.py --spec tailornet-tshirt --poses 40 --test-poses 10 --device cuda:0 ;;
+    T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
+      --keep --out /tmp/tn ;;
   learn)
-    T=300 run python -m pipelines.cli generate-dataset tailornet-tshirt --out /tmp/tn --no-progress --device cuda:0
-    T=200 run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs 40 --no-progress
+    T=400 run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
     T=90 run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
   reports)
     T=300 run python -m pipelines.cli report accuracy --device cuda:0 --out "$out/accuracy"

@@ -67,9 +67,9 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     for k, group in enumerate(("train", "test")):
         given = spec["shapes"][group]
         if given == "tailornet9":
-            from simulate.garment.shapes import tailornet_shapes
+            from simulate.garment.shapes import training_shapes
 
-            shapes.append(np.asarray(tailornet_shapes(body), np.float32))
+            shapes.append(np.asarray(training_shapes(body)[0], np.float32))
         elif isinstance(given, list):
             arr = np.asarray(given, np.float32)
             if arr.ndim != 2 or arr.shape[1] != body.shape_size:
