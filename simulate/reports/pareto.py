@@ -16,11 +16,17 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-__all__ = ["pareto_front", "front_time_at_error", "plot_error_vs_time", "NEAR_FRONT_TIME_FACTOR"]
+__all__ = ["pareto_front", "front_time_at_error", "plot_error_vs_time", "NEAR_FRONT_TIME_FACTOR",
+           "NEAR_FRONT_ERROR_SLACK"]
 
 NEAR_FRONT_TIME_FACTOR = 1.5
 """A setting is "near the front" when it takes at most this factor times the time of the fastest
 front point that is at least as accurate [-]."""
+
+NEAR_FRONT_ERROR_SLACK = 0.02
+"""Front points within this relative error of the setting count as "as accurate" [-]: errors that
+differ by run-to-run noise (e.g. a float16 twin, or a looser tolerance stopping at the same drape)
+must not decide the comparison."""
 
 
 def _value(point: Mapping[str, Any], key: str, index: int) -> float:
