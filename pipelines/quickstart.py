@@ -35,7 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out/quickstart", help="output directory (data/, run/)")
     p.add_argument("--spec", default="quickstart", help="dataset spec (default: the shipped quickstart)")
-    p.add_argument("--epochs", type=int, default=20, help="training epochs per stage")
+    p.add_argument("--epochs", type=int, default=200, help="training epochs per stage (tiny data: seconds each)")
     p.add_argument("--device", default=None, help="simulation device override (auto, cpu, cuda:0)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
