@@ -26,6 +26,8 @@ def main() -> None:
     parser.add_argument("--worlds", type=int, default=None)
     parser.add_argument("--resolution", type=int, default=None)
     parser.add_argument("--device", default=None)
+    parser.add_argument("--tolerance", type=float, default=None, help="override simulation.tolerance [m/s]")
+    parser.add_argument("--range-scale", type=float, default=None, help="override poses.range_scale")
     parser.add_argument("--out", default="/tmp/bench_dataset")
     parser.add_argument("--keep", action="store_true", help="keep the output directory")
     args = parser.parse_args()
@@ -56,6 +58,10 @@ def main() -> None:
         spec["garment"]["resolution"] = args.resolution
     if args.device is not None:
         spec["simulation"]["device"] = args.device
+    if args.tolerance is not None:
+        spec["simulation"]["tolerance"] = args.tolerance
+    if args.range_scale is not None:
+        spec["poses"]["range_scale"] = args.range_scale
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
@@ -68,6 +74,7 @@ def main() -> None:
     keep_rate = kept / max(targets, 1)
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
+        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"],
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
         "target_frames_per_s": round(fps, 2), "keep_rate": round(keep_rate, 3),
