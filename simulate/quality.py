@@ -22,28 +22,35 @@ COLLISION_DEPTH_M = 1e-3
 
 
 @wp.kernel
-def signed_distance_along_face_normal(
-    # Body:
-    body_mesh: wp.uint64,
-    max_distance: float,
-    # Garment:
+def query_body_signed_distance(
+    # Body: one mesh per frame
+    mesh_ids: wp.array(dtype=wp.uint64),
+    # Garment: frames packed one after another
     points: wp.array(dtype=wp.vec3),
+    points_per_frame: int,
+    max_distance: float,
     # Out:
     distance_out: wp.array(dtype=float),
+    closest_out: wp.array(dtype=wp.vec3),
+    normal_out: wp.array(dtype=wp.vec3),
 ):
-    i = wp.tid()
-    p = points[i]
-    query = wp.mesh_query_point_no_sign(body_mesh, p, max_distance)
+    """Signed distance [m] of each point along the normal of its nearest body face (the one
+    implementation of the collision metric, also used by learn.common.collision)."""
+    tid = wp.tid()
+    mesh_id = mesh_ids[tid // points_per_frame]
+    p = points[tid]
+    query = wp.mesh_query_point_no_sign(mesh_id, p, max_distance)
     if query.result:
-        closest = wp.mesh_eval_position(body_mesh, query.face, query.u, query.v)
-        mesh = wp.mesh_get(body_mesh)
-        a = mesh.points[mesh.indices[query.face * 3 + 0]]
-        b = mesh.points[mesh.indices[query.face * 3 + 1]]
-        c = mesh.points[mesh.indices[query.face * 3 + 2]]
-        n = wp.normalize(wp.cross(b - a, c - a))
-        distance_out[i] = wp.dot(p - closest, n)
+        closest = wp.mesh_eval_position(mesh_id, query.face, query.u, query.v)
+        normal = wp.mesh_eval_face_normal(mesh_id, query.face)
+        distance_out[tid] = wp.dot(p - closest, normal)
+        closest_out[tid] = closest
+        normal_out[tid] = normal
     else:
-        distance_out[i] = max_distance
+        # farther than max_distance from the body: certainly not colliding
+        distance_out[tid] = max_distance
+        closest_out[tid] = p
+        normal_out[tid] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.func
@@ -135,14 +142,18 @@ class QualityMeter:
         self._body_points = wp.zeros(body_vertex_count, dtype=wp.vec3, device=device)
         self._body_mesh = wp.Mesh(self._body_points, wp.array(np.asarray(body_faces, np.int32).ravel(), dtype=wp.int32, device=device))
         self._distance = wp.zeros(v, dtype=float, device=device)
+        self._closest = wp.zeros(v, dtype=wp.vec3, device=device)
+        self._normal = wp.zeros(v, dtype=wp.vec3, device=device)
+        self._body_mesh_ids = wp.array(np.array([self._body_mesh.id], dtype=np.uint64), dtype=wp.uint64, device=device)
 
     def signed_distance(self, garment_vertices: np.ndarray, body_vertices: np.ndarray) -> np.ndarray:
         """Per-vertex signed distance [m] along the nearest body face normal, shape (V,)."""
         self._body_points.assign(np.asarray(body_vertices, np.float32))
         self._body_mesh.refit()
         self._garment_points.assign(np.asarray(garment_vertices, np.float32))
-        wp.launch(signed_distance_along_face_normal, dim=len(self._distance), device=self.device,
-                  inputs=[self._body_mesh.id, self.max_distance, self._garment_points], outputs=[self._distance])
+        wp.launch(query_body_signed_distance, dim=len(self._distance), device=self.device,
+                  inputs=[self._body_mesh_ids, self._garment_points, len(self._distance), self.max_distance],
+                  outputs=[self._distance, self._closest, self._normal])
         return self._distance.numpy()
 
     def self_intersections(self, garment_vertices: np.ndarray) -> int:

@@ -15,40 +15,11 @@ import numpy as np
 import torch
 import warp as wp
 
-wp.set_module_options({"enable_backward": False})
+# One implementation of the metric for the dataset filters and the learners.
+from simulate.quality import query_body_signed_distance
 
 COLLISION_THRESHOLD_M = 1.0e-3
 DEFAULT_MAX_QUERY_DISTANCE_M = 10.0
-
-
-@wp.kernel
-def query_body_signed_distance(
-    # Model:
-    mesh_ids: wp.array(dtype=wp.uint64),
-    points: wp.array(dtype=wp.vec3),
-    points_per_frame: int,
-    max_distance: float,
-    # Out:
-    distance_out: wp.array(dtype=float),
-    closest_out: wp.array(dtype=wp.vec3),
-    normal_out: wp.array(dtype=wp.vec3),
-):
-    tid = wp.tid()
-    frame = tid // points_per_frame
-    mesh_id = mesh_ids[frame]
-    p = points[tid]
-    query = wp.mesh_query_point_sign_normal(mesh_id, p, max_distance)
-    if query.result:
-        closest = wp.mesh_eval_position(mesh_id, query.face, query.u, query.v)
-        normal = wp.mesh_eval_face_normal(mesh_id, query.face)
-        distance_out[tid] = wp.dot(p - closest, normal)
-        closest_out[tid] = closest
-        normal_out[tid] = normal
-    else:
-        # Farther than max_distance from the body: certainly not colliding.
-        distance_out[tid] = max_distance
-        closest_out[tid] = p
-        normal_out[tid] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @dataclass
