@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import csv
-import hashlib
 import json
 import os
 import time
@@ -87,19 +86,10 @@ class DatasetFingerprint:
         }
 
 
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """sha256 hex digest of a file's bytes (e.g. the dataset manifest)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"cannot hash {path}: no such file")
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        for chunk in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
-MANIFEST_FILE = "manifest.json"
+# The dataset layer owns file hashing and the manifest's name; fingerprints reuse both so a
+# checkpoint's hashes are exactly what the manifest and validator compute.
+from data_manifest.schema import MANIFEST_NAME as MANIFEST_FILE  # noqa: E402
+from data_manifest.shard import file_sha256  # noqa: E402
 
 
 def template_sha256(template: Mapping[str, Any]) -> str:
