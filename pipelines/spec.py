@@ -42,6 +42,9 @@ records and hashes. Schema (every key optional unless marked required)::
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
       frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
+      outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
+                                        tolerance when it counts as converged (vertices caught where
+                                        the arm and torso skins interpenetrate jitter forever)
       damping: float [1/s] = 20          velocity damping: settles quasi-static drapes fast
       explosion_stretch: float = 50      triangle stretch ratio that marks a world exploded (real
                                         blow-ups; a few triangles at first contact reach 10-30x
@@ -86,7 +89,7 @@ DEFAULTS: dict[str, Any] = {
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "patience": 3, "max_relax_frames": 120,
+        "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
     },
@@ -196,6 +199,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.substeps", 1)
     c.integer(f"{sim}.iterations", 1)
     c.number(f"{sim}.tolerance", 0.0, lo_open=True)
+    c.number(f"{sim}.outlier_fraction", 0.0, 0.5)
     c.number(f"{sim}.damping", 0.0)
     c.number(f"{sim}.explosion_stretch", 1.0, lo_open=True)
     c.integer(f"{sim}.patience", 1)

@@ -64,6 +64,10 @@ class SequenceSettings:
     contact_thickness: float = 0.004
     friction: float | None = None
     self_contact: bool = False
+    recover_explosions: bool = True
+    """A world that explodes loses only the target pose it was heading to: its last good state
+    (garment and body at the previous finished hold) is put back and the world goes on to the
+    next target, slerp'ed afresh from there. Off: the rest of its schedule is handed over as failed."""
 
 
 @dataclass
@@ -130,7 +134,8 @@ def run_sequences(
         on_frame: called once per (task, target pose) in visiting order per task.
         on_progress: called with the number of target poses finished after each frame.
     Returns:
-        statistics: frames simulated, wall seconds in simulation/body/record phases.
+        statistics: frames simulated, wall seconds in simulation/body/record phases, explosion
+            recoveries.
     """
     import time
 
@@ -162,7 +167,8 @@ def run_sequences(
     done = np.zeros(w_count, dtype=bool)
     body_now: dict[str, np.ndarray] = {
         "vertices": start.vertices.copy(), "skin": start.skinning_transforms.copy(), "rest": start.rest_vertices.copy()}
-    stats = {"frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0}
+    stats = {"frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0, "recoveries": 0}
+    last_good: list[dict | None] = [None] * w_count
     changed = np.ones(w_count, dtype=bool)
     while not done.all():
         t0 = time.perf_counter()
@@ -190,7 +196,33 @@ def run_sequences(
             kind = kinds_w[ptr[w]]
             st = int(status[w])
             if st == WorldStatus.EXPLODED:
-                # the world is frozen for good: hand over every remaining target pose as failed
+                failed = np.nonzero(kinds_w[ptr[w]:] == KEY)[0]
+                if settings.recover_explosions and last_good[w] is not None and len(failed):
+                    # lose only the target being approached or held, then resume from the last good state
+                    j = ptr[w] + int(failed[0])
+                    on_frame(RecordedFrame(w, int(keys_w[j]), sim.world_positions(w), st, int(held[w]),
+                                           body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                    finished_keys += 1
+                    stats["recoveries"] += 1
+                    good = last_good[w]
+                    rest_keys = np.asarray(tasks[w].poses[int(keys_w[j]) + 1:], np.float32)
+                    for name in ("vertices", "skin", "rest"):
+                        body_now[name][w] = good[name]
+                    collider.place_world(w, good["vertices"])
+                    sim.revive(w, good["positions"])
+                    held[w] = 0
+                    if len(rest_keys) == 0:
+                        done[w] = True
+                        sim.status[w] = WorldStatus.CONVERGED  # frozen again: nothing left to do
+                        continue
+                    seq, key_index = interpolate_sequence(rest_keys, good["pose"], settings.interpolation_threshold)
+                    offset = int(keys_w[j]) + 1
+                    schedules[w] = (np.tile(tasks[w].shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
+                                    np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + offset, -1))
+                    ptr[w] = 0
+                    changed[w] = True
+                    continue
+                # no good state to go back to: hand over every remaining target pose as failed
                 for j in range(ptr[w], len(kinds_w)):
                     if kinds_w[j] == KEY:
                         on_frame(RecordedFrame(w, int(keys_w[j]), sim.world_positions(w), st, int(held[w]),
@@ -206,12 +238,17 @@ def run_sequences(
                     sim.restart([w])  # keep holding the pose
             if not finished:
                 continue
-            if kind == KEY:
+            if kind != TRANSITION:
                 r0 = time.perf_counter()
-                on_frame(RecordedFrame(w, int(keys_w[ptr[w]]), sim.world_positions(w), st, int(held[w]),
-                                       body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                positions_w = sim.world_positions(w)
+                if settings.recover_explosions:
+                    last_good[w] = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].copy(),
+                                    "skin": body_now["skin"][w].copy(), "rest": body_now["rest"][w].copy()}
+                if kind == KEY:
+                    on_frame(RecordedFrame(w, int(keys_w[ptr[w]]), positions_w, st, int(held[w]),
+                                           body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                    finished_keys += 1
                 stats["record_s"] += time.perf_counter() - r0
-                finished_keys += 1
             ptr[w] += 1
             held[w] = 0
             if ptr[w] >= len(kinds_w):

@@ -92,3 +92,23 @@ def test_moving_body_carries_cloth_by_friction_and_does_not_tunnel(friction: boo
         assert moved < 0.05, f"cloth moved {moved * 1e3:.1f} mm without friction"
     sd = collider.signed_distance(q, np.zeros(len(q), dtype=np.int32))
     assert sd.min() > -1e-3, f"cloth vertex {-sd.min() * 1e3:.2f} mm inside the moving sphere"
+
+
+def test_place_world_moves_only_that_world():
+    from simulate.contact import BodyCollider
+
+    rng = np.random.default_rng(0)
+    verts = rng.normal(size=(3, 10, 3)).astype(np.float32)
+    faces = np.array([[0, 1, 2], [2, 3, 4], [5, 6, 7], [7, 8, 9]])
+    col = BodyCollider(verts, faces, device="cpu")
+    new = rng.normal(size=(10, 3)).astype(np.float32)
+    col.place_world(1, new)
+    for arr in (col.pose_start, col.pose_end):
+        got = arr.numpy().reshape(3, -1, 3)
+        np.testing.assert_array_equal(got[1], new[col.vertex_map])
+        np.testing.assert_array_equal(got[0], verts[0][col.vertex_map])
+        np.testing.assert_array_equal(got[2], verts[2][col.vertex_map])
+    with pytest.raises(ValueError, match="world"):
+        col.place_world(3, new)
+    with pytest.raises(ValueError, match="shape"):
+        col.place_world(0, new[:4])

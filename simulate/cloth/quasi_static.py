@@ -7,7 +7,8 @@ advances one substep.  After the frame a per-world check decides:
 * EXPLODED: a non-finite position/velocity, a speed above ``explosion_speed`` or a stretch
   ratio above ``explosion_stretch``; the world is frozen (no longer integrated) and the
   others continue untouched (no kernel mixes worlds).
-* CONVERGED: max particle speed below ``tolerance`` for ``patience`` consecutive frames; frozen.
+* CONVERGED: every particle but at most ``outlier_fraction`` of the world's slower than
+  ``tolerance`` for ``patience`` consecutive frames; frozen.
 * MAX_STEPS: still moving after ``max_frames`` frames; frozen.
 
 On CUDA the whole frame (substeps, body refits, metrics) is captured once as a CUDA graph and
@@ -72,6 +73,12 @@ class SimSettings:
     """Convergence: max particle speed [m/s] ..."""
     patience: int = 5
     """... below tolerance for this many consecutive frames."""
+    outlier_fraction: float = 0.0
+    """Fraction of a world's particles allowed to stay at or above ``tolerance`` when it is
+    declared converged.  0 = the max speed decides.  A few particles caught where two body
+    surfaces interpenetrate (armpit, a lowered arm against the torso) can jitter forever;
+    with e.g. 0.005 the rest of the garment still counts as at rest (the dataset filters then
+    judge those particles through penetration)."""
     max_frames: int = 600
     """Frames after which a still-moving world is marked MAX_STEPS."""
     explosion_speed: float = 50.0
@@ -95,6 +102,7 @@ class SimSettings:
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
             "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
+            "outlier_fraction": 0.0 <= self.outlier_fraction < 1.0,
         }
         for name, ok in checks.items():
             if not ok:
@@ -156,6 +164,8 @@ class QuasiStaticSimulator:
         self.world_max_speed = wp.zeros(w, dtype=float, device=dev)
         self.world_bad = wp.zeros(w, dtype=wp.int32, device=dev)
         self.world_max_stretch = wp.zeros(w, dtype=float, device=dev)
+        self.world_fast_count = wp.zeros(w, dtype=wp.int32, device=dev)
+        self._allowed_fast = np.floor(s.outlier_fraction * np.asarray(model.world_particle_count, np.float64))
         self.status = np.full(w, WorldStatus.RUNNING, dtype=np.int8)
         """Per-world WorldStatus values, shape (world_count,)."""
         self.world_frames = np.zeros(w, dtype=np.int64)
@@ -201,10 +211,11 @@ class QuasiStaticSimulator:
         self.world_max_speed.zero_()
         self.world_bad.zero_()
         self.world_max_stretch.zero_()
+        self.world_fast_count.zero_()
         wp.launch(ck.measure_particles, dim=m.particle_count,
                   inputs=[m.particle_world, self.control.world_active, self.state_0.particle_qd,
-                          self.state_0.particle_q],
-                  outputs=[self.world_max_speed, self.world_bad], device=m.device)
+                          self.state_0.particle_q, float(self.settings.tolerance)],
+                  outputs=[self.world_max_speed, self.world_bad, self.world_fast_count], device=m.device)
         wp.launch(ck.measure_triangles, dim=m.tri_count,
                   inputs=[m.tri_indices, m.tri_dm_inv, m.tri_world, self.control.world_active,
                           self.state_0.particle_q],
@@ -261,12 +272,13 @@ class QuasiStaticSimulator:
         speed = self.world_max_speed.numpy()
         bad = self.world_bad.numpy()
         stretch = self.world_max_stretch.numpy()
+        fast = self.world_fast_count.numpy()
         s = self.settings
         residual = np.where(running, speed, np.nan)
         self._history.append(residual)
         self.world_frames[running] += 1
         exploded = running & ((bad != 0) | (speed > s.explosion_speed) | (stretch > s.explosion_stretch))
-        calm = running & ~exploded & (speed < s.tolerance)
+        calm = running & ~exploded & (fast <= self._allowed_fast)
         self._calm = np.where(calm, self._calm + 1, np.where(running, 0, self._calm))
         self.status[exploded] = WorldStatus.EXPLODED
         self.status[running & ~exploded & (self._calm >= s.patience)] = WorldStatus.CONVERGED
@@ -329,17 +341,30 @@ class QuasiStaticSimulator:
             qd[mask[self.model.particle_world_np]] = 0.0
             self.state_0.particle_qd.assign(qd)
 
+    def revive(self, world: int, positions: np.ndarray) -> None:
+        """Restart one world (exploded or not) from ``positions`` [m], (V_w, 3), at rest.
+
+        Used to recover a world that exploded: put back its last good state and go on.
+        """
+        self.set_positions(positions, world=world)
+        self.status[world] = WorldStatus.RUNNING
+        self.world_frames[world] = 0
+        self._calm[world] = 0
+
     def positions(self) -> np.ndarray:
-        """Particle positions [m] of all worlds, shape (particle_count, 3)."""
-        return self.state_0.particle_q.numpy()
+        """Particle positions [m] of all worlds, shape (particle_count, 3) (a copy, also on CPU,
+        where Warp's ``numpy()`` would alias the simulation state)."""
+        return self.state_0.particle_q.numpy().copy()
 
     def velocities(self) -> np.ndarray:
-        """Particle velocities [m/s], shape (particle_count, 3)."""
-        return self.state_0.particle_qd.numpy()
+        """Particle velocities [m/s], shape (particle_count, 3) (a copy)."""
+        return self.state_0.particle_qd.numpy().copy()
 
     def world_positions(self, world: int) -> np.ndarray:
-        """Positions [m] of one world's particles, shape (V_w, 3)."""
-        return self.positions()[self.model.world_slice(world)]
+        """Positions [m] of one world's particles, shape (V_w, 3) (a copy; only this world's
+        particles leave the device)."""
+        sl = self.model.world_slice(world)
+        return self.state_0.particle_q[sl.start:sl.stop].numpy().copy()
 
     def set_positions(self, positions: np.ndarray, *, world: int | None = None) -> None:
         """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3)); zeroes their velocities."""

@@ -126,6 +126,27 @@ class BodyCollider:
         self.pose_end.assign(flat)
         self.update(1.0)
 
+    def place_world(self, world: int, vertices: np.ndarray) -> None:
+        """Place one world's body at ``vertices`` [m] now, shape (Vb, 3) (source or culled count).
+
+        The other worlds keep their start and target poses; call ``update`` (the driver does at
+        the next substep) to move the mesh.
+        """
+        if not 0 <= int(world) < self.world_count:
+            raise ValueError(f"world must be in [0, {self.world_count}) (got {world!r})")
+        verts = np.asarray(vertices, dtype=np.float32)
+        if verts.ndim != 2 or verts.shape[1] != 3 or verts.shape[0] not in (self.source_vertex_count, self.vertex_count):
+            raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
+                             f"(got {verts.shape})")
+        if not np.all(np.isfinite(verts)):
+            raise ValueError("body vertices must be finite (got NaN or inf)")
+        if verts.shape[0] == self.source_vertex_count:
+            verts = verts[self.vertex_map]
+        src = wp.array(np.ascontiguousarray(verts), dtype=wp.vec3, device=self.device)
+        offset = int(world) * self.vertex_count
+        for dst in (self.pose_start, self.pose_end):
+            wp.copy(dst, src, dest_offset=offset, src_offset=0, count=self.vertex_count)
+
     def update(self, alpha: float) -> None:
         """Move the mesh to fraction ``alpha`` in [0, 1] of the frame's motion and refit the BVH."""
         wp.launch(kernels.interpolate_body_points, dim=len(self.pose_start),

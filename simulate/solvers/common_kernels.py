@@ -309,11 +309,14 @@ def measure_particles(
     world_active: wp.array(dtype=wp.int32),
     v: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
+    tolerance: float,
     # Out (per world, reset by the caller):
     world_max_speed_out: wp.array(dtype=float),
     world_bad_out: wp.array(dtype=wp.int32),
+    world_fast_count_out: wp.array(dtype=wp.int32),
 ):
-    """Per world: max particle speed [m/s] and a flag for non-finite positions/velocities."""
+    """Per world: max particle speed [m/s], a flag for non-finite positions/velocities and the
+    number of particles at or above ``tolerance`` [m/s]."""
     i = wp.tid()
     w = particle_world[i]
     if world_active[w] == 0:
@@ -324,6 +327,8 @@ def measure_particles(
     finite = wp.isfinite(speed) and wp.isfinite(xi[0]) and wp.isfinite(xi[1]) and wp.isfinite(xi[2])
     if finite:
         wp.atomic_max(world_max_speed_out, w, speed)
+        if speed >= tolerance:
+            wp.atomic_add(world_fast_count_out, w, 1)
     else:
         wp.atomic_max(world_bad_out, w, 1)
 
