@@ -28,6 +28,8 @@ def main() -> None:
     parser.add_argument("--device", default=None)
     parser.add_argument("--tolerance", type=float, default=None, help="override simulation.tolerance [m/s]")
     parser.add_argument("--range-scale", type=float, default=None, help="override poses.range_scale")
+    parser.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
+                        help="override any simulation.KEY (repeatable), e.g. --sim outlier_fraction=0.02")
     parser.add_argument("--out", default="/tmp/bench_dataset")
     parser.add_argument("--keep", action="store_true", help="keep the output directory")
     args = parser.parse_args()
@@ -60,6 +62,11 @@ def main() -> None:
         spec["simulation"]["device"] = args.device
     if args.tolerance is not None:
         spec["simulation"]["tolerance"] = args.tolerance
+    for item in args.sim:
+        key, _, value = item.partition("=")
+        if key not in spec["simulation"] or not value:
+            raise SystemExit(f"--sim {item!r}: expected KEY=VALUE with KEY one of {sorted(spec['simulation'])}")
+        spec["simulation"][key] = type(spec["simulation"][key])(value) if spec["simulation"][key] is not None else float(value)
     if args.range_scale is not None:
         spec["poses"]["range_scale"] = args.range_scale
     out = Path(args.out)
@@ -74,13 +81,15 @@ def main() -> None:
     keep_rate = kept / max(targets, 1)
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
-        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"],
+        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim,
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
         "target_frames_per_s": round(fps, 2), "keep_rate": round(keep_rate, 3),
         "full_spec_target_frames": full_targets, "full_spec_expected_kept": round(full_targets * keep_rate),
         "projected_full_s": round(full_targets / max(fps, 1e-9), 1),
         "audit_max_mm": manifest.audit.get("max_mm"), "audit_mean_mm": manifest.audit.get("mean_mm"),
+        "phases": sim.get("phases"), "frames_per_target": round(sim.get("phases", {}).get("frames", 0) * spec["simulation"]["worlds"]
+                                                                / max(targets, 1), 1),
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)

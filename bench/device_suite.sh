@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|dataset|learn|reports  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|learn|reports  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -23,6 +23,13 @@ case $stage in
   dataset)
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
+  dataset-sweep)
+    # keep rate and frames per target against tolerance / outlier share / pose range, short slices
+    for cfg in "--sim tolerance=0.01" "--sim tolerance=0.05" "--sim tolerance=0.05 --sim outlier_fraction=0.02" \
+               "--sim tolerance=0.05 --range-scale 0.6"; do
+      T=${T:-150} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-8} --test-poses 4 \
+        --device cuda:0 --out /tmp/tn-sweep $cfg
+    done ;;
   learn)
     T=400 run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
     T=90 run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;

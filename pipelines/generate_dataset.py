@@ -69,6 +69,7 @@ class Context:
     plan: Any
     style_rest: np.ndarray  # (n_styles, V, 3) cloth rest geometry per style
     style_start: np.ndarray  # (n_styles, V, 3) canonical drape per style (neutral body)
+    phases: dict = None  # summed run_sequences statistics of the batches simulated in this process
 
     @property
     def tasks(self) -> dict:
@@ -210,8 +211,11 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
     try:
         with torch.no_grad():
-            run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
-                          device=ctx.device, on_frame=record, on_progress=on_progress)
+            stats = run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
+                                  device=ctx.device, on_frame=record, on_progress=on_progress)
+        ctx.phases = ctx.phases or {}
+        for k, v in stats.items():
+            ctx.phases[k] = ctx.phases.get(k, 0) + v
     except BaseException:
         for w in writers:
             if w is not None and w.record is None:
@@ -289,6 +293,7 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         bar.update(count)
 
     t_sim = time.perf_counter()
+    ctx.phases = {}
     if executor == "local":
         run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress, skip=done)
     else:
@@ -306,6 +311,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         audit["simulation"] = {"seconds": round(sim_seconds, 3), "target_frames": int(total_keys),
                                "kept_frames": int(kept_this_run[0]), "device": ctx.device,
                                "worlds": int(spec["simulation"]["worlds"])}
+        if executor == "local" and ctx.phases:
+            # where the simulation time went (frames: simulator frames; *_s: seconds stepping,
+            # posing bodies, recording frames; recoveries: explosions survived)
+            audit["simulation"]["phases"] = {k: round(float(v), 3) for k, v in ctx.phases.items()}
         manifest.audit = audit
     manifest.finish()
     manifest.save()

@@ -146,9 +146,10 @@ def run_sequences(
     torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
 
     def pose_bodies(shapes: np.ndarray, poses: np.ndarray) -> PosedBody:
+        """Posed bodies as torch tensors on ``torch_device`` (they stay there: on CUDA the
+        collider takes them without a host round trip)."""
         with torch.no_grad():
-            posed = body.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
-        return PosedBody(**{k: (v.cpu().numpy() if isinstance(v, torch.Tensor) else v) for k, v in posed.__dict__.items()})
+            return body.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
 
     builder = ClothBuilder()
     for t in tasks:
@@ -156,7 +157,7 @@ def run_sequences(
     features = Features(self_contact=settings.self_contact, friction=settings.friction != 0.0)
     model = builder.finalize(device, features=features)
     start = pose_bodies(np.tile(neutral, (w_count, 1)), np.tile(canonical, (w_count, 1)))
-    collider = BodyCollider(start.vertices, body_faces, device=device, thickness=settings.contact_thickness)
+    collider = BodyCollider(start.vertices.cpu().numpy(), body_faces, device=device, thickness=settings.contact_thickness)
     sim_settings = SimSettings(**{**settings.sim.__dict__})
     sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=sim_settings)
     for w, t in enumerate(tasks):
@@ -165,8 +166,15 @@ def run_sequences(
     ptr = np.zeros(w_count, dtype=np.int64)
     held = np.zeros(w_count, dtype=np.int64)
     done = np.zeros(w_count, dtype=bool)
-    body_now: dict[str, np.ndarray] = {
-        "vertices": start.vertices.copy(), "skin": start.skinning_transforms.copy(), "rest": start.rest_vertices.copy()}
+    # current body per world, (W, Vb, 3) / (W, J, 4, 4) / (W, Vb, 3) tensors on torch_device
+    body_now: dict[str, torch.Tensor] = {
+        "vertices": start.vertices.clone(), "skin": start.skinning_transforms.clone(), "rest": start.rest_vertices.clone()}
+
+    def frame_of(w: int, key: int, positions: np.ndarray, st: int) -> RecordedFrame:
+        # copies: on CPU, numpy() would alias rows that the next frames overwrite
+        return RecordedFrame(w, int(key), positions, st, int(held[w]), body_now["vertices"][w].cpu().numpy().copy(),
+                             body_now["skin"][w].cpu().numpy().copy(), body_now["rest"][w].cpu().numpy().copy())
+
     stats = {"frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0, "recoveries": 0}
     last_good: list[dict | None] = [None] * w_count
     changed = np.ones(w_count, dtype=bool)
@@ -177,9 +185,10 @@ def run_sequences(
             shapes = np.stack([schedules[w][0][ptr[w]] for w in idx])
             poses = np.stack([schedules[w][1][ptr[w]] for w in idx])
             posed = pose_bodies(shapes, poses)
-            body_now["vertices"][idx] = posed.vertices
-            body_now["skin"][idx] = posed.skinning_transforms
-            body_now["rest"][idx] = posed.rest_vertices
+            idx_t = torch.as_tensor(idx, device=torch_device)
+            body_now["vertices"][idx_t] = posed.vertices
+            body_now["skin"][idx_t] = posed.skinning_transforms
+            body_now["rest"][idx_t] = posed.rest_vertices
             collider.set_target(body_now["vertices"])
             sim.restart(changed & ~done)
         t1 = time.perf_counter()
@@ -200,8 +209,7 @@ def run_sequences(
                 if settings.recover_explosions and last_good[w] is not None and len(failed):
                     # lose only the target being approached or held, then resume from the last good state
                     j = ptr[w] + int(failed[0])
-                    on_frame(RecordedFrame(w, int(keys_w[j]), sim.world_positions(w), st, int(held[w]),
-                                           body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                    on_frame(frame_of(w, keys_w[j], sim.world_positions(w), st))
                     finished_keys += 1
                     stats["recoveries"] += 1
                     good = last_good[w]
@@ -225,8 +233,7 @@ def run_sequences(
                 # no good state to go back to: hand over every remaining target pose as failed
                 for j in range(ptr[w], len(kinds_w)):
                     if kinds_w[j] == KEY:
-                        on_frame(RecordedFrame(w, int(keys_w[j]), sim.world_positions(w), st, int(held[w]),
-                                               body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                        on_frame(frame_of(w, keys_w[j], sim.world_positions(w), st))
                         finished_keys += 1
                 done[w] = True
                 continue
@@ -242,11 +249,10 @@ def run_sequences(
                 r0 = time.perf_counter()
                 positions_w = sim.world_positions(w)
                 if settings.recover_explosions:
-                    last_good[w] = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].copy(),
-                                    "skin": body_now["skin"][w].copy(), "rest": body_now["rest"][w].copy()}
+                    last_good[w] = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].clone(),
+                                    "skin": body_now["skin"][w].clone(), "rest": body_now["rest"][w].clone()}
                 if kind == KEY:
-                    on_frame(RecordedFrame(w, int(keys_w[ptr[w]]), positions_w, st, int(held[w]),
-                                           body_now["vertices"][w], body_now["skin"][w], body_now["rest"][w]))
+                    on_frame(frame_of(w, keys_w[ptr[w]], positions_w, st))
                     finished_keys += 1
                 stats["record_s"] += time.perf_counter() - r0
             ptr[w] += 1

@@ -115,9 +115,37 @@ class BodyCollider:
             verts = verts[:, self.vertex_map]
         return np.ascontiguousarray(verts.reshape(-1, 3))
 
-    def set_target(self, vertices: np.ndarray) -> None:
-        """Body pose at the end of the next frame [m], shape (W, Vb, 3) or (Vb, 3) for all worlds."""
+    def set_target(self, vertices) -> None:
+        """Body pose at the end of the next frame [m], shape (W, Vb, 3) or (Vb, 3) for all worlds.
+
+        ``vertices`` may be a numpy array or a float32 torch tensor of shape (W, Vb, 3); a
+        tensor on this collider's device is culled and copied without leaving the device.
+        """
+        if type(vertices).__module__.startswith("torch"):
+            self._set_target_torch(vertices)
+            return
         self.pose_end.assign(self._compact(vertices))
+
+    def _set_target_torch(self, vertices) -> None:
+        import torch
+
+        t = vertices.detach()
+        if t.dim() != 3 or t.shape[0] != self.world_count or t.shape[2] != 3 or \
+                t.shape[1] not in (self.source_vertex_count, self.vertex_count):
+            raise ValueError(f"body vertices must have shape ({self.world_count}, {self.source_vertex_count} or "
+                             f"{self.vertex_count}, 3) (got {tuple(t.shape)})")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError("body vertices must be finite (got NaN or inf)")
+        if t.shape[1] == self.source_vertex_count:
+            key = str(t.device)
+            if getattr(self, "_vertex_map_torch", (None, None))[0] != key:
+                self._vertex_map_torch = (key, torch.as_tensor(self.vertex_map, device=t.device))
+            t = t[:, self._vertex_map_torch[1]]
+        flat = t.reshape(-1, 3).to(torch.float32).contiguous()
+        if flat.device.type == "cuda" and self.device.is_cuda:
+            wp.copy(self.pose_end, wp.from_torch(flat, dtype=wp.vec3))
+        else:
+            self.pose_end.assign(flat.cpu().numpy())
 
     def set_pose(self, vertices: np.ndarray) -> None:
         """Place the body at ``vertices`` [m] now (no interpolation), shape as in ``set_target``."""
@@ -134,6 +162,8 @@ class BodyCollider:
         """
         if not 0 <= int(world) < self.world_count:
             raise ValueError(f"world must be in [0, {self.world_count}) (got {world!r})")
+        if type(vertices).__module__.startswith("torch"):
+            vertices = vertices.detach().cpu().numpy()
         verts = np.asarray(vertices, dtype=np.float32)
         if verts.ndim != 2 or verts.shape[1] != 3 or verts.shape[0] not in (self.source_vertex_count, self.vertex_count):
             raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
