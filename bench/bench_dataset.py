@@ -30,6 +30,8 @@ def main() -> None:
     parser.add_argument("--range-scale", type=float, default=None, help="override poses.range_scale")
     parser.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
                         help="override any simulation.KEY (repeatable), e.g. --sim outlier_fraction=0.02")
+    parser.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE",
+                        help="override any filters.KEY (repeatable), e.g. --filter max_self_intersections=50")
     parser.add_argument("--out", default="/tmp/bench_dataset")
     parser.add_argument("--keep", action="store_true", help="keep the output directory")
     args = parser.parse_args()
@@ -62,11 +64,13 @@ def main() -> None:
         spec["simulation"]["device"] = args.device
     if args.tolerance is not None:
         spec["simulation"]["tolerance"] = args.tolerance
-    for item in args.sim:
-        key, _, value = item.partition("=")
-        if key not in spec["simulation"] or not value:
-            raise SystemExit(f"--sim {item!r}: expected KEY=VALUE with KEY one of {sorted(spec['simulation'])}")
-        spec["simulation"][key] = type(spec["simulation"][key])(value) if spec["simulation"][key] is not None else float(value)
+    for flag, section, items in (("--sim", "simulation", args.sim), ("--filter", "filters", args.filter)):
+        for item in items:
+            key, _, value = item.partition("=")
+            if key not in spec[section] or not value:
+                raise SystemExit(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {sorted(spec[section])}")
+            old = spec[section][key]
+            spec[section][key] = (value.lower() in ("1", "true", "yes")) if isinstance(old, bool) else type(old)(value)
     if args.range_scale is not None:
         spec["poses"]["range_scale"] = args.range_scale
     out = Path(args.out)
@@ -81,7 +85,7 @@ def main() -> None:
     keep_rate = kept / max(targets, 1)
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
-        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim,
+        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim, "filter_overrides": args.filter,
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
         "target_frames_per_s": round(fps, 2), "keep_rate": round(keep_rate, 3),

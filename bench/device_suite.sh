@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|learn|reports  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|profile-dataset|learn|reports  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -30,9 +30,18 @@ case $stage in
       T=${T:-150} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-8} --test-poses 4 \
         --device cuda:0 --out /tmp/tn-sweep $cfg
     done ;;
+  dataset-learnable)
+    # a slice with relaxed filters (self-intersections, distortion) so the learners get frames;
+    # kept in /tmp/tn for the learn stage
+    T=${T:-300} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-12} --test-poses 6 \
+      --device cuda:0 --keep --out /tmp/tn --sim tolerance=0.05 --sim outlier_fraction=0.02 \
+      --filter max_self_intersections=${MAX_SI:-60} --filter max_distorted_fraction=0.01 ;;
+  profile-dataset)
+    T=${T:-150} run python -m cProfile -s tottime bench/bench_dataset.py --spec tailornet-tshirt --poses 3 --test-poses 2 \
+      --device cuda:0 --out /tmp/tn-prof --sim tolerance=0.05 ;;
   learn)
-    T=400 run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
-    T=90 run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
+    T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
+    T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
   reports)
     T=300 run python -m pipelines.cli report accuracy --device cuda:0 --out "$out/accuracy"
     T=280 run python -m pipelines.cli report stability --device cuda:0 --out "$out/stability" ;;
