@@ -34,7 +34,7 @@ case $stage in
     # a slice with relaxed filters (self-intersections, distortion) so the learners get frames;
     # kept in /tmp/tn for the learn stage
     T=${T:-300} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-12} --test-poses 6 \
-      --device cuda:0 --keep --out /tmp/tn --sim tolerance=0.05 --sim outlier_fraction=0.02 \
+      --device cuda:0 --keep --out /tmp/tn --sim tolerance=0.05 --sim outlier_fraction=0.02 ${RANGE:+--range-scale $RANGE} \
       --filter max_self_intersections=${MAX_SI:-60} --filter max_distorted_fraction=0.01 ;;
   profile-dataset)
     T=${T:-150} run python -m cProfile -s tottime bench/bench_dataset.py --spec tailornet-tshirt --poses 3 --test-poses 2 \

@@ -39,14 +39,20 @@ def resolve_device(device: str) -> str:
     return "cuda:0" if device == "cuda" else device
 
 
-def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any]) -> str | None:
-    """The first filter a frame fails (see :data:`DROP_REASONS`), or None to keep it."""
+def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any], *, status_only: bool = False) -> str | None:
+    """The first filter a frame fails (see :data:`DROP_REASONS`), or None to keep it.
+
+    With ``status_only`` only the filters that need no geometry (nan, not_converged) are
+    tested; ``metrics`` then needs just ``finite``.
+    """
     from simulate.cloth.quasi_static import WorldStatus
 
     if status == WorldStatus.EXPLODED or not metrics["finite"]:
         return "nan"
     if filters["require_converged"] and status != WorldStatus.CONVERGED:
         return "not_converged"
+    if status_only:
+        return None
     if metrics["distorted_fraction"] > filters["max_distorted_fraction"]:
         return "distortion"
     if metrics["penetration_fraction"] > filters["max_penetration_fraction"]:
@@ -186,10 +192,13 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         if writer is None:  # finished in an earlier run
             return
         x = np.asarray(frame.positions, np.float64)
-        metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
-                                rest_areas=rest_areas[t.style_index],
-                                area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
-        reason = drop_reason(metrics, frame.status, filters)
+        # the status filters first: a frame they drop needs no geometric metrics
+        reason = drop_reason({"finite": float(np.isfinite(x).all())}, frame.status, filters, status_only=True)
+        if reason is None:
+            metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
+                                    rest_areas=rest_areas[t.style_index],
+                                    area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
+            reason = drop_reason(metrics, frame.status, filters)
         if reason is None:
             unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]
             base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)

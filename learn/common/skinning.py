@@ -63,13 +63,14 @@ def garment_posing_functions(
         under = vertices[:, index.clamp_min(0).to(vertices.device)]  # (B, V, 3)
         if unattached.any():
             under = torch.where(unattached.to(vertices.device)[None, :, None], base.to(under), under)
-        return under
+        return under.to(getattr(shape, "device", under.device))  # the body model may live on another device than the learner
 
     def garment_poser(unposed: torch.Tensor, pose: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
-        transforms = body_model.pose_torch(shape, pose).skinning_transforms  # (B, J, 4, 4)
+        transforms = body_model.pose_torch(shape, pose).skinning_transforms.to(unposed.device)  # (B, J, 4, 4)
         return lbs(unposed, weights.to(unposed.device), transforms)
 
     def posed_body(pose: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
-        return body_model.pose_torch(shape, pose).vertices
+        vertices = body_model.pose_torch(shape, pose).vertices
+        return vertices.to(getattr(pose, "device", vertices.device))
 
     return unposed_body, garment_poser, posed_body
