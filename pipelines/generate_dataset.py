@@ -84,11 +84,6 @@ class Context:
 
 _CONTEXTS: dict[str, Context] = {}
 
-#: Body parts each garment type can touch (the rest is culled from the collider).
-CONTACT_PARTS = {"tshirt": ("torso", "arms"), "shirt": ("torso", "arms", "hands"), "pants": ("torso", "legs", "feet"),
-                 "shorts": ("torso", "legs"), "skirt": ("torso", "legs")}
-
-
 def sequence_settings(spec: dict):
     from simulate.cloth.quasi_static import SimSettings
     from simulate.sequence import SequenceSettings
@@ -111,6 +106,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     if key in _CONTEXTS:
         return _CONTEXTS[key]
     from simulate.body import load_body_model
+    from simulate.garment.drape import COLLISION_PARTS
     from simulate.garment.style import generate_garment
     from simulate.garment.templates import make_template
     from simulate.sequence import drape_static
@@ -123,7 +119,9 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     plan = plan_dataset(spec, body)
     cache = out_dir / "cache" / f"garments-{spec_hash(spec)[:16]}.npz"
     template = make_template(gtype, body, resolution=int(spec["garment"]["resolution"]))
-    body_faces = body.part_faces(CONTACT_PARTS[gtype])
+    # one table for every driver: tops keep legs and head so hems and collars never meet an open
+    # cut of the culled body (points beyond a cut get flipped contact normals and explode)
+    body_faces = body.part_faces(COLLISION_PARTS[gtype])
     if cache.is_file():
         with np.load(cache) as z:
             style_rest, style_start = z["style_rest"], z["style_start"]

@@ -149,3 +149,14 @@ def test_ray_executor_matches_local(reference, tmp_path):
     generate(_with(), tmp_path, executor="ray", progress=False, log=lambda m: None)
     assert _shard_hashes(tmp_path) == _shard_hashes(reference)
     assert validate_dataset(tmp_path).ok
+
+
+def test_collider_keeps_the_parts_beyond_the_garment_openings(reference, anny_body):
+    from pipelines.generate_dataset import build_context
+    from pipelines.spec import validate_spec
+    from simulate.garment.drape import COLLISION_PARTS
+
+    ctx = build_context(validate_spec(_with()), reference, device="cpu", log=lambda m: None)
+    np.testing.assert_array_equal(ctx.body_faces, anny_body.part_faces(COLLISION_PARTS["tshirt"]))
+    legs = set(np.unique(anny_body.part_faces(("legs",))).tolist())
+    assert legs & set(np.unique(ctx.body_faces).tolist()), "a t-shirt's collider needs the legs below its hem"

@@ -93,7 +93,7 @@ class Setting:
                 self.iterations if self.solver == "xpbd" else 0, self.tolerance)
 
 
-DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 10, 10, 0.01, "float32")
+DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 10, 10, 0.05, "float32")
 """The production default (pipelines/configs/tailornet-tshirt.yaml ``simulation`` block)."""
 
 REFERENCE_SETTINGS: dict[str, Setting] = {
@@ -110,7 +110,7 @@ def sweep_settings(size: str, *, default: Setting = DEFAULT_SETTING) -> list[Set
     gs, jac = "gauss_seidel", "jacobi"
     if size == "small":
         grid = [Setting("xpbd", gs, s, i, 0.01) for s, i in ((5, 5), (5, 10), (10, 5), (20, 10), (10, 20), (20, 20))]
-        grid += [Setting("xpbd", gs, 10, 10, t) for t in (0.05, 0.002)]
+        grid += [Setting("xpbd", gs, 10, 10, t) for t in (0.05, 0.01, 0.002)]
         grid += [Setting("xpbd", jac, 10, i, 0.01) for i in (10, 20)]
         grid += [Setting("mass_spring", gs, None, 1, 0.01)]
         grid += [dataclasses.replace(default, precision="float16")]
