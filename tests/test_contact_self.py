@@ -40,3 +40,23 @@ def test_layer_rests_on_layer_with_self_contact(device: str, mode: str, self_con
         assert upper[:, 1].max() < 0.01, "upper layer did not come down onto the lower one"
     else:
         assert upper[:, 1].max() < -0.1, "without self-contact the upper layer should fall through"
+
+
+def test_a_garment_at_rest_has_no_self_contacts(anny_body):
+    """Neighbours (the 2-ring) and pairs already close in the rest shape (the armpit crease of a
+    t-shirt) are not contacts: repelling them blew a 7k-vertex shirt apart at its first frame."""
+    from simulate.contact.self_contact import SelfContact
+    from simulate.garment.templates import make_template
+
+    template = make_template("tshirt", anny_body, resolution=7700)
+    builder = ClothBuilder()
+    builder.add_garment(template.vertices, template.faces, fabric="cotton")
+    model = builder.finalize("cpu", features=Features(self_contact=True))
+    contact = SelfContact(model)
+    x = wp.array(model.particle_q_rest_np, dtype=wp.vec3, device="cpu")
+    active = wp.ones(1, dtype=wp.int32, device="cpu")
+    contact.detect(x, active)
+    assert (contact.candidate.numpy() >= 0).sum() == 0, "a garment in its rest shape must not push itself apart"
+    no_exclusion = SelfContact(model, rest_exclusion=0.0)
+    no_exclusion.detect(x, active)
+    assert (no_exclusion.candidate.numpy() >= 0).sum() > 0, "the armpit crease is within reach without the rest exclusion"

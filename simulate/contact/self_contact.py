@@ -3,7 +3,7 @@
 All worlds' cloth triangles live in one ``wp.Mesh`` whose points are the particles shifted to
 per-world grid cells (as for the body), so one refit and one query launch serve every world
 and a world never sees another world's cloth.  Once per substep each particle finds the
-nearest triangle not containing it within ``thickness + margin`` (BVH AABB query, exact
+nearest triangle outside its 2-ring within ``thickness + margin`` (BVH AABB query, exact
 point-triangle distance) and remembers which side of it it was on.  In every solver
 iteration the particle is then pushed back to ``thickness`` on that side (one-sided: the
 particle moves, each triangle's corners are pushed by their own queries), written to a
@@ -88,12 +88,25 @@ def detect_self_contacts(
     world_active: wp.array(dtype=wp.int32),
     world_offset: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_slot: wp.array(dtype=wp.int32),
+    tri_slots: int,
+    x_rest: wp.array(dtype=wp.vec3),
+    rest_exclusion: float,
     reach: float,
     # Out:
     candidate_out: wp.array(dtype=wp.int32),
     side_out: wp.array(dtype=float),
 ):
-    """Nearest non-incident triangle of the same world within ``reach`` [m], and the side the particle is on."""
+    """Nearest triangle of the same world within ``reach`` [m] outside the particle's topological
+    neighbourhood, and the side the particle is on.
+
+    The neighbourhood is every triangle sharing a vertex with a triangle incident to the
+    particle (its 2-ring): at cloth resolution these are closer than the contact reach whenever
+    the cloth curves or compresses, and repelling them pushed a 7k-vertex shirt apart.  Pairs
+    closer than ``rest_exclusion`` [m] in the rest geometry (a garment's armpit crease, where
+    sleeve and torso panels meet at an acute angle) are not contacts either.
+    """
     i = wp.tid()
     candidate_out[i] = -1
     w = particle_world[i]
@@ -116,6 +129,21 @@ def detect_self_contacts(
         b = tri_indices[face, 1]
         c = tri_indices[face, 2]
         if a == i or b == i or c == i:
+            continue
+        near = bool(False)
+        for s in range(adj_start[i], adj_start[i + 1]):
+            slot = adj_slot[s]
+            if slot < tri_slots:
+                t = slot // 3
+                for k in range(3):
+                    u = tri_indices[t, k]
+                    if u == a or u == b or u == c:
+                        near = True
+        if near:
+            continue
+        pr = x_rest[i]
+        rb = closest_point_barycentric(pr, x_rest[a], x_rest[b], x_rest[c])
+        if wp.length(pr - (x_rest[a] * rb[0] + x_rest[b] * rb[1] + x_rest[c] * rb[2])) < rest_exclusion:
             continue
         xa = x[a]
         xb = x[b]
@@ -168,13 +196,16 @@ def project_self_contacts(
 class SelfContact:
     """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
 
-    def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3) -> None:
+    def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3,
+                 rest_exclusion: float | None = None) -> None:
         """
         Args:
             model: cloth model.
             thickness: distance kept between a particle and other triangles [m]; default the
                 largest fabric thickness of the model, at least 2 mm.
             margin: extra search distance when candidates are found once per substep [m].
+            rest_exclusion: particle-triangle pairs closer than this in the rest geometry are never
+                contacts [m]; default twice the contact reach (thickness + margin).
         """
         self.model = model
         dev = model.device
@@ -184,6 +215,10 @@ class SelfContact:
             raise ValueError(f"self-contact thickness must be > 0 and margin >= 0 [m] (got {thickness!r}, {margin!r})")
         self.thickness = float(thickness)
         self.margin = float(margin)
+        rest_exclusion = 2.0 * (self.thickness + self.margin) if rest_exclusion is None else float(rest_exclusion)
+        if not (np.isfinite(rest_exclusion) and rest_exclusion >= 0.0):
+            raise ValueError(f"self-contact rest_exclusion must be >= 0 [m] (got {rest_exclusion!r})")
+        self.rest_exclusion = rest_exclusion
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
         spacing = 4.0 * extent + 2.0
@@ -208,7 +243,8 @@ class SelfContact:
         self.mesh.refit()
         wp.launch(detect_self_contacts, dim=m.particle_count,
                   inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, self.world_offset,
-                          x, self.thickness + self.margin],
+                          x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
+                          m.particle_q_rest, self.rest_exclusion, self.thickness + self.margin],
                   outputs=[self.candidate, self.side], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:
