@@ -19,7 +19,8 @@ SPLIT_SOURCES = {"train_train": ("train", "train"), "train_test": ("train", "tes
 
 @dataclass
 class Task:
-    """One shard: one style-shape pair through the poses of one split."""
+    """One shard: one style-shape pair through the poses of one split (or, with
+    ``simulation.poses_per_task``, through one consecutive piece of them)."""
 
     task_id: str
     split: str
@@ -126,6 +127,15 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
             ids = np.sort(_rng(seed, 51, p, list(SPLIT_SOURCES).index(split)).permutation(available)[:count])
             order = greedy_order(pose_sets[pose_group][ids], body.canonical_pose)
             ids = ids[order]
-            plan.tasks.append(Task(f"{split}-p{p:03d}", split, p, si, all_shapes[hi], style_vectors[si], ids,
-                                   pose_sets[pose_group][ids]))
+            chunk = spec["simulation"]["poses_per_task"]
+            if chunk is None or len(ids) <= chunk:
+                plan.tasks.append(Task(f"{split}-p{p:03d}", split, p, si, all_shapes[hi], style_vectors[si], ids,
+                                       pose_sets[pose_group][ids]))
+                continue
+            # consecutive pieces of the visiting order, each its own task (world and shard), so
+            # a pair's thousands of poses run in parallel instead of one long world
+            for c, start in enumerate(range(0, len(ids), chunk)):
+                part = ids[start:start + chunk]
+                plan.tasks.append(Task(f"{split}-p{p:03d}-c{c:03d}", split, p, si, all_shapes[hi], style_vectors[si],
+                                       part, pose_sets[pose_group][part]))
     return plan

@@ -53,6 +53,9 @@ records and hashes. Schema (every key optional unless marked required)::
       shape_transition_frames: int = 10
       interpolation_threshold: float [rad] = 0.1
       min_hold_frames: int = 2          frames each target pose is held at least
+      poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
+                                        many poses (each its own world and shard, starting from the
+                                        canonical drape), so long pose lists fill the GPU's worlds
       contact: {thickness [m], friction, self_contact: bool}
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
@@ -90,7 +93,7 @@ DEFAULTS: dict[str, Any] = {
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
         "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
-        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2,
+        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
@@ -207,6 +210,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.shape_transition_frames", 1)
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     c.integer(f"{sim}.min_hold_frames", 1)
+    if spec[sim]["poses_per_task"] is not None:
+        c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)
     c.number(f"{sim}.contact.friction", 0.0, 2.0)
     if not isinstance(spec[sim]["contact"]["self_contact"], bool):

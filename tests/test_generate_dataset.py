@@ -160,3 +160,19 @@ def test_collider_keeps_the_parts_beyond_the_garment_openings(reference, anny_bo
     np.testing.assert_array_equal(ctx.body_faces, anny_body.part_faces(COLLISION_PARTS["tshirt"]))
     legs = set(np.unique(anny_body.part_faces(("legs",))).tolist())
     assert legs & set(np.unique(ctx.body_faces).tolist()), "a t-shirt's collider needs the legs below its hem"
+
+
+def test_poses_per_task_splits_a_pair_into_consecutive_tasks(anny_body):
+    """Chunked tasks cover the same poses in the same visiting order as the unchunked task."""
+    from pipelines.dataset_plan import plan_dataset
+    from pipelines.spec import validate_spec
+
+    body = anny_body
+    whole = plan_dataset(validate_spec(_with()), body)
+    chunked = plan_dataset(validate_spec(_with(simulation__poses_per_task=1)), body)
+    for task in whole.tasks:
+        parts = [t for t in chunked.tasks if t.split == task.split and t.pair == task.pair]
+        assert all(len(t.pose_ids) <= 1 for t in parts)
+        np.testing.assert_array_equal(np.concatenate([t.pose_ids for t in parts]), task.pose_ids)
+        if len(task.pose_ids) > 1:
+            assert [t.task_id for t in parts] == [f"{task.task_id}-c{c:03d}" for c in range(len(parts))]
