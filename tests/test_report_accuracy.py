@@ -9,7 +9,8 @@ import math
 import pytest
 import warp as wp
 
-from simulate.reports.accuracy import REFERENCE_SETTINGS, Setting, format_table, run_accuracy, sweep_settings
+from simulate.reports.accuracy import (DEFAULT_SETTING, REFERENCE_SETTINGS, Setting, format_table, run_accuracy,
+                                      sweep_settings)
 from simulate.reports.scenes import build_scene
 
 wp.init()
@@ -66,7 +67,7 @@ def test_sweeps_hold_the_default_once_and_reject_bad_names() -> None:
     for size in ("small", "full"):
         settings = sweep_settings(size)
         labels = [s.label for s in settings]
-        assert labels[0] == "xpbd-gs s10 i10 tol0.01 f32" and len(set(labels)) == len(labels), f"{size}: {labels}"
+        assert labels[0] == DEFAULT_SETTING.label == "xpbd-gs s10 i10 tol0.05 f32" and len(set(labels)) == len(labels), f"{size}: {labels}"
         assert {s.group for s in settings} == {"xpbd-gs", "xpbd-jac", "mass-spring"}
         assert {s.precision for s in settings} == {"float32", "float16"}
     with pytest.raises(ValueError, match="sweep"):
@@ -81,4 +82,4 @@ def test_default_must_be_in_the_sweep(scene) -> None:
     with pytest.raises(ValueError, match="default"):
         run_accuracy(scene, poses=["tilt"], settings=[Setting(iterations=3)], reference=REFERENCE_SETTINGS["ci"])
     with pytest.raises(ValueError, match="pose"):
-        run_accuracy(scene, poses=["moonwalk"], settings=[Setting()], reference=REFERENCE_SETTINGS["ci"])
+        run_accuracy(scene, poses=["moonwalk"], settings=[DEFAULT_SETTING], reference=REFERENCE_SETTINGS["ci"])
