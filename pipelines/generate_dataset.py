@@ -241,6 +241,11 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'dropped: ' + reason:<26}{int(dropped.get(reason, 0)):>6}")
     if seconds > 0:
         lines.append(f"  {'this run':<22}{seconds:>9.1f} s   {frames_simulated_keys / seconds:8.2f} target frames/s")
+    phases = ((manifest.audit or {}).get("simulation") or {}).get("phases")
+    if phases and seconds > 0:
+        lines.append(f"  {'  stepping / bodies / recording':<22}  {phases.get('sim_s', 0):.1f} / {phases.get('body_s', 0):.1f} / "
+                     f"{phases.get('record_s', 0):.1f} s over {int(phases.get('frames', 0))} simulator frames")
+        lines.append(f"  {'  explosions recovered':<26}{int(phases.get('recoveries', 0)):>6}")
     return "\n".join(lines)
 
 

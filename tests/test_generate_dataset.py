@@ -176,3 +176,18 @@ def test_poses_per_task_splits_a_pair_into_consecutive_tasks(anny_body):
         np.testing.assert_array_equal(np.concatenate([t.pose_ids for t in parts]), task.pose_ids)
         if len(task.pose_ids) > 1:
             assert [t.task_id for t in parts] == [f"{task.task_id}-c{c:03d}" for c in range(len(parts))]
+
+
+def test_summary_table_reports_drops_and_where_the_time_went(reference):
+    from data_manifest.manifest import Manifest
+    from pipelines.generate_dataset import DROP_REASONS, _summary_table
+
+    manifest = Manifest.load(reference)
+    phases = manifest.audit["simulation"]["phases"]
+    assert phases["frames"] > 0 and phases["sim_s"] > 0, phases
+    table = _summary_table(manifest, 10.0, 20)
+    kept = int(manifest.totals["frames_kept"])
+    assert f"frames kept{kept:>6}".replace(" ", "") in table.replace(" ", ""), table
+    assert all(f"dropped: {reason}" in table for reason in DROP_REASONS), table
+    assert "2.00 target frames/s" in table and "explosions recovered" in table, table
+    assert f"over {int(phases['frames'])} simulator frames" in table, table
