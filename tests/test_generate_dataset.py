@@ -191,3 +191,19 @@ def test_summary_table_reports_drops_and_where_the_time_went(reference):
     assert all(f"dropped: {reason}" in table for reason in DROP_REASONS), table
     assert "2.00 target frames/s" in table and "explosions recovered" in table, table
     assert f"over {int(phases['frames'])} simulator frames" in table, table
+
+
+def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
+    from pipelines.generate_dataset import generate
+
+    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lambda m: None)
+    report = validate_dataset(tmp_path)
+    assert report.ok, report.errors
+    shards = json.loads((tmp_path / "manifest.json").read_text())["shards"]
+    ids = sorted(s["task_id"] for s in shards)
+    assert ids == ["test_test-p001", "test_train-p001", "train_test-p000", "train_train-p000-c000",
+                   "train_train-p000-c001"], ids
+    for shard in shards:  # one target pose per piece, kept or dropped
+        assert shard["frame_count"] + sum(shard["filter_stats"].values()) == 1, shard
+    reader = DatasetReader(tmp_path)
+    assert reader.num_frames("train_train") == sum(s["frame_count"] for s in shards if s["task_id"].startswith("train_train"))
