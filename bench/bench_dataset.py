@@ -70,7 +70,12 @@ def main() -> None:
             if key not in spec[section] or not value:
                 raise SystemExit(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {sorted(spec[section])}")
             old = spec[section][key]
-            spec[section][key] = (value.lower() in ("1", "true", "yes")) if isinstance(old, bool) else type(old)(value)
+            if isinstance(old, bool):
+                spec[section][key] = value.lower() in ("1", "true", "yes")
+            elif old is None:  # optional fields (poses_per_task): an integer, or null
+                spec[section][key] = None if value.lower() in ("none", "null") else int(value)
+            else:
+                spec[section][key] = type(old)(value)
     if args.range_scale is not None:
         spec["poses"]["range_scale"] = args.range_scale
     out = Path(args.out)
@@ -80,6 +85,9 @@ def main() -> None:
     wall = time.perf_counter() - t0
     sim = manifest.audit.get("simulation", {})
     targets = int(sim.get("target_frames", 0))
+    phases = sim.get("phases", {}) or {}
+    worlds = int(spec["simulation"]["worlds"])
+    tasks = len(list((out / "shards").glob("*.h5")))
     fps = targets / max(sim.get("seconds", wall), 1e-9)
     kept = int(manifest.totals["frames_kept"])
     keep_rate = kept / max(targets, 1)
@@ -92,8 +100,11 @@ def main() -> None:
         "full_spec_target_frames": full_targets, "full_spec_expected_kept": round(full_targets * keep_rate),
         "projected_full_s": round(full_targets / max(fps, 1e-9), 1),
         "audit_max_mm": manifest.audit.get("max_mm"), "audit_mean_mm": manifest.audit.get("mean_mm"),
-        "phases": sim.get("phases"), "frames_per_target": round(sim.get("phases", {}).get("frames", 0) * spec["simulation"]["worlds"]
-                                                                / max(targets, 1), 1),
+        "phases": sim.get("phases"),
+        # busy world-frames per target (transition + hold + each task's start-up, no idle worlds)
+        "world_frames_per_target": round(phases.get("world_frames", 0) / max(targets, 1), 1),
+        # simulation cost of one world-frame at this batch size [ms]
+        "ms_per_world_frame": round(1e3 * phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1), 3),
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)

@@ -134,8 +134,9 @@ def run_sequences(
         on_frame: called once per (task, target pose) in visiting order per task.
         on_progress: called with the number of target poses finished after each frame.
     Returns:
-        statistics: frames simulated, wall seconds in simulation/body/record phases, explosion
-            recoveries.
+        statistics: frames simulated, world_frames (frames summed over the worlds still
+            busy: the work a perfectly packed batch would do), wall seconds in the simulation /
+            body / record phases, explosion recoveries.
     """
     import time
 
@@ -175,7 +176,7 @@ def run_sequences(
         return RecordedFrame(w, int(key), positions, st, int(held[w]), body_now["vertices"][w].cpu().numpy().copy(),
                              body_now["skin"][w].cpu().numpy().copy(), body_now["rest"][w].cpu().numpy().copy())
 
-    stats = {"frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0, "recoveries": 0}
+    stats = {"frames": 0, "world_frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0, "recoveries": 0}
     last_good: list[dict | None] = [None] * w_count
     changed = np.ones(w_count, dtype=bool)
     while not done.all():
@@ -195,6 +196,7 @@ def run_sequences(
         status = sim.step_frame()
         t2 = time.perf_counter()
         stats["frames"] += 1
+        stats["world_frames"] += int((~done).sum())
         stats["sim_s"] += t2 - t1
         stats["body_s"] += t1 - t0
         held[~done] += 1
