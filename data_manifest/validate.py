@@ -298,5 +298,28 @@ def info(root: str | os.PathLike[str]) -> str:
         lines.append(f"throughput: {totals['frames_kept'] / wall_s:.2f} kept frames/s, "
                      f"{seen / wall_s:.2f} simulated frames/s over {wall_s:.1f} s wall")
     if manifest.audit is not None:
-        lines.append(f"audit: {', '.join(sorted(manifest.audit)) or '(empty)'}")
+        lines.extend(_audit_lines(manifest.audit))
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _audit_lines(audit: dict) -> list[str]:
+    """Human-readable lines for the manifest's ``audit`` block (written by generate-dataset)."""
+    lines = []
+    max_mm, mean_mm = audit.get("max_mm"), audit.get("mean_mm")
+    if isinstance(max_mm, dict) and isinstance(mean_mm, dict):
+        lines.append(f"audit: {audit.get('samples', '?')} kept frames re-solved at {audit.get('tolerance_mps', '?')} m/s: "
+                     f"vertex error max median {max_mm.get('median', float('nan')):.2f} / p90 {max_mm.get('p90', float('nan')):.2f} mm, "
+                     f"mean median {mean_mm.get('median', float('nan')):.2f} / p90 {mean_mm.get('p90', float('nan')):.2f} mm")
+    sim = audit.get("simulation")
+    if isinstance(sim, dict):
+        line = (f"simulation: {sim.get('target_frames', '?')} target frames in {sim.get('seconds', float('nan')):.1f} s "
+                f"on {sim.get('device', '?')} ({sim.get('worlds', '?')} worlds)")
+        phases = sim.get("phases")
+        if isinstance(phases, dict):
+            line += (f"; stepping {phases.get('sim_s', 0.0):.1f} s, bodies {phases.get('body_s', 0.0):.1f} s, recording "
+                     f"{phases.get('record_s', 0.0):.1f} s, {int(phases.get('frames', 0))} simulator frames, "
+                     f"{int(phases.get('recoveries', 0))} explosions recovered")
+        lines.append(line)
+    if not lines:
+        lines.append(f"audit: {', '.join(sorted(audit)) or '(empty)'}")
+    return lines

@@ -207,3 +207,12 @@ def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
         assert shard["frame_count"] + sum(shard["filter_stats"].values()) == 1, shard
     reader = DatasetReader(tmp_path)
     assert reader.num_frames("train_train") == sum(s["frame_count"] for s in shards if s["task_id"].startswith("train_train"))
+
+
+def test_dataset_info_reads_out_the_audit(reference):
+    from data_manifest.validate import info
+
+    text = info(reference)
+    audit = json.loads((reference / "manifest.json").read_text())["audit"]
+    assert f"vertex error max median {audit['max_mm']['median']:.2f}" in text, text
+    assert f"{audit['simulation']['target_frames']} target frames" in text and "explosions recovered" in text, text
