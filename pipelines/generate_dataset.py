@@ -297,7 +297,7 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         kept_this_run[0] += int(record["frame_count"] if isinstance(record, dict) else record.frame_count)
         manifest.add_shard(record)
         manifest.save()
-        bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}")
+        bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}", refresh=False)
 
     def on_progress(count: int, batch: list[str] | None = None) -> None:
         if batch is not None:

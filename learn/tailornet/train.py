@@ -397,7 +397,7 @@ def run_epochs(
         mean_loss = epoch_fn(model, optimizer, generator)
         with log_path.open("a", newline="") as handle:
             csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
-        bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}")
+        bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}", refresh=False)  # redrawn at tqdm's pace, not per epoch
         if epoch + 1 < epochs and time.monotonic() - last_save < checkpoint_interval_s:
             continue
         last_save = time.monotonic()
