@@ -4,8 +4,11 @@ through generate-dataset on one device and projects the wall time of the full sp
     python bench/bench_dataset.py --spec tailornet-tshirt --poses 40 --out /tmp/bench_ds [--device cuda:0]
 
 Prints one JSON line: kept and dropped frames by reason, target frames per second,
-phase timings, and the projected hours/minutes for the full spec's target frames
-(``projected_full_s``), plus the audit's error distribution.
+phase timings, the projected time for the full spec's target frames at the slice's rate
+(``projected_full_s``), the busy world-frames per target and the cost of one world-frame
+(``world_frames_per_target``, ``ms_per_world_frame``) with the stepping time they imply for a
+full spec whose worlds stay busy (``projected_packed_stepping_s``), plus the audit's error
+distribution.
 """
 from __future__ import annotations
 
@@ -105,6 +108,10 @@ def main() -> None:
         "world_frames_per_target": round(phases.get("world_frames", 0) / max(targets, 1), 1),
         # simulation cost of one world-frame at this batch size [ms]
         "ms_per_world_frame": round(1e3 * phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1), 3),
+        # the full spec's stepping time if its worlds were kept busy (poses_per_task) at this
+        # slice's cost per world-frame and frames per target (sparser slices overestimate it)
+        "projected_packed_stepping_s": round(full_targets * phases.get("world_frames", 0) / max(targets, 1)
+                                             * phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1), 1),
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)
