@@ -39,20 +39,22 @@ def resolve_device(device: str) -> str:
     return "cuda:0" if device == "cuda" else device
 
 
-def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any], *, status_only: bool = False) -> str | None:
-    """The first filter a frame fails (see :data:`DROP_REASONS`), or None to keep it.
-
-    With ``status_only`` only the filters that need no geometry (nan, not_converged) are
-    tested; ``metrics`` then needs just ``finite``.
-    """
+def status_drop_reason(finite: bool, status: int, filters: dict[str, Any]) -> str | None:
+    """The filters that need no geometry: "nan" (exploded or non-finite), "not_converged"."""
     from simulate.cloth.quasi_static import WorldStatus
 
-    if status == WorldStatus.EXPLODED or not metrics["finite"]:
+    if status == WorldStatus.EXPLODED or not finite:
         return "nan"
     if filters["require_converged"] and status != WorldStatus.CONVERGED:
         return "not_converged"
-    if status_only:
-        return None
+    return None
+
+
+def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any]) -> str | None:
+    """The first filter a frame fails (see :data:`DROP_REASONS`), or None to keep it."""
+    reason = status_drop_reason(bool(metrics["finite"]), status, filters)
+    if reason is not None:
+        return reason
     if metrics["distorted_fraction"] > filters["max_distorted_fraction"]:
         return "distortion"
     if metrics["penetration_fraction"] > filters["max_penetration_fraction"]:
@@ -191,7 +193,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             return
         x = np.asarray(frame.positions, np.float64)
         # the status filters first: a frame they drop needs no geometric metrics
-        reason = drop_reason({"finite": float(np.isfinite(x).all())}, frame.status, filters, status_only=True)
+        reason = status_drop_reason(bool(np.isfinite(x).all()), frame.status, filters)
         if reason is None:
             metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
                                     rest_areas=rest_areas[t.style_index],

@@ -102,13 +102,17 @@ def _schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape: np.
     poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
     kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
     keys = [np.full(n, -1), np.array([-1])]
-    seq, key_index = interpolate_sequence(task.poses, canonical_pose, s.interpolation_threshold)
-    shapes.append(np.tile(task.shape, (len(seq), 1)))
-    poses.append(seq)
-    kinds.append(np.where(key_index >= 0, KEY, TRANSITION))
-    keys.append(key_index)
-    return (np.concatenate(shapes).astype(np.float32), np.concatenate(poses).astype(np.float32),
-            np.concatenate(kinds), np.concatenate(keys))
+    visit = _visit_entries(task, 0, canonical_pose, s.interpolation_threshold)
+    out = [np.concatenate([*part, v]) for part, v in zip((shapes, poses, kinds, keys), visit)]
+    return out[0].astype(np.float32), out[1].astype(np.float32), out[2], out[3]
+
+
+def _visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, threshold: float):
+    """Schedule entries visiting ``task.poses[first_key:]`` from ``start_pose``: (shapes (M,S),
+    poses (M,60), kinds (M,), key index into ``task.poses`` (M,), -1 for slerp'ed poses)."""
+    seq, key_index = interpolate_sequence(task.poses[first_key:], start_pose, threshold)
+    return (np.tile(task.shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
+            np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + first_key, -1))
 
 
 def run_sequences(
@@ -215,20 +219,17 @@ def run_sequences(
                     finished_keys += 1
                     stats["recoveries"] += 1
                     good = last_good[w]
-                    rest_keys = np.asarray(tasks[w].poses[int(keys_w[j]) + 1:], np.float32)
+                    next_key = int(keys_w[j]) + 1
                     for name in ("vertices", "skin", "rest"):
                         body_now[name][w] = good[name]
                     collider.place_world(w, good["vertices"])
                     sim.revive(w, good["positions"])
                     held[w] = 0
-                    if len(rest_keys) == 0:
+                    if next_key >= len(tasks[w].poses):
                         done[w] = True
                         sim.status[w] = WorldStatus.CONVERGED  # frozen again: nothing left to do
                         continue
-                    seq, key_index = interpolate_sequence(rest_keys, good["pose"], settings.interpolation_threshold)
-                    offset = int(keys_w[j]) + 1
-                    schedules[w] = (np.tile(tasks[w].shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
-                                    np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + offset, -1))
+                    schedules[w] = _visit_entries(tasks[w], next_key, good["pose"], settings.interpolation_threshold)
                     ptr[w] = 0
                     changed[w] = True
                     continue

@@ -101,13 +101,16 @@ class BodyCollider:
         """Fraction of the frame's body motion covered by one substep (set by the driver)."""
 
     # ---------------------------------------------------------------- poses
-    def _compact(self, vertices: np.ndarray) -> np.ndarray:
+    def _compact(self, vertices: np.ndarray, *, worlds: int | None = None) -> np.ndarray:
+        """Checked, culled, flattened body vertices of ``worlds`` worlds (default all), (worlds * Vk, 3);
+        (Vb, 3) input is shared by those worlds."""
+        worlds = self.world_count if worlds is None else worlds
         verts = np.asarray(vertices, dtype=np.float32)
         if verts.ndim == 2:
-            verts = np.broadcast_to(verts, (self.world_count,) + verts.shape)
-        if verts.ndim != 3 or verts.shape[0] != self.world_count or verts.shape[2] != 3 or \
+            verts = np.broadcast_to(verts, (worlds,) + verts.shape)
+        if verts.ndim != 3 or verts.shape[0] != worlds or verts.shape[2] != 3 or \
                 verts.shape[1] not in (self.source_vertex_count, self.vertex_count):
-            raise ValueError(f"body vertices must have shape ({self.world_count}, {self.source_vertex_count} or "
+            raise ValueError(f"body vertices must have shape ({worlds}, {self.source_vertex_count} or "
                              f"{self.vertex_count}, 3) (got {np.shape(vertices)})")
         if not np.all(np.isfinite(verts)):
             raise ValueError("body vertices must be finite (got NaN or inf)")
@@ -118,15 +121,17 @@ class BodyCollider:
     def set_target(self, vertices) -> None:
         """Body pose at the end of the next frame [m], shape (W, Vb, 3) or (Vb, 3) for all worlds.
 
-        ``vertices`` may be a numpy array or a float32 torch tensor of shape (W, Vb, 3); a
-        tensor on this collider's device is culled and copied without leaving the device.
+        ``vertices`` may be a numpy array or a torch tensor; a CUDA tensor on a CUDA collider is
+        culled and copied without leaving the device.
         """
         if type(vertices).__module__.startswith("torch"):
-            self._set_target_torch(vertices)
-            return
+            if vertices.is_cuda and self.device.is_cuda:
+                self._set_target_cuda_tensor(vertices)
+                return
+            vertices = vertices.detach().cpu().numpy()
         self.pose_end.assign(self._compact(vertices))
 
-    def _set_target_torch(self, vertices) -> None:
+    def _set_target_cuda_tensor(self, vertices) -> None:
         import torch
 
         t = vertices.detach()
@@ -137,15 +142,10 @@ class BodyCollider:
         if not bool(torch.isfinite(t).all()):
             raise ValueError("body vertices must be finite (got NaN or inf)")
         if t.shape[1] == self.source_vertex_count:
-            key = str(t.device)
-            if getattr(self, "_vertex_map_torch", (None, None))[0] != key:
-                self._vertex_map_torch = (key, torch.as_tensor(self.vertex_map, device=t.device))
-            t = t[:, self._vertex_map_torch[1]]
-        flat = t.reshape(-1, 3).to(torch.float32).contiguous()
-        if flat.device.type == "cuda" and self.device.is_cuda:
-            wp.copy(self.pose_end, wp.from_torch(flat, dtype=wp.vec3))
-        else:
-            self.pose_end.assign(flat.cpu().numpy())
+            if getattr(self, "_vertex_map_torch", None) is None or self._vertex_map_torch.device != t.device:
+                self._vertex_map_torch = torch.as_tensor(self.vertex_map, device=t.device)
+            t = t[:, self._vertex_map_torch]
+        wp.copy(self.pose_end, wp.from_torch(t.reshape(-1, 3).to(torch.float32).contiguous(), dtype=wp.vec3))
 
     def set_pose(self, vertices: np.ndarray) -> None:
         """Place the body at ``vertices`` [m] now (no interpolation), shape as in ``set_target``."""
@@ -165,14 +165,10 @@ class BodyCollider:
         if type(vertices).__module__.startswith("torch"):
             vertices = vertices.detach().cpu().numpy()
         verts = np.asarray(vertices, dtype=np.float32)
-        if verts.ndim != 2 or verts.shape[1] != 3 or verts.shape[0] not in (self.source_vertex_count, self.vertex_count):
+        if verts.ndim != 2:
             raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
                              f"(got {verts.shape})")
-        if not np.all(np.isfinite(verts)):
-            raise ValueError("body vertices must be finite (got NaN or inf)")
-        if verts.shape[0] == self.source_vertex_count:
-            verts = verts[self.vertex_map]
-        src = wp.array(np.ascontiguousarray(verts), dtype=wp.vec3, device=self.device)
+        src = wp.array(self._compact(verts, worlds=1), dtype=wp.vec3, device=self.device)
         offset = int(world) * self.vertex_count
         for dst in (self.pose_start, self.pose_end):
             wp.copy(dst, src, dest_offset=offset, src_offset=0, count=self.vertex_count)

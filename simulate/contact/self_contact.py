@@ -130,6 +130,15 @@ def detect_self_contacts(
         c = tri_indices[face, 2]
         if a == i or b == i or c == i:
             continue
+        xa = x[a]
+        xb = x[b]
+        xc = x[c]
+        bary = closest_point_barycentric(p, xa, xb, xc)
+        closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
+        d = wp.length(p - closest)
+        if d >= best:
+            continue
+        # only a would-be nearest triangle pays for the neighbourhood and rest-shape tests
         near = bool(False)
         for s in range(adj_start[i], adj_start[i + 1]):
             slot = adj_slot[s]
@@ -145,17 +154,10 @@ def detect_self_contacts(
         rb = closest_point_barycentric(pr, x_rest[a], x_rest[b], x_rest[c])
         if wp.length(pr - (x_rest[a] * rb[0] + x_rest[b] * rb[1] + x_rest[c] * rb[2])) < rest_exclusion:
             continue
-        xa = x[a]
-        xb = x[b]
-        xc = x[c]
-        bary = closest_point_barycentric(p, xa, xb, xc)
-        closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
-        d = wp.length(p - closest)
-        if d < best:
-            best = d
-            best_face = face
-            normal = wp.cross(xb - xa, xc - xa)
-            best_side = wp.where(wp.dot(p - closest, normal) >= 0.0, 1.0, -1.0)
+        best = d
+        best_face = face
+        normal = wp.cross(xb - xa, xc - xa)
+        best_side = wp.where(wp.dot(p - closest, normal) >= 0.0, 1.0, -1.0)
     candidate_out[i] = best_face
     side_out[i] = best_side
 
