@@ -7,7 +7,7 @@ import json
 import pytest
 
 from pipelines import report
-from simulate.reports.accuracy import DEFAULT_SETTING
+from simulate.reports.accuracy import DEFAULT_SETTING, PRODUCTION_BASE
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
@@ -29,6 +29,17 @@ def test_subcommands_parse_with_documented_defaults() -> None:
 def test_production_default_matches_the_shipped_spec() -> None:
     assert report.production_default() == DEFAULT_SETTING, (
         f"tailornet-tshirt.yaml simulation block gives {report.production_default()}, the reports declare {DEFAULT_SETTING}")
+
+
+def test_production_base_matches_the_shipped_spec() -> None:
+    base = report.production_base()
+    for field in report.BASE_FIELDS:
+        assert getattr(base, field) == getattr(PRODUCTION_BASE, field), (
+            f"tailornet-tshirt.yaml gives simulation {field} = {getattr(base, field)}, the accuracy report's "
+            f"PRODUCTION_BASE has {getattr(PRODUCTION_BASE, field)}")
+    # every sweep setting keeps the base's damping and explosion limits and sets its own swept fields
+    s = DEFAULT_SETTING.sim_settings(max_frames=7, base=base)
+    assert (s.damping, s.explosion_stretch, s.tolerance, s.max_frames) == (base.damping, base.explosion_stretch, 0.05, 7)
 
 
 def test_pose_names_and_json_cleaning() -> None:
