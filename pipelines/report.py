@@ -129,7 +129,15 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
         bar.set_postfix_str(label[:40])
         bar.update(1)
 
+    rows_path = out / "accuracy_rows.jsonl"
+    rows_path.unlink(missing_ok=True)
+
+    def row_done(row: dict) -> None:
+        with open(rows_path, "a") as f:
+            f.write(json.dumps(_clean(row), default=_json_default) + "\n")
+
     report = run_accuracy(scene, poses=poses, settings=settings, reference=reference, default=default, device=device,
+                          on_row=row_done,
                           base=production_base(), fabric=args.fabric, max_frames=args.max_frames, reference_max_frames=args.reference_max_frames or 4 * args.max_frames,
                           explosion_stretch=args.explosion_stretch, on_progress=progress)
     bar.close()

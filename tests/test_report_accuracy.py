@@ -35,10 +35,13 @@ def test_error_falls_as_iterations_rise(scene, device: str) -> None:
     sweep = [Setting("xpbd", "gauss_seidel", 4, i, 0.01) for i in ITERATIONS]
     sweep.append(Setting("xpbd", "gauss_seidel", 4, ITERATIONS[-1], 0.01, "float16"))
     default = sweep[1]
+    streamed: list[dict] = []
     report = run_accuracy(scene, poses=["canonical"], settings=sweep, reference=REFERENCE_SETTINGS["ci"], default=default,
                           device=device, max_frames=200, reference_max_frames=400,
-                          drape_setting=Setting("xpbd", "gauss_seidel", 4, 2, 0.02))
+                          drape_setting=Setting("xpbd", "gauss_seidel", 4, 2, 0.02), on_row=streamed.append)
     rows = {r["label"]: r for r in report["rows"]}
+    # rows are handed out as soon as they are measured (a sweep cut short keeps them): reference first
+    assert streamed[0] == {"reference": report["reference"]} and streamed[1:] == report["rows"]
     print(format_table(report))
     assert report["reference"]["status"] == ["CONVERGED"], f"reference did not converge: {report['reference']}"
     errors = [rows[s.label] for s in sweep[:len(ITERATIONS)]]

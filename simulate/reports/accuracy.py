@@ -171,6 +171,7 @@ def run_accuracy(
     base: SimSettings | None = None,
     explosion_stretch: float | None = None,
     on_progress: Callable[[str, Any], None] | None = None,
+    on_row: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Runs the accuracy protocol (module docstring) and returns the report as a JSON-ready dict.
 
@@ -188,6 +189,8 @@ def run_accuracy(
         explosion_stretch: triangle stretch ratio that marks a world EXPLODED, for every run (None: the base's).
         on_progress: called with a setting label and its :class:`~simulate.reports.scenes.SceneRun` after each
             simulation (progress bars, per-setting log lines).
+        on_row: called with the reference's summary and then with each finished row, as soon as it is
+            measured (the CLI appends them to a JSON-lines file, so a sweep cut short keeps its rows).
     Returns:
         {"scene", "device", "poses", "poses_dropped" (reference exploded), "reference", "rows", "default", "front", "default_on_front",
         "default_time_ratio", "default_near_front"} (see the module docstring for row fields).
@@ -251,6 +254,8 @@ def run_accuracy(
         "canonical_drape_setting": drape_setting.label,
         "canonical_drape_status": WorldStatus(int(drape.status[0])).name, "canonical_drape_frames": int(drape.frames[0]),
     }
+    if on_row:
+        on_row({"reference": reference_out})
     runs: dict[tuple, Any] = {}
     rows: list[dict[str, Any]] = []
     for s in settings:
@@ -282,6 +287,8 @@ def run_accuracy(
             "frames_mean": float(run.frames.mean()),
             "substeps_used": int(run.substeps),
         })
+        if on_row:
+            on_row(rows[-1])
     front = pareto_front(rows)
     labels = [r["label"] for r in rows]
     d = rows[labels.index(default.label)]
