@@ -16,6 +16,7 @@ import argparse
 import copy
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -37,6 +38,7 @@ def main() -> None:
                         help="override any filters.KEY (repeatable), e.g. --filter max_self_intersections=50")
     parser.add_argument("--out", default="/tmp/bench_dataset")
     parser.add_argument("--keep", action="store_true", help="keep the output directory")
+    parser.add_argument("--heartbeat", type=float, default=20.0, help="seconds between progress lines on stderr")
     args = parser.parse_args()
 
     from pipelines.generate_dataset import generate
@@ -84,7 +86,10 @@ def main() -> None:
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
-    manifest = generate(spec, out, progress=False, log=lambda m: None)
+    def log(message: str) -> None:  # to stderr, so stdout stays one JSON line
+        print(f"[{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
+
+    manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat)
     wall = time.perf_counter() - t0
     sim = manifest.audit.get("simulation", {})
     targets = int(sim.get("target_frames", 0))

@@ -252,8 +252,11 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
 
 
 def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local", device: str | None = None,
-             ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print) -> Any:
-    """Runs (or resumes) a dataset generation; returns the finished Manifest."""
+             ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
+             heartbeat_s: float = 30.0) -> Any:
+    """Runs (or resumes) a dataset generation; returns the finished Manifest.
+
+    Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -301,10 +304,22 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         manifest.save()
         bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}", refresh=False)
 
+    log(f"simulating {len(pending)} tasks ({total_keys} target poses) in {len(batches)} batch(es) of at most "
+        f"{worlds} worlds on {ctx.device}")
+    beat = {"done": 0, "last": time.perf_counter()}
+
     def on_progress(count: int, batch: list[str] | None = None) -> None:
         if batch is not None:
             count = sum(len(ctx.tasks[t].poses) for t in batch)
         bar.update(count)
+        beat["done"] += count
+        now = time.perf_counter()
+        if not progress and now - beat["last"] >= heartbeat_s:
+            # headless runs (logs of cluster or device jobs) still say how far they are
+            beat["last"] = now
+            elapsed = now - t_sim
+            log(f"  {elapsed:7.1f} s: {beat['done']}/{total_keys} target poses "
+                f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards")
 
     t_sim = time.perf_counter()
     ctx.phases = {}

@@ -196,7 +196,12 @@ def test_summary_table_reports_drops_and_where_the_time_went(reference):
 def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
     from pipelines.generate_dataset import generate
 
-    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lambda m: None)
+    lines: list[str] = []
+    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lines.append, heartbeat_s=0.0)
+    # headless runs log their progress: the plan, then heartbeats counting up to every target pose
+    assert any(m.startswith("simulating 5 tasks (5 target poses)") for m in lines), lines
+    beats = [m for m in lines if "target poses (" in m]
+    assert beats and beats[-1].split(": ")[1].startswith("5/5 target poses"), beats
     report = validate_dataset(tmp_path)
     assert report.ok, report.errors
     shards = json.loads((tmp_path / "manifest.json").read_text())["shards"]
