@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from simulate.reports.scenes import build_scene
-from simulate.reports.stability import (SUPPORTED, failing_supported, format_table, plot_heatmap, run_stability,
+from simulate.reports.stability import (CUDA_EXCEPTIONS, SUPPORTED, failing_supported, supported_cells, format_table, plot_heatmap, run_stability,
                                         stability_cases, unexpected_passes)
 
 wp.init()
@@ -38,6 +38,16 @@ def test_failed_cell_is_reported_against_the_table() -> None:
                         {"cell": "c/3", "supported": True, "passed": True}]}
     assert [c["cell"] for c in failing_supported(report)] == ["a/1"]
     assert [c["cell"] for c in unexpected_passes(report)] == ["b/2"]
+
+
+def test_cuda_exceptions_are_declared_cells_and_unsupported_on_cuda_only() -> None:
+    for name, cells in CUDA_EXCEPTIONS.items():
+        cpu, cuda = supported_cells(name, "cpu"), supported_cells(name, "cuda:0")
+        for cell in cells:
+            assert SUPPORTED[name][cell][0], f"{name}: {cell} is a CUDA exception but not supported on CPU either"
+            assert cpu[cell][0] and not cuda[cell][0] and cuda[cell][1].startswith("on CUDA: "), (cell, cpu[cell], cuda[cell])
+        same = [c for c in SUPPORTED[name] if c not in cells]
+        assert all(cpu[c] == cuda[c] for c in same), f"{name}: cells outside the exceptions differ between devices"
 
 
 def test_every_declared_cell_exists_and_bad_sizes_raise() -> None:

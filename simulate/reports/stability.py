@@ -1,10 +1,10 @@
 """Stiff and extreme cases (``drape report stability``).
 
 Each *cell* of the matrix is one case run from the scene's canonical drape (computed once with
-the production settings): the body goes along a slerp pose path (one frame per 0.1 rad of the
+the simulator's default settings): the body goes along a slerp pose path (one frame per 0.1 rad of the
 largest joint change, or the given number of frames for fast transitions) with its shape blended
-from neutral over the same frames, and the cloth then relaxes with the production settings
-(XPBD Gauss-Seidel, 10 substeps x 10 iterations, tolerance 0.01 m/s) unless the cell changes
+from neutral over the same frames, and the cloth then relaxes with the simulator's default settings
+(XPBD Gauss-Seidel, 10 substeps x 10 iterations, tolerance 0.01 m/s, damping 5/s) unless the cell changes
 them. Families (``value`` is what the cell changes):
 
 ==============  ===========================================================================
@@ -41,7 +41,7 @@ from simulate.cloth import FABRICS, Fabric
 from simulate.cloth.quasi_static import SimSettings, WorldStatus
 from simulate.reports.scenes import Scene, frame_metrics, named_pose, pose_path, run_worlds
 
-__all__ = ["Case", "stability_cases", "run_stability", "failing_supported", "unexpected_passes", "plot_heatmap",
+__all__ = ["Case", "stability_cases", "run_stability", "supported_cells", "CUDA_EXCEPTIONS", "failing_supported", "unexpected_passes", "plot_heatmap",
            "format_table", "SUPPORTED", "STRETCH_LIMIT", "PENETRATION_LIMIT_MM", "PENETRATION_FRACTION_LIMIT",
            "MAX_RELAX_FRAMES", "DEFAULT_SCENE"]
 
@@ -174,7 +174,7 @@ def run_stability(
                        settings=dataclasses.replace(base, max_frames=max(max_frames, 600)), device=device)
     drape_status = WorldStatus(int(drape.status[0])).name
     start = drape.positions[0] if np.isfinite(drape.positions).all() else scene.start_vertices
-    supported = SUPPORTED.get(scene.name, {})
+    supported = supported_cells(scene.name, device)
     cells: list[dict[str, Any] | None] = [None] * len(cases)
     for sub in sorted({c.substeps for c in cases}, reverse=True):
         idx = [i for i, c in enumerate(cases) if c.substeps == sub]
@@ -228,6 +228,15 @@ def run_stability(
         "cells": cells,
         "wall_s": time.perf_counter() - t_all,
     }
+
+
+def supported_cells(scene_name: str, device: str) -> dict[str, tuple[bool, str]]:
+    """The SUPPORTED table of a scene on a device: on CUDA the :data:`CUDA_EXCEPTIONS` are unsupported."""
+    table = dict(SUPPORTED.get(scene_name, {}))
+    if str(device).startswith("cuda"):
+        for cell, note in CUDA_EXCEPTIONS.get(scene_name, {}).items():
+            table[cell] = (False, "on CUDA: " + note)
+    return table
 
 
 def failing_supported(report: dict[str, Any]) -> list[dict[str, Any]]:
@@ -333,3 +342,22 @@ SUPPORTED: dict[str, dict[str, tuple[bool, str]]] = {
         "transition/tilt-1-frame": (True, ""),
     },
 }
+
+_MARGINAL = "marginal: the shawl's longest edge sits at 1.247x in the canonical drape, so the 1.25 bound " \
+            "decides on one edge; "
+CUDA_EXCEPTIONS: dict[str, dict[str, str]] = {
+    # Cells supported on CPU that failed in H200 runs (small matrix in session 1, full matrix in
+    # session 3; float rounding differs from the CPU's and frictional sliding amplifies it).
+    "shawl@anny": {
+        "bending/x10": _MARGINAL + "1.255 (full matrix)",
+        "bending/x1000": _MARGINAL + "1.261 (full matrix)",
+        "bending/x10000": "the stiffest bending holds the shawl 1.50x stretched over the arms (both GPU runs)",
+        "timestep/x5": "2 substeps per frame: still sliding after 300 frames, 1.36x stretched (both GPU runs)",
+        "fabric/denim": _MARGINAL + "1.27 (both GPU runs)",
+        "fabric/leather": _MARGINAL + "1.28 (both GPU runs)",
+        "pose/twisted-spine": _MARGINAL + "1.28 (both GPU runs)",
+        "shape/gender-min": _MARGINAL + "1.28 (both GPU runs)",
+        "shape/age-max": _MARGINAL + "1.28 (small matrix), 1.234 (full matrix)",
+    },
+}
+"""Cells of :data:`SUPPORTED` that are not supported on CUDA devices, with the measured reason."""
