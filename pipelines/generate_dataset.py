@@ -306,20 +306,22 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
 
     log(f"simulating {len(pending)} tasks ({total_keys} target poses) in {len(batches)} batch(es) of at most "
         f"{worlds} worlds on {ctx.device}")
-    beat = {"done": 0, "last": time.perf_counter()}
+    beat = {"done": 0, "calls": 0, "last": time.perf_counter()}
 
     def on_progress(count: int, batch: list[str] | None = None) -> None:
         if batch is not None:
             count = sum(len(ctx.tasks[t].poses) for t in batch)
         bar.update(count)
         beat["done"] += count
+        beat["calls"] += 1  # local executor: one call per simulator frame
         now = time.perf_counter()
         if not progress and now - beat["last"] >= heartbeat_s:
             # headless runs (logs of cluster or device jobs) still say how far they are
             beat["last"] = now
             elapsed = now - t_sim
             log(f"  {elapsed:7.1f} s: {beat['done']}/{total_keys} target poses "
-                f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards")
+                f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards"
+                + (f", {beat['calls']} simulator frames" if executor == "local" else ""))
 
     t_sim = time.perf_counter()
     ctx.phases = {}

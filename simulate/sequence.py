@@ -136,7 +136,7 @@ def run_sequences(
         settings: sequence settings.
         device: Warp device ("cpu", "cuda:0"); the body is posed with torch on it too.
         on_frame: called once per (task, target pose) in visiting order per task.
-        on_progress: called with the number of target poses finished after each frame.
+        on_progress: called after each frame with the number of target poses it finished (often 0).
     Returns:
         statistics: frames simulated, world_frames (frames summed over the worlds still
             busy: the work a perfectly packed batch would do), wall seconds in the simulation /
@@ -264,7 +264,7 @@ def run_sequences(
                 done[w] = True
             else:
                 changed[w] = True
-        if on_progress is not None and finished_keys:
+        if on_progress is not None:  # every frame (also with 0), so heartbeats can fire during long holds
             on_progress(finished_keys)
     return stats
 
