@@ -27,6 +27,7 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=40, help="train poses per train pair in the slice")
     parser.add_argument("--test-poses", type=int, default=10)
     parser.add_argument("--pairs", type=int, default=None, help="train pairs (default: the spec's)")
+    parser.add_argument("--test-pairs", type=int, default=None, help="test pairs (default: the spec's)")
     parser.add_argument("--worlds", type=int, default=None)
     parser.add_argument("--resolution", type=int, default=None)
     parser.add_argument("--device", default=None)
@@ -61,6 +62,8 @@ def main() -> None:
                       "test_test": min(args.test_poses, full["splits"]["test_test"])}
     if args.pairs is not None:
         spec["pairs"]["train"] = args.pairs
+    if args.test_pairs is not None:
+        spec["pairs"]["test"] = args.test_pairs
     if args.worlds is not None:
         spec["simulation"]["worlds"] = args.worlds
     if args.resolution is not None:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|profile-dataset|learn|reports  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|dataset-scale|profile-dataset|learn|reports  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -43,8 +43,15 @@ case $stage in
     T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
     T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
   reports)
-    T=300 run python -m pipelines.cli report accuracy --device cuda:0 --out "$out/accuracy"
-    T=280 run python -m pipelines.cli report stability --device cuda:0 --out "$out/stability" ;;
+    # full matrix: 12 s on an H200; full sweep: reference ~0.65 s/frame (40x100 iterations), mass-spring
+    # ~87 s per tolerance, the rest ~70 s; rows land in accuracy_rows.jsonl as they finish
+    T=120 run python -m pipelines.cli report stability --size full --device cuda:0 --out "$out/stability" --no-progress
+    T=${T_ACC:-450} run python -m pipelines.cli report accuracy --sweep ${SWEEP:-full} --reference-max-frames ${REF_FRAMES:-150} \
+      --device cuda:0 --out "$out/accuracy" --no-progress ;;
+  dataset-scale)
+    # the shipped spec at full width: 240 tasks of <= 30 poses as parallel worlds (heartbeat every 20 s)
+    T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-240} --test-poses 30 \
+      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ;;
   *) echo "unknown stage $stage"; exit 2 ;;
 esac
 grep -h '^{' "$log" >>"$jl" 2>/dev/null || true
