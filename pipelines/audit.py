@@ -15,6 +15,10 @@ from typing import Any, Callable
 
 import numpy as np
 
+AUDIT_MIN_FRAMES = 240
+"""Frame budget of the audit's tight re-solve at least (4x the spec's hold budget otherwise): with
+short holds (e.g. 2 frames) a 4x budget would stop the reference before it is at rest."""
+
 
 def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = print) -> dict[str, Any]:
     from data_manifest.reader import DatasetReader
@@ -38,7 +42,7 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
     base = sequence_settings(spec)
     tight = dataclasses.replace(base, sim=dataclasses.replace(
         base.sim, tolerance=base.sim.tolerance * float(spec["audit"]["tolerance_factor"]),
-        iterations=2 * base.sim.iterations, max_frames=4 * base.sim.max_frames))
+        iterations=2 * base.sim.iterations, max_frames=max(4 * base.sim.max_frames, AUDIT_MIN_FRAMES)))
     positions, status = drape_static(ctx.body, ctx.template.faces, rest, shapes=np.stack([f["shape"] for f in frames]),
                                      poses=np.stack([f["pose"] for f in frames]), body_faces=ctx.body_faces,
                                      settings=tight, device=ctx.device, fabric=spec["garment"]["fabric"], start_vertices=start)

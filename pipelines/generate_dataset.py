@@ -25,6 +25,11 @@ import numpy as np
 from pipelines.spec import load_spec, spec_hash, validate_spec
 
 #: Frame drop reasons, in the order they are tested (a frame is counted once).
+CANONICAL_DRAPE_FRAMES = 300
+"""Frame budget of each style's canonical drape (the start of its sequences) at least; a spec's
+``max_relax_frames`` bounds a pose hold, and a short hold budget (e.g. TailorNet's fixed 2-frame
+holds) must not leave the start drapes unrelaxed."""
+
 DROP_REASONS = ("nan", "not_converged", "distortion", "penetration", "self_intersection")
 
 
@@ -130,9 +135,12 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     else:
         t0 = time.perf_counter()
         style_rest = np.stack([generate_garment(gtype, s, body, template=template) for s in plan.styles]).astype(np.float32)
+        # the canonical drape starts from the pattern: it gets its own frame budget, not a pose hold's
+        seq = sequence_settings(spec)
         style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
                                            poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
-                                           settings=sequence_settings(spec), device=device, fabric=spec["garment"]["fabric"])
+                                           settings=seq, device=device, fabric=spec["garment"]["fabric"],
+                                           max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES))
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
         np.savez(tmp, style_rest=style_rest, style_start=style_start.astype(np.float32), status=status)

@@ -305,10 +305,12 @@ def drape_static(
         builder.add_garment(rest_vertices[w], faces, fabric=fabric)
     model = builder.finalize(device, features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0))
     collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness)
-    sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=SimSettings(**settings.sim.__dict__))
+    budget = settings.sim.max_frames if max_frames is None else int(max_frames)
+    sim = QuasiStaticSimulator(model, collider, solver=settings.solver,
+                               settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}))
     if start_vertices is not None:
         for w in range(w_count):
             sim.set_positions(np.asarray(start_vertices[w], np.float32), world=w)
-    status = sim.relax(max_frames)
+    status = sim.relax(budget)
     positions = sim.positions()
     return np.stack([positions[model.world_slice(w)] for w in range(w_count)]), status
