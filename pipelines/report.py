@@ -108,14 +108,19 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     from simulate.reports.pareto import plot_error_vs_time
     from simulate.reports.scenes import build_scene
 
+    default = production_default()
+    solvers = [x.strip() for x in args.solvers.split(",") if x.strip()]
+    bad = [x for x in solvers if x not in ("xpbd", "mass_spring")] or ([] if default.solver in solvers else [default.solver])
+    if bad or not solvers:
+        raise ValueError(f"--solvers {args.solvers!r}: expected a comma list of xpbd, mass_spring including the "
+                         f"production default's solver ({default.solver})")
     device = resolve_device(args.device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     poses = _poses(args.poses)
     t0 = time.perf_counter()
     scene = build_scene(args.garment, body=args.body, resolution=args.resolution, device=device)
-    default = production_default()
-    settings = sweep_settings(args.sweep, default=default)
+    settings = [s for s in sweep_settings(args.sweep, default=default) if s.solver in solvers]
     reference = REFERENCE_SETTINGS[args.sweep]
     sims = len({s.simulation_key() for s in settings}) + 2  # + canonical drape + reference
     bar = tqdm(total=sims, desc="accuracy: settings", unit="setting", file=sys.stderr, disable=args.no_progress)
@@ -219,6 +224,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "extreme pose of the stability report)")
     a.add_argument("--fabric", default="cotton", help="fabric preset (default cotton)")
     a.add_argument("--sweep", default="small", choices=["small", "full"], help="settings grid (default small)")
+    a.add_argument("--solvers", default="xpbd,mass_spring",
+                   help="solvers swept (comma list; mass-spring's explicit substeps are the slowest rows: ~87 s per "
+                        "setting on an H200, far more on CPU)")
     a.add_argument("--max-frames", type=int, default=600, help="relaxation frame budget per setting")
     a.add_argument("--reference-max-frames", type=int, default=None,
                    help="the reference's frame budget (default 4x --max-frames; at 40x100 iterations a GPU frame of "
