@@ -52,8 +52,6 @@ class Setting:
         iterations: XPBD iterations per substep (ignored by mass-spring).
         tolerance: convergence tolerance, max particle speed [m/s].
         precision: "float32" or "float16" (storage rounding relative to the pelvis).
-        outlier_fraction: share of vertices allowed to move at or above the tolerance at convergence;
-            None = the base settings'.
     """
 
     solver: str = "xpbd"
@@ -62,7 +60,6 @@ class Setting:
     iterations: int = 10
     tolerance: float = 0.01
     precision: str = "float32"
-    outlier_fraction: float | None = None
 
     def __post_init__(self) -> None:
         if self.solver not in ("xpbd", "mass_spring"):
@@ -89,8 +86,6 @@ class Setting:
         """SimSettings of this setting: ``base`` (default :data:`PRODUCTION_BASE`) with this setting's swept
         fields; ``explosion_stretch`` overrides the base's when given."""
         extra = {} if explosion_stretch is None else {"explosion_stretch": float(explosion_stretch)}
-        if self.outlier_fraction is not None:
-            extra["outlier_fraction"] = float(self.outlier_fraction)
         return dataclasses.replace(PRODUCTION_BASE if base is None else base, substeps=self.substeps,
                                    iterations=self.iterations, xpbd_mode=self.mode, tolerance=self.tolerance,
                                    max_frames=int(max_frames), **extra)
@@ -98,7 +93,7 @@ class Setting:
     def simulation_key(self) -> tuple:
         """Settings that change the simulation (precision does not)."""
         return (self.solver, self.mode if self.solver == "xpbd" else "-", self.substeps,
-                self.iterations if self.solver == "xpbd" else 0, self.tolerance, self.outlier_fraction)
+                self.iterations if self.solver == "xpbd" else 0, self.tolerance)
 
 
 DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 10, 10, 0.05, "float32")
