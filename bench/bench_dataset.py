@@ -89,6 +89,7 @@ def main() -> None:
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
+
     def log(message: str) -> None:  # to stderr, so stdout stays one JSON line
         print(f"[{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
 
@@ -100,6 +101,9 @@ def main() -> None:
     worlds = int(spec["simulation"]["worlds"])
     tasks = len(list((out / "shards").glob("*.h5")))
     fps = targets / max(sim.get("seconds", wall), 1e-9)
+    world_frames_per_target = phases.get("world_frames", 0) / max(targets, 1)
+    # simulation cost of one world-frame at this batch size [s]
+    s_per_world_frame = phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1)
     kept = int(manifest.totals["frames_kept"])
     keep_rate = kept / max(targets, 1)
     print(json.dumps({
@@ -113,13 +117,11 @@ def main() -> None:
         "audit_max_mm": manifest.audit.get("max_mm"), "audit_mean_mm": manifest.audit.get("mean_mm"),
         "phases": sim.get("phases"),
         # busy world-frames per target (transition + hold + each task's start-up, no idle worlds)
-        "world_frames_per_target": round(phases.get("world_frames", 0) / max(targets, 1), 1),
-        # simulation cost of one world-frame at this batch size [ms]
-        "ms_per_world_frame": round(1e3 * phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1), 3),
+        "world_frames_per_target": round(world_frames_per_target, 1),
+        "ms_per_world_frame": round(1e3 * s_per_world_frame, 3),
         # the full spec's stepping time if its worlds were kept busy (poses_per_task) at this
         # slice's cost per world-frame and frames per target (sparser slices overestimate it)
-        "projected_packed_stepping_s": round(full_targets * phases.get("world_frames", 0) / max(targets, 1)
-                                             * phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1), 1),
+        "projected_packed_stepping_s": round(full_targets * world_frames_per_target * s_per_world_frame, 1),
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)

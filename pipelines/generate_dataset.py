@@ -12,7 +12,6 @@ frames against a much tighter solve; print a summary table.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -24,12 +23,12 @@ import numpy as np
 
 from pipelines.spec import load_spec, spec_hash, validate_spec
 
-#: Frame drop reasons, in the order they are tested (a frame is counted once).
 CANONICAL_DRAPE_FRAMES = 300
 """Frame budget of each style's canonical drape (the start of its sequences) at least; a spec's
 ``max_relax_frames`` bounds a pose hold, and a short hold budget (e.g. TailorNet's fixed 2-frame
 holds) must not leave the start drapes unrelaxed."""
 
+#: Frame drop reasons, in the order they are tested (a frame is counted once).
 DROP_REASONS = ("nan", "not_converged", "distortion", "penetration", "self_intersection")
 
 

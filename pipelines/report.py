@@ -52,8 +52,6 @@ BASE_FIELDS = ("frame_dt", "damping", "patience", "outlier_fraction", "explosion
 def production_base(config: Path | None = None):
     """SimSettings of a shipped spec (tailornet-tshirt) with its defaults filled in: the base of every
     accuracy setting (only :data:`BASE_FIELDS` matter; the sweep sets the rest)."""
-    import dataclasses
-
     from pipelines.generate_dataset import sequence_settings
     from pipelines.spec import load_spec
     from simulate.cloth.quasi_static import SimSettings
@@ -142,9 +140,9 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
             f.write(json.dumps(_clean(row), default=_json_default) + "\n")
 
     report = run_accuracy(scene, poses=poses, settings=settings, reference=reference, default=default, device=device,
-                          on_row=row_done,
-                          base=production_base(), fabric=args.fabric, max_frames=args.max_frames, reference_max_frames=args.reference_max_frames or 4 * args.max_frames,
-                          explosion_stretch=args.explosion_stretch, on_progress=progress)
+                          base=production_base(), fabric=args.fabric, max_frames=args.max_frames,
+                          reference_max_frames=args.reference_max_frames or 4 * args.max_frames,
+                          explosion_stretch=args.explosion_stretch, on_progress=progress, on_row=row_done)
     bar.close()
     report["sweep"] = args.sweep
     report["wall_s"] = time.perf_counter() - t0
@@ -232,8 +230,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the reference's frame budget (default 4x --max-frames; at 40x100 iterations a GPU frame of "
                         "4 worlds takes ~0.6 s, so bound it on slow devices)")
     a.add_argument("--explosion-stretch", type=float, default=None,
-                   help="triangle stretch ratio that flags a world EXPLODED (default: the simulator's, as the dataset "
-                   "pipeline uses it; the garment layer's canonical drape uses 10)")
+                   help="triangle stretch ratio that flags a world EXPLODED (default: the production spec's, 50, as "
+                   "the dataset pipeline uses it)")
     a.add_argument("--device", default="auto", help="auto, cpu or cuda:N")
     a.add_argument("--out", required=True, help="output folder (accuracy.json, accuracy_pareto.png)")
     a.add_argument("--no-progress", action="store_true", help="no progress bar")

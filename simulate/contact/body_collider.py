@@ -12,6 +12,15 @@ from simulate.contact import kernels
 __all__ = ["BodyCollider"]
 
 
+def _is_tensor(value) -> bool:
+    return type(value).__module__.startswith("torch")
+
+
+def _host(vertices):
+    """A torch tensor as a host numpy array; anything else unchanged."""
+    return vertices.detach().cpu().numpy() if _is_tensor(vertices) else vertices
+
+
 class BodyCollider:
     """Body meshes of ``world_count`` worlds packed into one ``wp.Mesh``.
 
@@ -124,12 +133,10 @@ class BodyCollider:
         ``vertices`` may be a numpy array or a torch tensor; a CUDA tensor on a CUDA collider is
         culled and copied without leaving the device.
         """
-        if type(vertices).__module__.startswith("torch"):
-            if vertices.is_cuda and self.device.is_cuda:
-                self._set_target_cuda_tensor(vertices)
-                return
-            vertices = vertices.detach().cpu().numpy()
-        self.pose_end.assign(self._compact(vertices))
+        if _is_tensor(vertices) and vertices.is_cuda and self.device.is_cuda:
+            self._set_target_cuda_tensor(vertices)
+            return
+        self.pose_end.assign(self._compact(_host(vertices)))
 
     def _set_target_cuda_tensor(self, vertices) -> None:
         import torch
@@ -162,9 +169,7 @@ class BodyCollider:
         """
         if not 0 <= int(world) < self.world_count:
             raise ValueError(f"world must be in [0, {self.world_count}) (got {world!r})")
-        if type(vertices).__module__.startswith("torch"):
-            vertices = vertices.detach().cpu().numpy()
-        verts = np.asarray(vertices, dtype=np.float32)
+        verts = np.asarray(_host(vertices), dtype=np.float32)
         if verts.ndim != 2:
             raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
                              f"(got {verts.shape})")
