@@ -9,8 +9,8 @@ import math
 import pytest
 import warp as wp
 
-from simulate.reports.accuracy import (DEFAULT_SETTING, REFERENCE_SETTINGS, Setting, format_table, run_accuracy,
-                                      sweep_settings)
+from simulate.reports.accuracy import (DEFAULT_SETTING, REFERENCE_SETTINGS, Resume, Setting, format_table, run_accuracy,
+                                      summarize, sweep_settings)
 from simulate.reports.scenes import build_scene
 
 wp.init()
@@ -62,6 +62,10 @@ def test_error_falls_as_iterations_rise(scene, device: str) -> None:
     assert report["front"], "the Pareto front is empty"
     assert report["default"] == default.label
     assert report["default_on_front"] == (default.label in report["front"])
+    assert report["front_mean"] and report["default_on_front_mean"] == (default.label in report["front_mean"])
+    # the fastest setting is on both fronts (nothing is faster)
+    fastest = min(report["rows"], key=lambda r: r["ms_per_frame"])["label"]
+    assert fastest in report["front"] and fastest in report["front_mean"]
     table = format_table(report)
     assert all(s.label in table for s in sweep), "table misses a setting"
 
@@ -86,3 +90,35 @@ def test_default_must_be_in_the_sweep(scene) -> None:
         run_accuracy(scene, poses=["tilt"], settings=[Setting(iterations=3)], reference=REFERENCE_SETTINGS["ci"])
     with pytest.raises(ValueError, match="pose"):
         run_accuracy(scene, poses=["moonwalk"], settings=[DEFAULT_SETTING], reference=REFERENCE_SETTINGS["ci"])
+
+
+def test_resume_skips_the_reference_and_finished_rows(scene) -> None:
+    """A sweep cut short resumes: the saved reference is not solved again, finished rows are reused,
+    and the missing rows (a float32 setting and its float16 variant) come out as in the full run."""
+    sweep = [Setting("xpbd", "gauss_seidel", 4, 2, 0.01), Setting("xpbd", "gauss_seidel", 4, 4, 0.01),
+             Setting("xpbd", "gauss_seidel", 4, 4, 0.01, "float16")]
+    kw = dict(poses=["canonical"], settings=sweep, reference=REFERENCE_SETTINGS["ci"], default=sweep[0], device="cpu",
+              max_frames=200, reference_max_frames=400, drape_setting=Setting("xpbd", "gauss_seidel", 4, 2, 0.02))
+    saved: list = []
+    streamed: list[dict] = []
+    full = run_accuracy(scene, on_reference=lambda *a: saved.append(a), on_row=streamed.append, **kw)
+    # precision variants are measured right after their simulation
+    assert [r["label"] for r in streamed[1:]] == [s.label for s in sweep]
+    summary, positions, status = saved[0]
+    assert summary == full["reference"] and positions.shape == (1, scene.vertex_count, 3) and len(status) == 1
+    first = full["rows"][0]
+    sims: list[str] = []
+    again: list[dict] = []
+    resumed = run_accuracy(scene, resume=Resume(reference=summary, reference_positions=positions, reference_status=status,
+                                                rows={first["label"]: first}),
+                           on_progress=lambda label, run: sims.append(label), on_row=again.append, **kw)
+    assert not any("reference" in s for s in sims), f"the reference was solved again: {sims}"
+    assert sims == ["canonical drape", sweep[1].label], sims
+    assert resumed["resumed_rows"] == 1 and full["resumed_rows"] == 0
+    assert [r["label"] for r in again] == [sweep[1].label, sweep[2].label], "reused rows must not be streamed again"
+    assert resumed["rows"][0] is first
+    for a, b in zip(full["rows"][1:], resumed["rows"][1:]):
+        assert a["error_max_mm"] == b["error_max_mm"] and a["error_mean_mm"] == b["error_mean_mm"], (a, b)
+    assert resumed["front"] == summarize(resumed["rows"], sweep[0].label)["front"]
+    with pytest.raises(ValueError, match="saved reference"):
+        run_accuracy(scene, resume=Resume(summary, positions[:, :3], status, {}), **kw)
