@@ -16,6 +16,7 @@ import argparse
 import copy
 import json
 import shutil
+import signal
 import sys
 import time
 from pathlib import Path
@@ -93,7 +94,17 @@ def main() -> None:
     def log(message: str) -> None:  # to stderr, so stdout stays one JSON line
         print(f"[{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
 
-    manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat)
+    last: dict = {}
+    # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
+    # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
+    signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
+    try:
+        manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=last.update)
+    except KeyboardInterrupt:
+        print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)))
+        if not args.keep:
+            shutil.rmtree(out, ignore_errors=True)
+        raise SystemExit(130)
     wall = time.perf_counter() - t0
     sim = manifest.audit.get("simulation", {})
     targets = int(sim.get("target_frames", 0))
@@ -125,6 +136,28 @@ def main() -> None:
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)
+
+
+def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_targets: int, wall: float) -> dict:
+    """The bench's JSON for a run stopped before the end, from its last heartbeat (``beat``: see
+    ``generate(on_heartbeat=...)``); rates are over the simulation so far, start-up excluded."""
+    done, elapsed = int(beat.get("targets_done", 0)), float(beat.get("elapsed_s", 0.0))
+    frames, world_frames = int(beat.get("frames", 0)), int(beat.get("world_frames", 0))
+    width = min(int(spec["simulation"]["worlds"]), int(beat.get("tasks") or 1))
+    fps = done / elapsed if elapsed > 0 else 0.0
+    return {
+        "bench": "dataset", "complete": False, "spec": args.spec, "device": spec["simulation"]["device"],
+        "worlds": spec["simulation"]["worlds"], "resolution": spec["garment"]["resolution"],
+        "sim_overrides": args.sim, "filter_overrides": args.filter, "wall_s": round(wall, 2),
+        "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
+        "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
+        "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
+        "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "sim_s", "body_s", "record_s",
+                                                         "recoveries") if k in beat},
+        "world_frames_per_target": round(world_frames / done, 1) if done else None,
+        # as in the complete result: stepping time per frame over the batch's width
+        "ms_per_world_frame": round(1e3 * float(beat.get("sim_s", 0.0)) / (frames * width), 3) if frames else None,
+    }
 
 
 if __name__ == "__main__":

@@ -227,11 +227,11 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
     try:
         with torch.no_grad():
-            stats = run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
-                                  device=ctx.device, on_frame=record, on_progress=on_progress)
-        ctx.phases = ctx.phases or {}
-        for k, v in stats.items():
-            ctx.phases[k] = ctx.phases.get(k, 0) + v
+            if ctx.phases is None:
+                ctx.phases = {}
+            # adds to ctx.phases as it goes, so heartbeats can show where the time goes
+            run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
+                          device=ctx.device, on_frame=record, on_progress=on_progress, stats=ctx.phases)
     except BaseException:
         for w in writers:
             if w is not None and w.record is None:
@@ -260,10 +260,13 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
 
 def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local", device: str | None = None,
              ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             heartbeat_s: float = 30.0) -> Any:
+             heartbeat_s: float = 30.0, on_heartbeat: Callable[[dict], None] | None = None) -> Any:
     """Runs (or resumes) a dataset generation; returns the finished Manifest.
 
-    Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds."""
+    Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds.
+    ``on_heartbeat`` (local executor, with or without bars) gets the same numbers as a dict at each
+    heartbeat: seconds since simulation began, target poses done and total, shards written, and the
+    simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries)."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -322,13 +325,23 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         beat["done"] += count
         beat["calls"] += 1  # local executor: one call per simulator frame
         now = time.perf_counter()
-        if not progress and now - beat["last"] >= heartbeat_s:
+        if now - beat["last"] >= heartbeat_s:
             # headless runs (logs of cluster or device jobs) still say how far they are
             beat["last"] = now
             elapsed = now - t_sim
-            log(f"  {elapsed:7.1f} s: {beat['done']}/{total_keys} target poses "
-                f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards"
-                + (f", {beat['calls']} simulator frames" if executor == "local" else ""))
+            ph = dict(ctx.phases or {}) if executor == "local" else {}
+            if on_heartbeat is not None:
+                on_heartbeat({"elapsed_s": elapsed, "targets_done": beat["done"], "targets_total": total_keys,
+                              "shards": len(manifest.shards), "tasks": len(ctx.plan.tasks), **ph})
+            if progress:
+                return
+            line = (f"  {elapsed:7.1f} s: {beat['done']}/{total_keys} target poses "
+                    f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards")
+            if ph.get("frames"):
+                line += (f", {int(ph['frames'])} simulator frames ({int(ph['world_frames'])} world-frames, "
+                         f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording "
+                         f"{ph['sim_s']:.1f} / {ph['body_s']:.1f} / {ph['record_s']:.1f} s")
+            log(line)
 
     t_sim = time.perf_counter()
     ctx.phases = {}

@@ -125,6 +125,7 @@ def run_sequences(
     device: str,
     on_frame: Callable[[RecordedFrame], None],
     on_progress: Callable[[int], None] | None = None,
+    stats: dict[str, float] | None = None,
 ) -> dict[str, float]:
     """Simulates every task's sequence as one world of one batched simulator.
 
@@ -137,10 +138,12 @@ def run_sequences(
         device: Warp device ("cpu", "cuda:0"); the body is posed with torch on it too.
         on_frame: called once per (task, target pose) in visiting order per task.
         on_progress: called after each frame with the number of target poses it finished (often 0).
+        stats: a dict to add the statistics to as they accrue (heartbeats of long runs read it; a
+            dict that already holds counts, e.g. of earlier batches, keeps adding).
     Returns:
         statistics: frames simulated, world_frames (frames summed over the worlds still
             busy: the work a perfectly packed batch would do), wall seconds in the simulation /
-            body / record phases, explosion recoveries.
+            body / record phases, explosion recoveries (``stats`` itself when given).
     """
     import time
 
@@ -180,7 +183,9 @@ def run_sequences(
         return RecordedFrame(w, int(key), positions, st, int(held[w]), body_now["vertices"][w].cpu().numpy().copy(),
                              body_now["skin"][w].cpu().numpy().copy(), body_now["rest"][w].cpu().numpy().copy())
 
-    stats = {"frames": 0, "world_frames": 0, "sim_s": 0.0, "body_s": 0.0, "record_s": 0.0, "recoveries": 0}
+    stats = {} if stats is None else stats
+    for k in ("frames", "world_frames", "sim_s", "body_s", "record_s", "recoveries"):
+        stats.setdefault(k, 0)
     last_good: list[dict | None] = [None] * w_count
     changed = np.ones(w_count, dtype=bool)
     while not done.all():

@@ -197,11 +197,19 @@ def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
     from pipelines.generate_dataset import generate
 
     lines: list[str] = []
-    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lines.append, heartbeat_s=0.0)
-    # headless runs log their progress: the plan, then heartbeats counting up to every target pose
+    snapshots: list[dict] = []
+    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lines.append, heartbeat_s=0.0,
+             on_heartbeat=snapshots.append)
+    # headless runs log their progress: the plan, then heartbeats counting up to every target pose,
+    # with the simulator's running split of the time
     assert any(m.startswith("simulating 5 tasks (5 target poses)") for m in lines), lines
     beats = [m for m in lines if "target poses (" in m]
     assert beats and beats[-1].split(": ")[1].startswith("5/5 target poses"), beats
+    assert "stepping / bodies / recording" in beats[-1] and "world-frames" in beats[-1], beats[-1]
+    last = snapshots[-1]
+    assert (last["targets_done"], last["targets_total"], last["tasks"]) == (5, 5, 5), last
+    assert last["frames"] > 0 and last["world_frames"] >= last["frames"] and last["sim_s"] > 0, last
+    assert [s["frames"] for s in snapshots] == sorted(s["frames"] for s in snapshots), "running counts must not fall"
     report = validate_dataset(tmp_path)
     assert report.ok, report.errors
     shards = json.loads((tmp_path / "manifest.json").read_text())["shards"]
