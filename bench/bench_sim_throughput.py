@@ -19,11 +19,24 @@ import numpy as np
 import warp as wp
 
 
+def tshirt_scene(resolution: int, device: str) -> dict:
+    """The dataset's t-shirt (``resolution`` vertices) on the default body in the canonical pose, as a
+    :func:`simulate.cloth.scenes.shawl_scene`-style dict (cloth at its rest geometry on the body)."""
+    from simulate.reports.scenes import build_scene
+
+    sc = build_scene("tshirt", body="anny", resolution=resolution, device=device)
+    body, _ = sc.body_vertices(sc.neutral_shape[None], sc.canonical_pose[None])
+    return {"cloth_vertices": sc.rest_vertices, "cloth_faces": sc.faces, "body_vertices": body[0],
+            "body_faces": sc.body_faces, "body_kind": "anny"}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda:0" if wp.get_cuda_device_count() else "cpu")
     parser.add_argument("--worlds", type=int, nargs="+", default=[1, 4, 16, 64, 256, 512])
-    parser.add_argument("--scene", default="shawl", choices=["shawl", "cape"])
+    parser.add_argument("--scene", default="shawl", choices=["shawl", "cape", "tshirt"],
+                        help="tshirt: the dataset garment on the default body in the canonical pose, --resolution "
+                             "vertices (e.g. 7700 as in tailornet-tshirt.yaml): the pipeline's stepping cost alone")
     parser.add_argument("--resolution", type=int, default=100,
                         help="shawl: vertices per side (100 -> 10k); cape: along its length (135 -> 10k)")
     parser.add_argument("--body", default="default", choices=["default", "capsule"])
@@ -45,7 +58,10 @@ def main() -> None:
     from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
-    scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
+    if args.scene == "tshirt":
+        scene = tshirt_scene(args.resolution, args.device)
+    else:
+        scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
     vertices = len(scene["cloth_vertices"])
     device = str(wp.get_device(args.device))
     for worlds in args.worlds:

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|dataset-scale|profile-dataset|learn|reports  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -42,6 +42,18 @@ case $stage in
   learn)
     T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
     T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
+  scale-probe)
+    # where the full-width run's time goes: the t-shirt's raw stepping cost at the pipeline's widths, then
+    # 4 minutes of the full-width slice (heartbeats split stepping / bodies / recording; the bench prints a
+    # partial JSON line when timeout stops it)
+    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 64 128 240 \
+      --frames 20 --out "$jl"
+    T=${T:-240} run python bench/bench_dataset.py --spec tailornet-tshirt --poses 240 --test-poses 30 \
+      --sim poses_per_task=30 --device cuda:0 --out /tmp/tn-scale ;;
+  accuracy)
+    # the full sweep alone (~430 s on an H200 with a cold kernel cache); RESUME=1 continues a cut run in the same OUTDIR
+    T=${T_ACC:-560} run python -m pipelines.cli report accuracy --sweep full --reference-max-frames ${REF_FRAMES:-150} \
+      --device cuda:0 --out "$out/accuracy" --no-progress ${RESUME:+--resume} ;;
   reports)
     # full matrix: 12 s on an H200; full sweep: reference ~0.65 s/frame (40x100 iterations), mass-spring
     # ~87 s per tolerance, the rest ~70 s; rows land in accuracy_rows.jsonl as they finish
