@@ -40,8 +40,9 @@ case $stage in
     T=${T:-150} run python -m cProfile -s tottime bench/bench_dataset.py --spec tailornet-tshirt --poses 3 --test-poses 2 \
       --device cuda:0 --out /tmp/tn-prof --sim tolerance=0.05 ;;
   learn)
-    T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data /tmp/tn --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
-    T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data /tmp/tn --device cuda --out "$out/eval" ;;
+    # DATA=/tmp/tn-scale trains on a kept dataset-scale run (KEEP=1) of the same warm machine
+    T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data ${DATA:-/tmp/tn} --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
+    T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data ${DATA:-/tmp/tn} --device cuda --out "$out/eval" ;;
   scale-probe)
     # where the full-width run's time goes: the t-shirt's raw stepping cost at the pipeline's widths, then
     # 4 minutes of the full-width slice (heartbeats split stepping / bodies / recording; the bench prints a
@@ -63,7 +64,7 @@ case $stage in
   dataset-scale)
     # the shipped spec at full width: 240 tasks of <= 30 poses as parallel worlds (heartbeat every 20 s)
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-240} --test-poses 30 \
-      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ;;
+      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ;;
   *) echo "unknown stage $stage"; exit 2 ;;
 esac
 grep -h '^{' "$log" >>"$jl" 2>/dev/null || true
