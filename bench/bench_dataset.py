@@ -97,7 +97,7 @@ def main() -> None:
     last: dict = {}
     # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
-    signal.signal(signal.SIGTERM, lambda signum, frame: (_ for _ in ()).throw(KeyboardInterrupt()))
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=last.update)
     except KeyboardInterrupt:
@@ -112,9 +112,7 @@ def main() -> None:
     worlds = int(spec["simulation"]["worlds"])
     tasks = len(list((out / "shards").glob("*.h5")))
     fps = targets / max(sim.get("seconds", wall), 1e-9)
-    world_frames_per_target = phases.get("world_frames", 0) / max(targets, 1)
-    # simulation cost of one world-frame at this batch size [s]
-    s_per_world_frame = phases.get("sim_s", 0.0) / max(phases.get("frames", 0) * min(worlds, tasks), 1)
+    world_frames_per_target, ms_per_world_frame = work_rates(phases, targets, min(worlds, tasks))
     kept = int(manifest.totals["frames_kept"])
     keep_rate = kept / max(targets, 1)
     print(json.dumps({
@@ -129,21 +127,32 @@ def main() -> None:
         "phases": sim.get("phases"),
         # busy world-frames per target (transition + hold + each task's start-up, no idle worlds)
         "world_frames_per_target": round(world_frames_per_target, 1),
-        "ms_per_world_frame": round(1e3 * s_per_world_frame, 3),
+        "ms_per_world_frame": round(ms_per_world_frame, 3),
         # the full spec's stepping time if its worlds were kept busy (poses_per_task) at this
         # slice's cost per world-frame and frames per target (sparser slices overestimate it)
-        "projected_packed_stepping_s": round(full_targets * world_frames_per_target * s_per_world_frame, 1),
+        "projected_packed_stepping_s": round(full_targets * world_frames_per_target * 1e-3 * ms_per_world_frame, 1),
     }))
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def work_rates(phases: dict, targets: int, width: int) -> tuple[float, float]:
+    """(busy world-frames per target, stepping ms per world-frame) from run_sequences' statistics:
+    the stepping time of a frame is spread over the batch's width (``width`` worlds)."""
+    per_target = float(phases.get("world_frames", 0)) / max(targets, 1)
+    ms = 1e3 * float(phases.get("sim_s", 0.0)) / max(float(phases.get("frames", 0)) * width, 1)
+    return per_target, ms
 
 
 def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_targets: int, wall: float) -> dict:
     """The bench's JSON for a run stopped before the end, from its last heartbeat (``beat``: see
     ``generate(on_heartbeat=...)``); rates are over the simulation so far, start-up excluded."""
     done, elapsed = int(beat.get("targets_done", 0)), float(beat.get("elapsed_s", 0.0))
-    frames, world_frames = int(beat.get("frames", 0)), int(beat.get("world_frames", 0))
-    width = min(int(spec["simulation"]["worlds"]), int(beat.get("tasks") or 1))
+    per_target, ms = work_rates(beat, done, min(int(spec["simulation"]["worlds"]), int(beat.get("tasks") or 1)))
     fps = done / elapsed if elapsed > 0 else 0.0
     return {
         "bench": "dataset", "complete": False, "spec": args.spec, "device": spec["simulation"]["device"],
@@ -154,9 +163,8 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
         "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "sim_s", "body_s", "record_s",
                                                          "recoveries") if k in beat},
-        "world_frames_per_target": round(world_frames / done, 1) if done else None,
-        # as in the complete result: stepping time per frame over the batch's width
-        "ms_per_world_frame": round(1e3 * float(beat.get("sim_s", 0.0)) / (frames * width), 3) if frames else None,
+        "world_frames_per_target": round(per_target, 1) if done else None,
+        "ms_per_world_frame": round(ms, 3) if beat.get("frames") else None,
     }
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from simulate.cloth.quasi_static import SimSettings, WorldStatus
 from simulate.reports.pareto import NEAR_FRONT_ERROR_SLACK, NEAR_FRONT_TIME_FACTOR, front_time_at_error, pareto_front
-from simulate.reports.scenes import Scene, frame_metrics, named_pose, pose_path, round_float16, run_worlds
+from simulate.reports.scenes import Scene, SceneRun, frame_metrics, named_pose, pose_path, round_float16, run_worlds
 
 __all__ = ["Setting", "DEFAULT_SETTING", "PRODUCTION_BASE", "REFERENCE_SETTINGS", "SWEEPS", "sweep_settings", "run_accuracy",
            "Resume", "summarize", "format_table", "PATH_STEP_RAD"]
@@ -285,8 +285,10 @@ def run_accuracy(
         if resume.reference_positions.shape != (w, scene.vertex_count, 3) or len(resume.reference_status) != w:
             raise ValueError(f"resume: the saved reference has positions {resume.reference_positions.shape} and "
                              f"{len(resume.reference_status)} statuses; expected ({w}, {scene.vertex_count}, 3) and {w}")
-        ref = _SavedRun(positions=np.asarray(resume.reference_positions, np.float32),
-                        status=np.asarray(resume.reference_status), frames=np.zeros(w, np.int64))
+        # only positions and status are read from a resumed reference (its summary comes saved)
+        ref = SceneRun(positions=np.asarray(resume.reference_positions, np.float32),
+                       status=np.asarray(resume.reference_status), frames=np.zeros(w, np.int64), wall_s=0.0,
+                       substeps=0, dt=0.0)
     ref_all_positions, ref_all_status = ref.positions, ref.status
     # A pose whose reference exploded has no reference: drop it (worlds are independent, so the
     # other worlds' reference results stand) and say so in the report.
@@ -355,15 +357,6 @@ def run_accuracy(
         **summarize(rows, default.label),
         "resumed_rows": resumed,
     }
-
-
-@dataclass
-class _SavedRun:
-    """The parts of a :class:`~simulate.reports.scenes.SceneRun` a resumed reference keeps."""
-
-    positions: np.ndarray
-    status: np.ndarray
-    frames: np.ndarray
 
 
 def _measure_row(scene: Scene, s: Setting, run: Any, ref_positions: np.ndarray, finals: np.ndarray, roots: np.ndarray,
