@@ -162,7 +162,7 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
         "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "sim_s", "body_s", "record_s",
-                                                         "recoveries") if k in beat},
+                                                         "recover_s", "loop_s", "recoveries", "body_calls") if k in beat},
         "world_frames_per_target": round(per_target, 1) if done else None,
         "ms_per_world_frame": round(ms, 3) if beat.get("frames") else None,
     }

@@ -240,6 +240,14 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     return [r if isinstance(r, dict) else r.to_dict() if hasattr(r, "to_dict") else r for r in records]
 
 
+def _phase_split(phases: dict) -> str:
+    """'stepping / bodies / recording / recoveries / other' seconds of run_sequences statistics
+    (other: the rest of the frame loop, bookkeeping and progress callbacks)."""
+    named = [float(phases.get(k, 0.0)) for k in ("sim_s", "body_s", "record_s", "recover_s")]
+    other = max(float(phases.get("loop_s", 0.0)) - sum(named), 0.0)
+    return " / ".join(f"{v:.1f}" for v in (*named, other))
+
+
 def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     totals = manifest.totals
     kept = int(totals.get("frames_kept", 0))
@@ -252,8 +260,8 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'this run':<22}{seconds:>9.1f} s   {frames_simulated_keys / seconds:8.2f} target frames/s")
     phases = ((manifest.audit or {}).get("simulation") or {}).get("phases")
     if phases and seconds > 0:
-        lines.append(f"  {'  stepping / bodies / recording':<22}  {phases.get('sim_s', 0):.1f} / {phases.get('body_s', 0):.1f} / "
-                     f"{phases.get('record_s', 0):.1f} s over {int(phases.get('frames', 0))} simulator frames")
+        lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
+                     f"{int(phases.get('frames', 0))} simulator frames")
         lines.append(f"  {'  explosions recovered':<26}{int(phases.get('recoveries', 0)):>6}")
     return "\n".join(lines)
 
@@ -339,8 +347,9 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                     f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards")
             if ph.get("frames"):
                 line += (f", {int(ph['frames'])} simulator frames ({int(ph['world_frames'])} world-frames, "
-                         f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording "
-                         f"{ph['sim_s']:.1f} / {ph['body_s']:.1f} / {ph['record_s']:.1f} s")
+                         f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording / "
+                         f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries, "
+                         f"{int(ph.get('body_calls', 0))} body-model calls")
             log(line)
 
     t_sim = time.perf_counter()

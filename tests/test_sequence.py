@@ -32,14 +32,14 @@ def scene(anny_body):
     return anny_body, template, draped[0], canonical, small, jump
 
 
-def _run(scene, key_lists, *, recover: bool):
+def _run(scene, key_lists, *, recover: bool, lookahead: int = 8):
     body, template, start, *_ = scene
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
     settings = SequenceSettings(
         sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
-        shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover)
+        shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
     frames = []
     stats = run_sequences(body, template.faces, tasks, body_faces=body.part_faces(("torso", "arms")), settings=settings,
                           device="cpu", on_frame=frames.append)
@@ -68,3 +68,24 @@ def test_without_recovery_an_exploded_world_fails_all_remaining_targets(scene):
     frames, stats = _run(scene, [[small, jump, canonical]], recover=False)
     assert [(f.key, f.status == WorldStatus.EXPLODED) for f in frames] == [(0, False), (1, True), (2, True)]
     assert stats["recoveries"] == 0
+
+
+def test_posing_bodies_ahead_changes_no_frame_and_batches_the_body_model(scene):
+    """Bodies posed several entries ahead (one batched call) give the frames that posing each entry
+    when reached gives, through an explosion recovery (which replaces a schedule) included."""
+    *_, canonical, small, jump = scene
+    keys = [[small, jump, canonical, small], [small, small, canonical, small]]
+    ahead, stats_ahead = _run(scene, keys, recover=True, lookahead=8)
+    single, stats_single = _run(scene, keys, recover=True, lookahead=1)
+    assert stats_ahead["recoveries"] == stats_single["recoveries"] == 1
+    assert [(f.task, f.key, f.status) for f in ahead] == [(f.task, f.key, f.status) for f in single]
+    # the same bodies up to float32 rounding of the body model's batched matrix products (1 ulp at
+    # ~1 m: 1.2e-7 m; a wrong entry, one pose off, moves the body by centimetres). The drapes agree
+    # less tightly: a rounding-level change can stop a hold one frame earlier or later (measured up
+    # to 2.8 mm), which is why generate-dataset keeps a task's batch a function of the spec alone.
+    for a, b in zip(ahead, single):
+        np.testing.assert_allclose(a.body_vertices, b.body_vertices, rtol=0, atol=5e-7, err_msg=f"task {a.task} key {a.key}: body")
+        if a.status != WorldStatus.EXPLODED:  # an exploded frame's cloth is chaotic by definition
+            np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=5e-3, err_msg=f"task {a.task} key {a.key}: garment")
+    # schedules of 2 + 4 entries (+ 1-2 slerp'ed) per world: one call at the start, one after the recovery
+    assert stats_ahead["body_calls"] <= 3 < stats_single["body_calls"], (stats_ahead["body_calls"], stats_single["body_calls"])
