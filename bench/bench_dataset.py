@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import os
 import shutil
 import signal
 import sys
@@ -97,7 +98,15 @@ def main() -> None:
     last: dict = {}
     # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
-    signal.signal(signal.SIGTERM, _interrupt)
+    def stop_on_sigterm(signum, frame) -> None:
+        # print and leave from the handler itself: an exception raised here can land in a
+        # __del__ (Warp arrays are freed all the time) and be swallowed there
+        print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)), flush=True)
+        if not args.keep:
+            shutil.rmtree(out, ignore_errors=True)
+        os._exit(143)
+
+    signal.signal(signal.SIGTERM, stop_on_sigterm)
     try:
         manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=last.update)
     except KeyboardInterrupt:
@@ -136,9 +145,6 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
 
 
-def _interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
-
 
 def work_rates(phases: dict, targets: int, width: int) -> tuple[float, float]:
     """(busy world-frames per target, stepping ms per world-frame) from run_sequences' statistics:
@@ -162,7 +168,8 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
         "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "sim_s", "body_s", "record_s",
-                                                         "recover_s", "loop_s", "recoveries", "body_calls") if k in beat},
+                                                         "recover_s", "loop_s", "recoveries", "body_calls", "exploded_non_finite",
+                                                         "exploded_speed", "exploded_stretch") if k in beat},
         "world_frames_per_target": round(per_target, 1) if done else None,
         "ms_per_world_frame": round(ms, 3) if beat.get("frames") else None,
     }

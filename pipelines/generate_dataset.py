@@ -348,7 +348,9 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
             if ph.get("frames"):
                 line += (f", {int(ph['frames'])} simulator frames ({int(ph['world_frames'])} world-frames, "
                          f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording / "
-                         f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries, "
+                         f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries (explosions "
+                         f"non-finite / speed / stretch {int(ph.get('exploded_non_finite', 0))} / "
+                         f"{int(ph.get('exploded_speed', 0))} / {int(ph.get('exploded_stretch', 0))}), "
                          f"{int(ph.get('body_calls', 0))} body-model calls")
             log(line)
 

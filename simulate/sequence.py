@@ -144,13 +144,20 @@ class _PosedAhead:
         self.owner: list[object] = [None] * world_count  # the schedule the slots were posed for
         self.calls = 0
 
-    def get(self, idx: np.ndarray, schedules: list, ptr: np.ndarray) -> dict[str, torch.Tensor]:
+    def get(self, idx: np.ndarray, schedules: list, ptr: np.ndarray, active: np.ndarray) -> dict[str, torch.Tensor]:
         """Posed bodies of entry ``ptr[w]`` of ``schedules[w]`` for each world in ``idx``:
-        {"vertices": (n, Vb, 3), "skin": (n, J, 4, 4), "rest": (n, Vb, 3)}."""
+        {"vertices": (n, Vb, 3), "skin": (n, J, 4, 4), "rest": (n, Vb, 3)}.
+
+        When a world in ``idx`` has run past its buffer, every ``active`` world with less than
+        half a buffer left ahead is refilled in the same call: worlds advance at their own pace,
+        so refilling only the one that ran out would call the body model almost every frame."""
         stale = [int(w) for w in idx if self.owner[w] is not schedules[w]
                  or not self.first[w] <= ptr[w] < self.first[w] + self.count[w]]
         if stale:
-            self._fill(stale, schedules, ptr)
+            left = self.first + self.count - ptr  # buffered entries from ptr on
+            low = [int(w) for w in np.nonzero(active & (left < (self.depth + 1) // 2))[0]
+                   if self.owner[w] is schedules[w] and self.first[w] + self.count[w] < len(schedules[w][0])]
+            self._fill(sorted(set(stale) | set(low)), schedules, ptr)
         device = self.buffers["vertices"].device
         w_t = torch.as_tensor(np.asarray(idx, np.int64), device=device)
         slot_t = torch.as_tensor(ptr[idx] - self.first[idx], device=device)
@@ -202,7 +209,8 @@ def run_sequences(
             busy: the work a perfectly packed batch would do), wall seconds in the simulation /
             body / record / explosion-recovery phases and in the whole loop (loop_s; the rest is
             bookkeeping and ``on_progress``), explosion recoveries, batched body-model calls
-            (body_calls) (``stats`` itself when given).
+            (body_calls), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
+            itself when given).
     """
     import time
 
@@ -212,11 +220,13 @@ def run_sequences(
     schedules = [_schedule(t, canonical, neutral, settings) for t in tasks]
     torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
 
+    poser = body.on_device(torch_device)  # posing on the CPU would cost ~4 ms per body in a GPU run
+
     def pose_bodies(shapes: np.ndarray, poses: np.ndarray) -> PosedBody:
         """Posed bodies as torch tensors on ``torch_device`` (they stay there: on CUDA the
         collider takes them without a host round trip)."""
         with torch.no_grad():
-            return body.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
+            return poser.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
 
     builder = ClothBuilder()
     for t in tasks:
@@ -246,6 +256,7 @@ def run_sequences(
     stats = {} if stats is None else stats
     for k in ("frames", "world_frames", "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls"):
         stats.setdefault(k, 0)
+    causes_before = {f"exploded_{k}": stats.get(f"exploded_{k}", 0) for k in sim.explosion_causes}
     last_good: list[dict | None] = [None] * w_count
     changed = np.ones(w_count, dtype=bool)
 
@@ -289,7 +300,7 @@ def run_sequences(
         if changed.any():
             idx = np.nonzero(changed)[0]
             calls = ahead.calls
-            posed = ahead.get(idx, schedules, ptr)
+            posed = ahead.get(idx, schedules, ptr, ~done)
             stats["body_calls"] += ahead.calls - calls
             idx_t = torch.as_tensor(idx, device=torch_device)
             for name in ("vertices", "skin", "rest"):
@@ -342,6 +353,8 @@ def run_sequences(
         if on_progress is not None:  # every frame (also with 0), so heartbeats can fire during long holds
             on_progress(finished_keys)
         stats["loop_s"] += time.perf_counter() - t0
+        for k, n in sim.explosion_causes.items():
+            stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
     return stats
 
 
@@ -373,7 +386,7 @@ def drape_static(
     w_count = len(rest_vertices)
     torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
     with torch.no_grad():
-        posed = body.pose_torch(torch.as_tensor(np.asarray(shapes, np.float32), device=torch_device),
+        posed = body.on_device(torch_device).pose_torch(torch.as_tensor(np.asarray(shapes, np.float32), device=torch_device),
                                 torch.as_tensor(np.asarray(poses, np.float32), device=torch_device))
     body_vertices = posed.vertices.cpu().numpy()
     builder = ClothBuilder()

@@ -86,3 +86,22 @@ def test_self_intersection_flags_arm_in_torso_and_crossed_legs(anny_body):
     ])
     flags, depth = checker.check(poses)
     assert flags.tolist() == [False, True, True, False, False], f"depths {depth}"
+
+
+def test_on_device_is_the_same_model_here_and_poses_where_it_lives(anny_body):
+    """``on_device`` returns the model itself on its own device; on a GPU the copy poses on the GPU
+    (posing runs where the model's tensors are, not where the inputs are) and agrees with the CPU."""
+    import torch
+
+    assert anny_body.on_device("cpu") is anny_body
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    gpu = anny_body.on_device("cuda")
+    shapes = np.tile(anny_body.shape_default, (3, 1))
+    poses = np.tile(anny_body.canonical_pose, (3, 1))
+    poses[1] += anny_body.pose_from_dict({"left_shoulder": [0.0, 0.0, 0.6]})
+    with torch.no_grad():
+        on_gpu = gpu.pose_torch(torch.as_tensor(shapes, device="cuda"), torch.as_tensor(poses, device="cuda")).vertices
+        on_cpu = anny_body.pose_torch(torch.as_tensor(shapes), torch.as_tensor(poses)).vertices
+    assert on_gpu.is_cuda
+    np.testing.assert_allclose(on_gpu.cpu().numpy(), on_cpu.numpy(), rtol=0, atol=ATOL_POSITION_M)

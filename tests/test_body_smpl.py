@@ -82,6 +82,13 @@ def test_smpl_backend_matches_naive_reference(smpl_file):
         expected = naive_smpl(m_norm, betas[b].astype(np.float64), full)
         np.testing.assert_allclose(posed.vertices[b], expected, atol=ATOL_POSITION_M,
                                    err_msg=f"SMPL backend differs from the naive reference for batch item {b}")
+    # the copy ``on_device`` makes for another device (here forced on the CPU) is the same model
+    import torch
+
+    assert body.on_device("cpu") is body
+    copy = body._copy_on(torch.device("cpu"))
+    assert copy is not body and copy.shape_size == N_BETAS
+    np.testing.assert_array_equal(copy.pose(betas, pose).vertices, posed.vertices)
 
 
 def test_smpl_pkl_with_chumpy_objects_reads(tmp_path):

@@ -55,6 +55,7 @@ def test_an_exploding_world_loses_only_its_current_target_and_others_are_untouch
     assert by_world[0][1][1] == WorldStatus.EXPLODED, f"the jump must explode at {TEST_EXPLOSION_SPEED} m/s: {by_world[0]}"
     assert by_world[0][2][1] != WorldStatus.EXPLODED, f"the world must recover for the next target: {by_world[0]}"
     assert stats["recoveries"] == 1
+    assert stats["exploded_speed"] == 1 and stats["exploded_non_finite"] == stats["exploded_stretch"] == 0, stats
     last = [f for f in frames if f.task == 0][-1]
     assert np.isfinite(last.positions).all() and np.abs(last.positions).max() < 2.0, "recovered cloth stays on the body"
     # world 1 shares the simulator but not the explosion: same frames as beside a calm world 0

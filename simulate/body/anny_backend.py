@@ -74,6 +74,11 @@ class AnnyBody(BodyModel):
 
     name = "anny"
 
+    def _copy_on(self, device: torch.device) -> "AnnyBody":
+        from simulate.body import load_body_model
+
+        return load_body_model("anny", device=str(device))  # cached per device
+
     def __init__(self, *, device: str | torch.device = "cpu") -> None:
         start = time.perf_counter()
         os.environ.setdefault("TQDM_DISABLE", "1")

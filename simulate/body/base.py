@@ -205,6 +205,20 @@ class BodyModel(abc.ABC):
         rot[:, torch.as_tensor(self.pose_joint_indices, device=pose_t.device)] = kin.axis_angle_to_matrix(pose_t)
         return rot
 
+    def on_device(self, device: str | torch.device) -> "BodyModel":
+        """This body model with its tensors on torch ``device`` (``self`` when already there).
+
+        Posing runs where the model's tensors live, whatever device the inputs are on, so a GPU
+        pipeline poses with ``body.on_device("cuda")``; the numpy API stays on the CPU model."""
+        device = torch.device(device)
+        here = torch.device(getattr(self, "device", "cpu"))
+        if device.type == here.type and (device.index is None or device.index == (here.index or 0)):
+            return self
+        return self._copy_on(device)
+
+    def _copy_on(self, device: torch.device) -> "BodyModel":
+        raise NotImplementedError(f"{type(self).__name__} cannot be moved to {device}")
+
     def pose_torch(self, shape, pose, translation=None) -> PosedBody:
         """Differentiable posing in torch; shape (B,S) or (S,), pose (B,60) or (60,) broadcast."""
         shape_t = self.check_shape(shape)

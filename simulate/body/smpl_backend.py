@@ -123,6 +123,9 @@ class SMPLBody(BodyModel):
 
     name = "smpl"
 
+    def _copy_on(self, device: torch.device) -> "SMPLBody":
+        return SMPLBody(self.path, num_betas=self.shape_size, device=device)
+
     def __init__(self, path: str | Path, *, num_betas: int = 10, device: str | torch.device = "cpu") -> None:
         data = read_smpl_file(path)
         self.path = Path(path)

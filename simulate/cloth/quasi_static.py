@@ -171,6 +171,9 @@ class QuasiStaticSimulator:
         self.world_frames = np.zeros(w, dtype=np.int64)
         """Frames each world has been stepped since its last target, shape (world_count,)."""
         self._calm = np.zeros(w, dtype=np.int64)
+        self.explosion_causes = {"non_finite": 0, "speed": 0, "stretch": 0}
+        """Explosions so far by the first test they failed: a non-finite position or velocity, a
+        speed above ``explosion_speed``, a stretch ratio above ``explosion_stretch``."""
         self._history: list[np.ndarray] = []
         self._active_host = np.ones(w, dtype=np.int32)
         self.frame_count = 0
@@ -277,7 +280,11 @@ class QuasiStaticSimulator:
         residual = np.where(running, speed, np.nan)
         self._history.append(residual)
         self.world_frames[running] += 1
-        exploded = running & ((bad != 0) | (speed > s.explosion_speed) | (stretch > s.explosion_stretch))
+        non_finite, too_fast = running & (bad != 0), running & (speed > s.explosion_speed)
+        exploded = non_finite | too_fast | (running & (stretch > s.explosion_stretch))
+        self.explosion_causes["non_finite"] += int(non_finite.sum())
+        self.explosion_causes["speed"] += int((too_fast & ~non_finite).sum())
+        self.explosion_causes["stretch"] += int((exploded & ~too_fast & ~non_finite).sum())
         calm = running & ~exploded & (fast <= self._allowed_fast)
         self._calm = np.where(calm, self._calm + 1, np.where(running, 0, self._calm))
         self.status[exploded] = WorldStatus.EXPLODED
