@@ -249,3 +249,29 @@ def test_nan_world_is_flagged_and_frozen(solver: str) -> None:
     after = sim.positions()
     assert np.array_equal(after[model.world_slice(0)], frozen, equal_nan=True), "exploded world kept moving"
     assert np.all(np.isfinite(after[model.world_slice(1)])), "NaN leaked into world 1"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_setting_one_worlds_positions_leaves_the_others_alone(device: str) -> None:
+    """set_positions(world=w) writes w's particles and zeroes their velocities in place; every
+    other world's positions and velocities stay bit-identical (explosion recovery relies on it)."""
+    model, collider = _sphere_scene(["cotton"] * 3, device)
+    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=4, iterations=4))
+    for _ in range(3):
+        sim.step_frame()
+    q0, qd0 = sim.positions(), sim.velocities()
+    assert np.abs(qd0).max() > 0.1, "the falling cloth must be moving before the reset"
+    sl = model.world_slice(1)
+    new = q0[sl] + np.array([0.0, 0.05, 0.0], np.float32)
+    sim.set_positions(new, world=1)
+    q1, qd1 = sim.positions(), sim.velocities()
+    np.testing.assert_array_equal(q1[sl], new)
+    assert not qd1[sl].any()
+    others = np.ones(len(q0), bool)
+    others[sl] = False
+    np.testing.assert_array_equal(q1[others], q0[others])
+    np.testing.assert_array_equal(qd1[others], qd0[others])
+    with pytest.raises(ValueError, match=r"positions must have shape \(81, 3\)"):
+        sim.set_positions(new[:-1], world=1)
+    with pytest.raises(ValueError, match="finite"):
+        sim.set_positions(np.full_like(new, np.nan), world=1)
