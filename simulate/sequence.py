@@ -71,9 +71,9 @@ class SequenceSettings:
     (garment and body at the previous finished hold) is put back and the world goes on to the
     next target, slerp'ed afresh from there. Off: the rest of its schedule is handed over as failed."""
     body_lookahead: int = 8
-    """Schedule entries per world posed ahead in one batched body-model call. The body model's
-    cost on a GPU hardly depends on the batch size, so posing every world's next few entries
-    together cuts its calls ~lookahead-fold; memory: world_count x lookahead posed bodies
+    """Schedule entries per world posed ahead; whenever a world runs out, every world short of
+    entries is topped up in the same batched body-model call (an H200 run of 240 worlds made 555
+    calls in 876 frames instead of one per frame). Memory: world_count x lookahead posed bodies
     (~0.34 MB each for anny)."""
 
 
