@@ -45,6 +45,17 @@ def simulator_ms_per_frame(manifest) -> float | None:
     return 1e3 * float(sim["seconds"]) / float(sim["kept_frames"])
 
 
+def missing_simulator_time(manifest) -> str | None:
+    """Why the manifest gives no simulator time per kept frame (None when it does)."""
+    sim = (manifest.audit or {}).get("simulation") if manifest.audit else None
+    if not sim:
+        return ("the dataset's manifest records no simulation time: generate-dataset stopped before "
+                "it finished (rerun the same command to complete it)")
+    if not sim.get("kept_frames"):
+        return "the dataset kept no frames, so there is no time per kept frame"
+    return None
+
+
 def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out: str | Path | None = None,
              postprocess_frames: int | None = 32, renders: int = 3, accuracy_report: str | None = None,
              log=print) -> dict:
@@ -88,6 +99,8 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
             if sim_ms and ms:
                 speedups[f"{name}@{dev}"] = sim_ms / ms
     results["speedup_over_simulator"] = speedups
+    if sim_ms is None:
+        results["simulator"]["missing"] = missing_simulator_time(reader.manifest)
     results["seconds"] = round(time.perf_counter() - t0, 2)
     (out / "evaluation.json").write_text(json.dumps(results, indent=2, default=float))
 
@@ -129,6 +142,8 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     log("\n".join(table))
     if speedups:
         log("speed-up over the simulator: " + ", ".join(f"{k} {v:.0f}x" for k, v in speedups.items()))
+    elif sim_ms is None:
+        log(f"speed-up over the simulator: not available, {results['simulator']['missing']}")
     log(f"report: {out / 'evaluation.json'}  plot: {out / 'error_vs_time.png'}")
     return results
 

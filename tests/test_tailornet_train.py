@@ -408,3 +408,19 @@ def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, e
     rows = (tmp_path / "stage_loss.csv").read_text().strip().splitlines()[1:]
     assert [r.split(",")[0] for r in rows] == ["1", "2", "3", "4"], rows
     assert load_checkpoint(path)["epoch"] == 4 and (tmp_path / "stage.done").exists()
+
+
+def test_evaluate_says_why_there_is_no_speed_up(tmp_path: Path) -> None:
+    """A dataset whose generate-dataset run did not finish has no simulation time in its manifest:
+    evaluate reports no speed-up and says why, instead of a silent null."""
+    from types import SimpleNamespace
+
+    from pipelines.evaluate import missing_simulator_time, simulator_ms_per_frame
+
+    manifest = write_synthetic_dataset(tmp_path, splits={"train": 1, "test": 1}, frames_per_task=2)
+    assert simulator_ms_per_frame(manifest) is None
+    assert "stopped before it finished" in missing_simulator_time(manifest)
+    finished = SimpleNamespace(audit={"simulation": {"seconds": 12.0, "kept_frames": 4}})
+    assert missing_simulator_time(finished) is None and simulator_ms_per_frame(finished) == pytest.approx(3000.0)
+    empty = SimpleNamespace(audit={"simulation": {"seconds": 12.0, "kept_frames": 0}})
+    assert "kept no frames" in missing_simulator_time(empty) and simulator_ms_per_frame(empty) is None
