@@ -216,8 +216,9 @@ class BodyModel(abc.ABC):
             return self
         return self._copy_on(device)
 
+    @abc.abstractmethod
     def _copy_on(self, device: torch.device) -> "BodyModel":
-        raise NotImplementedError(f"{type(self).__name__} cannot be moved to {device}")
+        """A copy of this model with its tensors on ``device`` (each backend builds its own)."""
 
     def pose_torch(self, shape, pose, translation=None) -> PosedBody:
         """Differentiable posing in torch; shape (B,S) or (S,), pose (B,60) or (60,) broadcast."""
