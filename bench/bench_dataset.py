@@ -98,21 +98,22 @@ def main() -> None:
     last: dict = {}
     # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
-    def stop_on_sigterm(signum, frame) -> None:
-        # print and leave from the handler itself: an exception raised here can land in a
-        # __del__ (Warp arrays are freed all the time) and be swallowed there
+    def report_partial() -> None:
         print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)), flush=True)
         if not args.keep:
             shutil.rmtree(out, ignore_errors=True)
+
+    def stop_on_sigterm(signum, frame) -> None:
+        # print and leave from the handler itself: an exception raised here can land in a
+        # __del__ (Warp arrays are freed all the time) and be swallowed there
+        report_partial()
         os._exit(143)
 
     signal.signal(signal.SIGTERM, stop_on_sigterm)
     try:
         manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=last.update)
     except KeyboardInterrupt:
-        print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)))
-        if not args.keep:
-            shutil.rmtree(out, ignore_errors=True)
+        report_partial()
         raise SystemExit(130)
     wall = time.perf_counter() - t0
     sim = manifest.audit.get("simulation", {})

@@ -376,33 +376,18 @@ class QuasiStaticSimulator:
     def set_positions(self, positions: np.ndarray, *, world: int | None = None) -> None:
         """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3)); zeroes their velocities.
 
-        One world's positions are copied into place on the device: the other worlds' particles do
-        not leave it (a 256-world t-shirt batch holds 1.8 M particles)."""
-        if world is not None:
-            sl = self.model.world_slice(world)
-            n = sl.stop - sl.start
-            pos = np.asarray(positions, dtype=np.float32)
-            if pos.shape != (n, 3):
-                raise ValueError(f"positions must have shape {(n, 3)} (got {pos.shape})")
-            if not np.all(np.isfinite(pos)):
-                raise ValueError("positions must be finite (got NaN or inf)")
-            dev = self.model.device
-            wp.copy(self.state_0.particle_q, wp.array(pos, dtype=wp.vec3, device=dev), dest_offset=sl.start, count=n)
-            wp.copy(self.state_0.particle_qd, wp.zeros(n, dtype=wp.vec3, device=dev), dest_offset=sl.start, count=n)
-            return
-        q = self.positions()
-        qd = self.velocities()
-        sl = slice(None) if world is None else self.model.world_slice(world)
-        target = q[sl]
+        The positions are copied into place on the device: for one world, the other worlds'
+        particles do not leave it (a 256-world t-shirt batch holds 1.8 M particles)."""
+        sl = slice(0, self.model.particle_count) if world is None else self.model.world_slice(world)
+        start, n = sl.start, sl.stop - sl.start
         pos = np.asarray(positions, dtype=np.float32)
-        if pos.shape != target.shape:
-            raise ValueError(f"positions must have shape {target.shape} (got {pos.shape})")
+        if pos.shape != (n, 3):
+            raise ValueError(f"positions must have shape {(n, 3)} (got {pos.shape})")
         if not np.all(np.isfinite(pos)):
             raise ValueError("positions must be finite (got NaN or inf)")
-        q[sl] = pos
-        qd[sl] = 0.0
-        self.state_0.particle_q.assign(q)
-        self.state_0.particle_qd.assign(qd)
+        dev = self.model.device
+        wp.copy(self.state_0.particle_q, wp.array(pos, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
+        wp.copy(self.state_0.particle_qd, wp.zeros(n, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
 
     @property
     def residual_history(self) -> np.ndarray:
