@@ -47,7 +47,8 @@ def damp_and_measure(qd: wp.array(dtype=wp.vec3), factor: float, max_speed: wp.a
 class NewtonRun:
     """Newton model of the scene with our damping and stopping rule around its solver."""
 
-    def __init__(self, newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int) -> None:
+    def __init__(self, newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int,
+                 worlds: int) -> None:
         self.device = wp.get_device(args.device)
         cloth_v = scene["cloth_vertices"].astype(np.float32)
         cloth_f = scene["cloth_faces"].astype(np.int32)
@@ -72,7 +73,7 @@ class NewtonRun:
         for i in scene.get("pinned", []):
             sub.particle_mass[int(i)] = 0.0  # cloth particles come first in `sub`; mass 0 pins them
         builder = newton.ModelBuilder(up_axis=newton.Axis.Y)
-        builder.replicate(sub, args.worlds, spacing=(4.0, 0.0, 0.0))
+        builder.replicate(sub, worlds, spacing=(4.0, 0.0, 0.0))
         if solver == "newton_vbd":
             builder.color(include_bending=True)
         self.model = builder.finalize(device=self.device)
@@ -129,27 +130,38 @@ class NewtonRun:
             self._frame()
         return float(self.max_speed.numpy()[0])
 
-    def relax(self, tolerance: float, patience: int, max_frames: int) -> tuple[int, str]:
-        calm = 0
+    def relax(self, tolerance: float, patience: int, max_frames: int, checkpoint_every: int = 0
+              ) -> tuple[int, str, float, list]:
+        """Steps until the stopping rule holds; returns (frames, status, stepping wall [s], checkpoints).
+
+        With ``checkpoint_every`` > 0, world 0's positions are copied out every that many frames
+        as (stepping seconds so far, frame, positions); the copies are not counted in the wall time.
+        """
+        calm, wall, checkpoints = 0, 0.0, []
         for frame in range(1, max_frames + 1):
-            speed = self.step_frame()
+            t0 = time.perf_counter()
+            speed = self.step_frame()  # reads the speed back: synchronizes
+            wall += time.perf_counter() - t0
             if not np.isfinite(speed) or speed > 50.0:
-                return frame, "EXPLODED"
+                return frame, "EXPLODED", wall, checkpoints
             calm = calm + 1 if speed < tolerance else 0
             if calm >= patience:
-                return frame, "CONVERGED"
-        return max_frames, "MAX_STEPS"
+                return frame, "CONVERGED", wall, checkpoints
+            if checkpoint_every and frame % checkpoint_every == 0:
+                checkpoints.append((wall, frame, self.positions()))
+        return max_frames, "MAX_STEPS", wall, checkpoints
 
     def positions(self) -> np.ndarray:
         """World 0's cloth positions [m] in the scene's frame (its particles come first)."""
         return self.state_0.particle_q.numpy()[: self.particles_per_world] - self.world0_shift
 
 
-def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tolerance: float, max_frames: int):
+def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tolerance: float, max_frames: int,
+             worlds: int):
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
     from simulate.cloth.scenes import batched_drape
 
-    model, collider = batched_drape(scene, args.worlds, args.device, fabric=args.fabric, thickness=args.thickness)
+    model, collider = batched_drape(scene, worlds, args.device, fabric=args.fabric, thickness=args.thickness)
     settings = SimSettings(frame_dt=args.frame_dt, substeps=substeps, iterations=iterations,
                            xpbd_mode="jacobi" if solver == "ours_xpbd_jacobi" else "gauss_seidel",
                            gs_relaxation=args.sor if solver == "ours_xpbd_gs_sor" else 1.0, damping=args.damping,
@@ -160,18 +172,37 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
     status = sim.relax()
     wp.synchronize_device(model.device)
     wall = time.perf_counter() - t0
-    return sim.world_positions(0), wall, int(sim.frame_count), WorldStatus(status[0]).name
+    return sim.world_positions(0), wall, int(sim.frame_count), WorldStatus(status[0]).name, []
 
 
 def run_newton(newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int, tolerance: float,
-               max_frames: int):
-    run = NewtonRun(newton, scene, fabric, args, solver, substeps, iterations)
+               max_frames: int, worlds: int, checkpoint_every: int = 0):
+    run = NewtonRun(newton, scene, fabric, args, solver, substeps, iterations, worlds)
     wp.synchronize_device(run.device)
-    t0 = time.perf_counter()
-    frames, status = run.relax(tolerance, args.patience, max_frames)
-    wp.synchronize_device(run.device)
-    wall = time.perf_counter() - t0
-    return run.positions(), wall, frames, status
+    frames, status, wall, checkpoints = run.relax(tolerance, args.patience, max_frames, checkpoint_every)
+    return run.positions(), wall, frames, status, checkpoints
+
+
+def equal_error_speedup(ours_rows: list[dict], peer_points: list[tuple[float, float, str]]) -> dict | None:
+    """Newton's most favourable time ratio at equal error.
+
+    ``ours_rows``: our converged sweep rows (``wall_s``, ``mean_err_mm``); ``peer_points``: (wall
+    [s], mean error [mm], label) of every peer configuration's checkpoints and end state.  For each
+    peer point, our fastest row with an error no larger is found; the result is the peer point with
+    the smallest ratio peer wall / our wall (None if no peer point is matched by any of our rows).
+    """
+    best = None
+    for wall, err, label in peer_points:
+        matches = [r for r in ours_rows if r["mean_err_mm"] <= err]
+        if not matches:
+            continue
+        ours = min(matches, key=lambda r: r["wall_s"])
+        ratio = wall / max(ours["wall_s"], 1e-12)
+        if best is None or ratio < best["speedup"]:
+            best = {"speedup": round(ratio, 2), "peer_point": label, "peer_wall_s": round(wall, 4),
+                    "peer_mean_err_mm": round(err, 3), "ours_config": f"{ours['solver']} {ours['substeps']}x"
+                    f"{ours['iterations']}", "ours_wall_s": ours["wall_s"], "ours_mean_err_mm": ours["mean_err_mm"]}
+    return best
 
 
 def main() -> None:
@@ -200,6 +231,9 @@ def main() -> None:
     parser.add_argument("--damping", type=float, default=5.0)
     parser.add_argument("--thickness", type=float, default=2.0e-3, help="body contact thickness [m]")
     parser.add_argument("--target-error-mm", type=float, default=10.0)
+    parser.add_argument("--checkpoint-every", type=int, default=25,
+                        help="Newton runs: measure world 0's error every this many frames (time to reach an error "
+                             "even when its stopping rule never holds); 0 = off")
     parser.add_argument("--newton-xpbd-relaxation", type=float, default=0.9,
                         help="Newton SolverXPBD soft_body_relaxation (its default 0.9)")
     parser.add_argument("--out", default=None)
@@ -231,36 +265,53 @@ def main() -> None:
             "tolerance": args.tolerance, "patience": args.patience}
     references = {}
     summary = {}
+    ours_rows: list[dict] = []
+    peer_points: dict[str, list] = {}
     for solver in args.solvers:
         if solver.startswith("newton") and newton is None:
             continue
 
-        def run(substeps: int, iterations: int, tolerance: float, max_frames: int):
+        def run(substeps: int, iterations: int, tolerance: float, max_frames: int, worlds: int, checkpoints: int = 0):
             if solver.startswith("ours"):
-                return run_ours(scene, args, solver, substeps, iterations, tolerance, max_frames)
-            return run_newton(newton, scene, fabric, args, solver, substeps, iterations, tolerance, max_frames)
+                return run_ours(scene, args, solver, substeps, iterations, tolerance, max_frames, worlds)
+            return run_newton(newton, scene, fabric, args, solver, substeps, iterations, tolerance, max_frames, worlds,
+                              checkpoints)
 
         try:
-            run(1, 1, args.tolerance, 2)  # warm-up: compile kernels (not timed)
-            ref_q, ref_wall, ref_frames, ref_status = run(args.ref_substeps, args.ref_iterations, args.ref_tolerance,
-                                                          args.ref_max_frames)
+            run(1, 1, args.tolerance, 2, args.worlds)  # warm-up: compile kernels (not timed)
+            # worlds are identical copies: one world is the reference of all
+            ref_q, ref_wall, ref_frames, ref_status, _ = run(args.ref_substeps, args.ref_iterations,
+                                                             args.ref_tolerance, args.ref_max_frames, 1)
         except Exception as exc:  # a peer's API drift must not hide the other solvers' numbers
             emit({**base, "solver": solver, "error": f"{type(exc).__name__}: {exc}"})
             continue
         references[solver] = ref_q
-        emit({**base, "solver": solver, "config": "reference", "substeps": args.ref_substeps,
+        emit({**base, "solver": solver, "config": "reference", "worlds": 1, "substeps": args.ref_substeps,
               "iterations": args.ref_iterations, "frames": ref_frames, "status": ref_status,
               "wall_s": round(ref_wall, 4)})
         best = None
         for substeps in args.substeps:
             for iterations in args.iterations:
-                q, wall, frames, status = run(substeps, iterations, args.tolerance, args.max_frames)
+                q, wall, frames, status, checkpoints = run(substeps, iterations, args.tolerance, args.max_frames,
+                                                           args.worlds, args.checkpoint_every)
                 err = np.linalg.norm(q - ref_q, axis=1) * 1e3
                 row = {**base, "solver": solver, "config": "sweep", "substeps": substeps, "iterations": iterations,
                        "frames": frames, "status": status, "wall_s": round(wall, 4),
                        "ms_per_frame": round(1e3 * wall / max(frames, 1), 4),
+                       "ms_per_world_frame": round(1e3 * wall / max(frames, 1) / args.worlds, 4),
                        "mean_err_mm": round(float(err.mean()), 3), "max_err_mm": round(float(err.max()), 3)}
+                if checkpoints:
+                    row["checkpoints"] = [[round(t, 4), f, round(float(np.linalg.norm(x - ref_q, axis=1).mean() * 1e3), 3)]
+                                          for t, f, x in checkpoints]
                 emit(row)
+                label = f"{substeps}x{iterations}"
+                if solver.startswith("ours"):
+                    if status == "CONVERGED":
+                        ours_rows.append(row)
+                elif status != "EXPLODED":
+                    points = peer_points.setdefault(solver, [])
+                    points.append((wall, row["mean_err_mm"], f"{label} {status} at frame {frames}"))
+                    points.extend((t, e, f"{label} at frame {f}") for t, f, e in row.get("checkpoints", []))
                 if status == "CONVERGED" and row["mean_err_mm"] <= args.target_error_mm and (
                         best is None or wall < best["wall_s"]):
                     best = row
@@ -274,6 +325,9 @@ def main() -> None:
         if ours is not None and solver in references:
             gap = np.linalg.norm(references[solver] - ours, axis=1) * 1e3
             record["reference_vs_ours_mean_mm"] = round(float(gap.mean()), 3)
+        if solver in peer_points:
+            # each error against the solver's own reference (the energies differ, see the docstring)
+            record["equal_error"] = equal_error_speedup(ours_rows, peer_points[solver])
         emit(record)
     if out is not None:
         out.close()

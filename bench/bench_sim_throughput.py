@@ -12,6 +12,7 @@ One JSON line per world count.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -28,6 +29,37 @@ def tshirt_scene(resolution: int, device: str) -> dict:
     body, _ = sc.body_vertices(sc.neutral_shape[None], sc.canonical_pose[None])
     return {"cloth_vertices": sc.rest_vertices, "cloth_faces": sc.faces, "body_vertices": body[0],
             "body_faces": sc.body_faces, "body_kind": "anny"}
+
+
+def kernel_profile(sim, frames: int) -> dict:
+    """GPU time per frame by kernel name over ``frames`` eager frames (Warp's CUDA activity timing).
+
+    Returns ``gpu_ms_per_frame`` (sum of kernel times), ``launches_per_frame``,
+    ``eager_wall_ms_per_frame`` and ``kernels``: [{name, ms_per_frame, launches_per_frame, share}],
+    most expensive first.  The gap between the graph's wall time and the kernel sum is launch
+    and dependency overhead.
+    """
+    sim.step_frame()  # warm: kernels compiled, buffers touched
+    wp.synchronize_device(sim.model.device)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL | wp.TIMING_KERNEL_BUILTIN)
+    t0 = time.perf_counter()
+    for _ in range(frames):
+        sim.step_frame()
+    wp.synchronize_device(sim.model.device)
+    wall = time.perf_counter() - t0
+    results = wp.timing_end()
+    totals: dict[str, list[float]] = {}
+    for r in results:
+        name = str(r.name).split(" ")[-1]
+        entry = totals.setdefault(name, [0.0, 0])
+        entry[0] += float(r.elapsed)
+        entry[1] += 1
+    gpu = sum(v[0] for v in totals.values())
+    kernels = [{"name": k, "ms_per_frame": round(v[0] / frames, 4), "launches_per_frame": round(v[1] / frames, 1),
+                "share": round(v[0] / max(gpu, 1e-12), 4)} for k, v in sorted(totals.items(), key=lambda kv: -kv[1][0])]
+    return {"frames": frames, "gpu_ms_per_frame": round(gpu / frames, 4),
+            "launches_per_frame": round(sum(v[1] for v in totals.values()) / frames, 1),
+            "eager_wall_ms_per_frame": round(1e3 * wall / frames, 4), "kernels": kernels}
 
 
 def main() -> None:
@@ -51,6 +83,10 @@ def main() -> None:
     parser.add_argument("--relax", action="store_true", help="also time relaxation to rest")
     parser.add_argument("--tolerance", type=float, default=0.01)
     parser.add_argument("--max-frames", type=int, default=600)
+    parser.add_argument("--profile", action="store_true",
+                        help="CUDA only: also run --profile-frames frames without graph capture under Warp's kernel "
+                             "timing and print one sim_profile line per world count (GPU ms per frame by kernel)")
+    parser.add_argument("--profile-frames", type=int, default=3)
     parser.add_argument("--out", default=None, help="also append JSON lines to this file")
     args = parser.parse_args()
 
@@ -119,11 +155,20 @@ def main() -> None:
                 "amortized_s_per_converged_drape": round(relax_s / worlds, 5),
                 "amortized_ms_per_frame_to_rest": round(1e3 * relax_s / max(1, int(np.sum(sim.world_frames))), 4),
             })
-        line = json.dumps(record)
-        print(line, flush=True)
-        if out is not None:
-            out.write(line + "\n")
-            out.flush()
+        records = [record]
+        if args.profile and wp.get_device(args.device).is_cuda:
+            eager = dataclasses.replace(raw, use_cuda_graph=False)
+            sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=eager)
+            records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
+                            "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
+                            "mode": args.mode, "graph_ms_per_frame": record["ms_per_frame"],
+                            **kernel_profile(sim, args.profile_frames)})
+        for rec in records:
+            line = json.dumps(rec)
+            print(line, flush=True)
+            if out is not None:
+                out.write(line + "\n")
+                out.flush()
         del sim, model, collider
     if out is not None:
         out.close()

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -17,9 +17,15 @@ case $stage in
     T=150 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 64 --relax --max-frames 400 --out "$jl"
     T=220 run python bench/bench_sim_error_vs_time.py --device cuda:0 --plot "$out/error_vs_time.png" --out "$jl" ;;
   peers)
-    T=420 run python bench/bench_sim_newton.py --device cuda:0 --out "$jl"
-    T=150 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs newton_vbd \
-      --substeps 10 --iterations 10 --out "$jl" ;;
+    # 1 world, every solver, substeps x iterations sweep; Newton's error checkpointed every 25 frames
+    T=${T:-540} run python bench/bench_sim_newton.py --device cuda:0 --out "$jl" ;;
+  peers64)
+    # 64 worlds (references from 1 world), then where a frame's GPU time goes (kernel profile)
+    T=300 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs newton_vbd \
+      --substeps 10 --iterations 10 --out "$jl"
+    T=120 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 1 64 --frames 10 --profile --out "$jl"
+    T=120 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
+      --frames 10 --profile --out "$jl" ;;
   dataset)
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
