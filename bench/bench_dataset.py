@@ -36,7 +36,8 @@ def main() -> None:
     parser.add_argument("--tolerance", type=float, default=None, help="override simulation.tolerance [m/s]")
     parser.add_argument("--range-scale", type=float, default=None, help="override poses.range_scale")
     parser.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
-                        help="override any simulation.KEY (repeatable), e.g. --sim outlier_fraction=0.02")
+                        help="override any simulation.KEY (repeatable, dots for nested keys), e.g. --sim outlier_fraction=0.02 "
+                             "--sim contact.self_contact=true")
     parser.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE",
                         help="override any filters.KEY (repeatable), e.g. --filter max_self_intersections=50")
     parser.add_argument("--out", default="/tmp/bench_dataset")
@@ -76,16 +77,21 @@ def main() -> None:
         spec["simulation"]["tolerance"] = args.tolerance
     for flag, section, items in (("--sim", "simulation", args.sim), ("--filter", "filters", args.filter)):
         for item in items:
-            key, _, value = item.partition("=")
-            if key not in spec[section] or not value:
-                raise SystemExit(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {sorted(spec[section])}")
-            old = spec[section][key]
+            dotted, _, value = item.partition("=")
+            *parents, key = dotted.split(".")  # nested fields by dots: contact.self_contact=true
+            table = spec[section]
+            for name in parents:
+                table = table.get(name) if isinstance(table, dict) else None
+            if not isinstance(table, dict) or key not in table or not value:
+                known = sorted(table) if isinstance(table, dict) else sorted(spec[section])
+                raise SystemExit(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {known}")
+            old = table[key]
             if isinstance(old, bool):
-                spec[section][key] = value.lower() in ("1", "true", "yes")
+                table[key] = value.lower() in ("1", "true", "yes")
             elif old is None:  # optional fields (poses_per_task): an integer, or null
-                spec[section][key] = None if value.lower() in ("none", "null") else int(value)
+                table[key] = None if value.lower() in ("none", "null") else int(value)
             else:
-                spec[section][key] = type(old)(value)
+                table[key] = type(old)(value)
     if args.range_scale is not None:
         spec["poses"]["range_scale"] = args.range_scale
     out = Path(args.out)

@@ -68,10 +68,12 @@ case $stage in
     T=${T_ACC:-450} run python -m pipelines.cli report accuracy --sweep ${SWEEP:-full} --reference-max-frames ${REF_FRAMES:-150} \
       --device cuda:0 --out "$out/accuracy" --no-progress ;;
   dataset-scale)
-    # the shipped spec at full width: 240 tasks of <= 30 poses as parallel worlds (heartbeat every 20 s)
+    # the shipped spec at full width: 240 tasks of <= 30 poses as parallel worlds (heartbeat every 20 s);
+    # EXTRA passes more bench flags, e.g. EXTRA="--sim contact.self_contact=true"
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-240} --test-poses 30 \
-      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ;;
+      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ${EXTRA:-} ;;
   *) echo "unknown stage $stage"; exit 2 ;;
 esac
-grep -h '^{' "$log" >>"$jl" 2>/dev/null || true
+# JSON lines the benches printed but did not write with --out themselves (no duplicates)
+touch "$jl"; grep -h '^{' "$log" 2>/dev/null | awk 'FILENAME != "-" { seen[$0]; next } !($0 in seen)' "$jl" - >>"$jl" || true
 tail -c 6000 "$log"

@@ -116,7 +116,7 @@ class ClothModel:
 
     Arrays (device ``device``):
 
-    * ``particle_q_rest`` vec3 (particle_count,) rest/initial positions [m]
+    * ``particle_q_rest`` numpy float32 (particle_count, 3) rest/initial positions [m] (host copy)
     * ``particle_mass`` float (particle_count,) lumped masses [kg]
     * ``particle_inv_mass`` float (particle_count,) inverse masses [1/kg], 0 for pinned
     * ``particle_world`` int32 (particle_count,) world of each particle

@@ -227,9 +227,15 @@ class SelfContact:
         n = max(1, int(np.ceil(round(model.world_count ** (1.0 / 3.0), 9))))
         w = np.arange(model.world_count)
         cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1)
-        self.world_offset = wp.array((cells * spacing).astype(np.float32), dtype=wp.vec3, device=dev)
+        offsets = (cells * spacing).astype(np.float32)
+        self.world_offset = wp.array(offsets, dtype=wp.vec3, device=dev)
         count = max(model.particle_count, 1)
-        self.points = wp.array(rest, dtype=wp.vec3, device=dev)
+        # the BVH is built here and only refit later: build it over the points at their world
+        # cells, or its nodes span all worlds (identical garments overlap at rest) and every
+        # query walks all of them (measured: 40 t-shirts' canonical drapes > 440 s on an H200)
+        self.points = wp.array(rest + offsets[model.particle_world_np], dtype=wp.vec3, device=dev)
+        self.rest = wp.array(rest, dtype=wp.vec3, device=dev)
+        """Rest positions [m] on the model's device (rest-shape exclusion of near pairs)."""
         self.mesh = wp.Mesh(points=self.points, indices=wp.array(model.tri_indices_np.reshape(-1), dtype=wp.int32,
                                                                  device=dev))
         self.candidate = wp.full(count, -1, dtype=wp.int32, device=dev)
@@ -246,7 +252,7 @@ class SelfContact:
         wp.launch(detect_self_contacts, dim=m.particle_count,
                   inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, self.world_offset,
                           x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
-                          m.particle_q_rest, self.rest_exclusion, self.thickness + self.margin],
+                          self.rest, self.rest_exclusion, self.thickness + self.margin],
                   outputs=[self.candidate, self.side], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:
