@@ -21,8 +21,8 @@ case $stage in
     T=${T:-540} run python bench/bench_sim_newton.py --device cuda:0 --out "$jl" ;;
   peers64)
     # 64 worlds (references from 1 world), then where a frame's GPU time goes (kernel profile)
-    T=300 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs newton_vbd \
-      --substeps 10 --iterations 10 --out "$jl"
+    T=360 run python bench/bench_sim_newton.py --device cuda:0 --worlds 64 --solvers ours_xpbd_gs ours_xpbd_gs_jb newton_vbd \
+      --substeps 5 10 --iterations 10 --out "$jl"
     T=120 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 1 64 --frames 10 --profile --out "$jl"
     T=120 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
       --frames 10 --profile --out "$jl" ;;
