@@ -90,3 +90,30 @@ def test_posing_bodies_ahead_changes_no_frame_and_batches_the_body_model(scene):
             np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=5e-3, err_msg=f"task {a.task} key {a.key}: garment")
     # schedules of 2 + 4 entries (+ 1-2 slerp'ed) per world: one call at the start, one after the recovery
     assert stats_ahead["body_calls"] <= 3 < stats_single["body_calls"], (stats_ahead["body_calls"], stats_single["body_calls"])
+
+
+def test_a_world_that_keeps_exploding_starts_over_from_the_canonical_drape(scene):
+    """Retrying from the same last good state can explode target after target (a CPU slice lost 14
+    in a row in one world); after ``restart_after_explosions`` in a row the world starts over."""
+    body, template, start, canonical, small, jump = scene
+    keys = [small, jump, jump, small, canonical]
+
+    def run(restart_after: int):
+        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                            shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
+        settings = SequenceSettings(
+            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                            explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
+            shape_transition_frames=1, interpolation_threshold=10.0, restart_after_explosions=restart_after)
+        frames = []
+        stats = run_sequences(body, template.faces, [task], body_faces=body.part_faces(("torso", "arms")),
+                              settings=settings, device="cpu", on_frame=frames.append)
+        return [(f.key, WorldStatus(f.status).name) for f in frames], stats
+
+    keyed, stats = run(2)
+    assert [k for k, _ in keyed] == [0, 1, 2, 3, 4], keyed
+    assert keyed[1][1] == keyed[2][1] == "EXPLODED", f"both jumps from the small pose must explode: {keyed}"
+    assert stats["recoveries"] == 2 and stats["restarts"] == 1, stats
+    assert keyed[3][1] != "EXPLODED" and keyed[4][1] != "EXPLODED", keyed
+    _, never = run(0)
+    assert never["restarts"] == 0 and never["recoveries"] == 2, never
