@@ -263,6 +263,7 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
                      f"{int(phases.get('frames', 0))} simulator frames")
         lines.append(f"  {'  explosions recovered':<26}{int(phases.get('recoveries', 0)):>6}")
+        lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
     return "\n".join(lines)
 
 
@@ -348,7 +349,8 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
             if ph.get("frames"):
                 line += (f", {int(ph['frames'])} simulator frames ({int(ph['world_frames'])} world-frames, "
                          f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording / "
-                         f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries (explosions "
+                         f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries "
+                         f"({int(ph.get('restarts', 0))} restarts; explosions "
                          f"non-finite / speed / stretch {int(ph.get('exploded_non_finite', 0))} / "
                          f"{int(ph.get('exploded_speed', 0))} / {int(ph.get('exploded_stretch', 0))}), "
                          f"{int(ph.get('body_calls', 0))} body-model calls")

@@ -288,7 +288,6 @@ def run_sequences(
             next_key = int(keys_w[j]) + 1
             over = last_good[w] is None or (can_restart and settings.restart_after_explosions <= streak[w])
             if over:  # the last good state keeps leading into explosions: start over
-                stats["restarts"] += 1
                 streak[w] = 0
                 good = {"positions": np.asarray(tasks[w].start_vertices, np.float32), "vertices": start.vertices[w],
                         "skin": start.skinning_transforms[w], "rest": start.rest_vertices[w]}
@@ -304,6 +303,7 @@ def run_sequences(
                 sim.status[w] = WorldStatus.CONVERGED  # frozen again: nothing left to do
                 return 1
             if over:
+                stats["restarts"] += 1
                 schedules[w] = _schedule(tasks[w], canonical, neutral, settings, first_key=next_key)
             else:
                 schedules[w] = _visit_entries(tasks[w], next_key, good["pose"], settings.interpolation_threshold)

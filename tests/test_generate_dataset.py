@@ -190,6 +190,7 @@ def test_summary_table_reports_drops_and_where_the_time_went(reference):
     assert f"frames kept{kept:>6}".replace(" ", "") in table.replace(" ", ""), table
     assert all(f"dropped: {reason}" in table for reason in DROP_REASONS), table
     assert "2.00 target frames/s" in table and "explosions recovered" in table, table
+    assert table.split("of them restarted")[1].split()[0] == str(int(phases["restarts"])), table
     assert f"over {int(phases['frames'])} simulator frames" in table, table
 
 
