@@ -132,34 +132,45 @@ class NewtonRun:
 
     def relax(self, tolerance: float, patience: int, max_frames: int, checkpoint_every: int = 0
               ) -> tuple[int, str, float, list]:
-        """Steps until the stopping rule holds; returns (frames, status, stepping wall [s], checkpoints).
+        """Steps until the stopping rule holds; returns :func:`timed_frames`' (frames, status, wall, checkpoints)."""
+        calm = 0
 
-        With ``checkpoint_every`` > 0, world 0's positions are copied out every that many frames
-        as (stepping seconds so far, frame, positions); the copies are not counted in the wall time.
-        """
-        calm, wall, checkpoints = 0, 0.0, []
-        for frame in range(1, max_frames + 1):
-            t0 = time.perf_counter()
-            speed = self.step_frame()  # reads the speed back: synchronizes
-            wall += time.perf_counter() - t0
+        def step() -> str | None:
+            nonlocal calm
+            speed = self.step_frame()
             if not np.isfinite(speed) or speed > 50.0:
-                return frame, "EXPLODED", wall, checkpoints
+                return "EXPLODED"
             calm = calm + 1 if speed < tolerance else 0
-            if calm >= patience:
-                return frame, "CONVERGED", wall, checkpoints
-            if checkpoint_every and frame % checkpoint_every == 0:
-                checkpoints.append((wall, frame, self.positions()))
-        return max_frames, "MAX_STEPS", wall, checkpoints
+            return "CONVERGED" if calm >= patience else None
+
+        return timed_frames(step, self.positions, max_frames, checkpoint_every)
 
     def positions(self) -> np.ndarray:
         """World 0's cloth positions [m] in the scene's frame (its particles come first)."""
         return self.state_0.particle_q.numpy()[: self.particles_per_world] - self.world0_shift
 
 
+def timed_frames(step, positions, max_frames: int, checkpoint_every: int = 0) -> tuple[int, str, float, list]:
+    """Calls ``step()`` (one frame; returns a final status name, or None to go on) at most
+    ``max_frames`` times.  Returns (frames, status, stepping wall [s], checkpoints): with
+    ``checkpoint_every`` > 0, ``positions()`` (world 0) is copied out every that many frames as
+    (stepping seconds so far, frame, positions), the copies not timed; "MAX_STEPS" if no status came."""
+    wall, checkpoints = 0.0, []
+    for frame in range(1, max_frames + 1):
+        t0 = time.perf_counter()
+        status = step()  # both simulators read their stopping metrics back: synchronizes
+        wall += time.perf_counter() - t0
+        if status is not None:
+            return frame, status, wall, checkpoints
+        if checkpoint_every and frame % checkpoint_every == 0:
+            checkpoints.append((wall, frame, positions()))
+    return max_frames, "MAX_STEPS", wall, checkpoints
+
+
 def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tolerance: float, max_frames: int,
              worlds: int, checkpoint_every: int = 0):
-    """Our simulator to rest; returns (world 0 positions, stepping wall [s], frames, status, checkpoints)
-    with checkpoints as in :meth:`NewtonRun.relax` (copies not timed)."""
+    """Our simulator to rest; returns (world 0 positions, stepping wall [s], frames, world 0's status,
+    checkpoints) as :func:`timed_frames`."""
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
     from simulate.cloth.scenes import batched_drape
 
@@ -171,18 +182,16 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
                            tolerance=tolerance, patience=args.patience, max_frames=max_frames)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     wp.synchronize_device(model.device)
-    wall, checkpoints = 0.0, []
-    for frame in range(1, max_frames + 1):
-        if not (sim.status == WorldStatus.RUNNING).any():
-            break
-        t0 = time.perf_counter()
-        sim.step_frame()  # reads the convergence metrics back: synchronizes
-        wall += time.perf_counter() - t0
-        if checkpoint_every and frame % checkpoint_every == 0:
-            checkpoints.append((wall, frame, sim.world_positions(0)))
-    status = sim.status.copy()
-    status[status == WorldStatus.RUNNING] = WorldStatus.MAX_STEPS
-    return sim.world_positions(0), wall, int(sim.frame_count), WorldStatus(status[0]).name, checkpoints
+
+    def step() -> str | None:
+        status = sim.step_frame()
+        return None if (status == WorldStatus.RUNNING).any() else WorldStatus(status[0]).name
+
+    frames, status, wall, checkpoints = timed_frames(step, lambda: sim.world_positions(0), max_frames,
+                                                     checkpoint_every)
+    if sim.status[0] != WorldStatus.RUNNING:  # world 0 may have stopped while others ran to max_frames
+        status = WorldStatus(sim.status[0]).name
+    return sim.world_positions(0), wall, frames, status, checkpoints
 
 
 def run_newton(newton, scene: dict, fabric, args, solver: str, substeps: int, iterations: int, tolerance: float,
@@ -275,7 +284,7 @@ def main() -> None:
     parser.add_argument("--thickness", type=float, default=2.0e-3, help="body contact thickness [m]")
     parser.add_argument("--target-error-mm", type=float, default=10.0)
     parser.add_argument("--checkpoint-every", type=int, default=25,
-                        help="Newton runs: measure world 0's error every this many frames (time to reach an error "
+                        help="measure world 0's error every this many frames, in every sweep run (time to reach an error "
                              "even when its stopping rule never holds); 0 = off")
     parser.add_argument("--newton-xpbd-relaxation", type=float, default=0.9,
                         help="Newton SolverXPBD soft_body_relaxation (its default 0.9)")
