@@ -9,7 +9,17 @@ import warp as wp
 
 from simulate.contact import kernels
 
-__all__ = ["BodyCollider"]
+__all__ = ["BodyCollider", "world_cell_offsets"]
+
+
+def world_cell_offsets(world_count: int, spacing: float) -> np.ndarray:
+    """Offsets [m] (world_count, 3) float32 of a cube grid of cells ``spacing`` apart: world w at
+    cell (w % n, (w // n) % n, w // n^2), n = ceil(cbrt(world_count)).  Contact meshes of all worlds
+    live in one ``wp.Mesh`` at these offsets, so one refit and one query launch serve every world."""
+    n = max(1, math.ceil(round(world_count ** (1.0 / 3.0), 9)))
+    w = np.arange(world_count)
+    cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1).astype(np.float64)
+    return (cells * spacing).astype(np.float32)
 
 
 def _is_tensor(value) -> bool:
@@ -88,13 +98,11 @@ class BodyCollider:
         # World cells: a cube grid with spacing well above body extent + cloth excursion.
         extent = float(np.max(compact.max(axis=1) - compact.min(axis=1)))
         self.world_spacing = 3.0 * extent + 2.0
-        n = max(1, math.ceil(round(self.world_count ** (1.0 / 3.0), 9)))
-        w = np.arange(self.world_count)
-        cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1).astype(np.float64)
-        self.world_offset_np = (cells * self.world_spacing).astype(np.float32)
+        self.world_offset_np = world_cell_offsets(self.world_count, self.world_spacing)
         self.world_offset = wp.array(self.world_offset_np, dtype=wp.vec3, device=self.device)
         """Offset of each world's cell [m], shape (world_count,)."""
 
+        w = np.arange(self.world_count)
         self.vertex_world = wp.array(np.repeat(w, self.vertex_count).astype(np.int32), device=self.device)
         flat = compact.reshape(-1, 3).astype(np.float32)
         self.pose_start = wp.array(flat, dtype=wp.vec3, device=self.device)

@@ -17,6 +17,7 @@ import numpy as np
 import warp as wp
 
 from simulate.cloth.model import ClothModel
+from simulate.contact.body_collider import world_cell_offsets
 
 wp.set_module_options({"enable_backward": False})
 
@@ -223,11 +224,7 @@ class SelfContact:
         self.rest_exclusion = rest_exclusion
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
-        spacing = 4.0 * extent + 2.0
-        n = max(1, int(np.ceil(round(model.world_count ** (1.0 / 3.0), 9))))
-        w = np.arange(model.world_count)
-        cells = np.stack([w % n, (w // n) % n, w // (n * n)], axis=1)
-        offsets = (cells * spacing).astype(np.float32)
+        offsets = world_cell_offsets(model.world_count, 4.0 * extent + 2.0)
         self.world_offset = wp.array(offsets, dtype=wp.vec3, device=dev)
         count = max(model.particle_count, 1)
         # the BVH is built here and only refit later: build it over the points at their world
