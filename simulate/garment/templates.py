@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 from simulate.body.base import PARTS, POSE_JOINTS
@@ -66,6 +67,11 @@ WAIST_BELOW_SPINE1_M = 0.01
 SKIRT_SKINNING_NEIGHBOURS = 100
 #: Generated garment vertices are kept at least this far outside the body [m].
 PUSH_CLEARANCE_M = 0.004
+#: Radius [m] over which the normals of the style offset are smoothed (at least 10 rings):
+#: sharper normals converge in concave places and fold loose offsets there.
+OFFSET_NORMAL_RADIUS_M = 0.05
+#: Offset faces smaller than this fraction of their surface face are smoothed (unfold_offset).
+UNFOLD_AREA_FRACTION = 0.2
 #: An offset point must stay this fraction of its offset away from the body.
 SAFE_OFFSET_RATIO = 0.95
 #: Edges shorter than this fraction of the median edge are collapsed.
@@ -500,25 +506,89 @@ def skirt_skinning_weights(body, points: np.ndarray, *, neighbours: int = SKIRT_
 
 
 # ------------------------------------------------------------------------- styles
-def _slide(surface: np.ndarray, faces: np.ndarray, member: np.ndarray, u: np.ndarray, u_anchor: float,
-           u_max: float, u_cut: float, axis_point) -> tuple[np.ndarray, np.ndarray]:
-    """Moves a segment's rows toward its anchor so the hem at u_max lands at u_cut, keeping
-    the vertices on the surface. Returns (new positions (V, 3), new coordinates (V,))."""
-    scale = (u_cut - u_anchor) / max(u_max - u_anchor, 1e-9)
-    u_new = np.where(u > u_anchor, u_anchor + (u - u_anchor) * scale, u)
-    u_new = u + member * (u_new - u)
-    moved = surface + (axis_point(u_new) - axis_point(u))
-    # Vertices fully inside the segment are put back on its surface; the blend zone
-    # (partial membership, e.g. the armpit) is only translated, since projecting it
-    # would pull neighbours onto the same crease point.
-    sel = (member > 0.5) & (np.abs(u_new - u) > 1e-9)
-    out = moved.copy()
-    if sel.any():
-        seg_faces = faces[(member[faces] > 0.5).all(1)]
-        if len(seg_faces) == 0:
-            seg_faces = faces
-        query = mesh_ops.ClosestPointQuery(surface, seg_faces)
-        out[sel] = query.query(moved[sel])[0]
+#: Column grid of the style slide: (columns around the axis, samples along it).
+SLIDE_GRID: tuple[int, int] = (240, 300)
+
+
+def _angle_around(points: np.ndarray, u: np.ndarray, chain: list[np.ndarray]) -> np.ndarray:
+    """Angle [rad] (N,) of points around a joint polyline at their bone-unit coordinates u,
+    measured from the world forward axis (+z) projected off the local bone direction."""
+    c = np.stack(chain)
+    i = np.clip(np.floor(u).astype(int), 0, len(chain) - 2)
+    d = c[i + 1] - c[i]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ref = np.array([0.0, 0.0, 1.0]) - d[:, 2:3] * d
+    ref /= np.maximum(np.linalg.norm(ref, axis=1, keepdims=True), 1e-9)
+    radial = points - limb_point(u, chain)
+    return np.arctan2(np.einsum("ij,ij->i", radial, np.cross(d, ref)), np.einsum("ij,ij->i", radial, ref))
+
+
+def _slide(surface: np.ndarray, member: np.ndarray, u: np.ndarray, chain: list[np.ndarray], u_anchor: float,
+           u_max: float, u_cut: float, *, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Moves a segment's rows toward its anchor so the hem at u_max lands at u_cut, on the
+    segment's own surface. Returns (new positions (V, 3) [m], new coordinates u (V,)).
+
+    The segment (a tube around the joint polyline ``chain``; u in bone units, ``length``
+    [m] per unit) is parameterized by (angle around the axis, u). Along every column of
+    constant angle the rows between the anchor and the hem are spaced uniformly shorter
+    *in arc length* (not in u): sliding by u alone piles rows up where the surface turns
+    away from the axis (the lumbar curve above the buttocks: rows 0.1-0.8 mm apart,
+    which later tore in the drape). Each moved vertex is put at its new (angle, u) on the
+    piecewise-linear original surface, so rows never cross or collapse."""
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+    theta = _angle_around(surface, u, chain)
+    radius = float(np.median(np.linalg.norm(surface - limb_point(u, chain), axis=1)[member > 0.5]))
+    src = np.nonzero((member > 0.5) & (u >= u_anchor - 0.05))[0]
+    plane_t, plane_u = [theta[src]], [u[src]]
+    idx = [src]
+    for sign in (1.0, -1.0):  # periodic in the angle: copies of the points near the seam
+        near = sign * theta[src] > np.pi - 0.6
+        plane_t.append(theta[src][near] - sign * 2.0 * np.pi)
+        plane_u.append(u[src][near])
+        idx.append(src[near])
+    plane = np.stack([np.concatenate(plane_t) * radius, np.concatenate(plane_u) * length], 1)
+    xyz = surface[np.concatenate(idx)]
+    linear, nearest = LinearNDInterpolator(plane, xyz), NearestNDInterpolator(plane, xyz)
+
+    def surface_at(t: np.ndarray, uu: np.ndarray) -> np.ndarray:
+        q = np.stack([t.ravel() * radius, uu.ravel() * length], 1)
+        out = linear(q)
+        bad = ~np.isfinite(out).all(1)
+        if bad.any():
+            out[bad] = nearest(q[bad])
+        return out
+
+    nt, nu = SLIDE_GRID
+    tg = np.linspace(-np.pi, np.pi, nt + 1)
+    ug = np.linspace(u_anchor, u_max, nu + 1)
+    grid = surface_at(*np.meshgrid(tg, ug, indexing="ij")).reshape(nt + 1, nu + 1, 3)
+    arc = np.concatenate([np.zeros((nt + 1, 1)), np.cumsum(np.linalg.norm(np.diff(grid, axis=1), axis=2), 1)], 1)
+    column_scale = np.array([np.interp(u_cut, ug, a) for a in arc]) / np.maximum(arc[:, -1], 1e-9)
+
+    move = np.nonzero((member > 0) & (u > u_anchor))[0]
+    ft = (theta[move] + np.pi) / (2.0 * np.pi) * nt
+    j0 = np.clip(np.floor(ft).astype(int), 0, nt - 1)
+    fu = np.clip((u[move] - u_anchor) / (u_max - u_anchor) * nu, 0.0, nu)
+    k = np.clip(np.floor(fu).astype(int), 0, nu - 1)
+    u_col = np.zeros(len(move))
+    for j, weight in ((j0, 1.0 - (ft - j0)), (j0 + 1, ft - j0)):
+        a = arc[j]  # (M, nu + 1) arc length along each vertex's column
+        s = a[np.arange(len(move)), k] + (fu - k) * (a[np.arange(len(move)), k + 1] - a[np.arange(len(move)), k])
+        s = s + np.maximum(u[move] - u_max, 0.0) * length  # hem vertices a little past u_max
+        target = s * column_scale[j]
+        kk = np.clip((a <= target[:, None]).sum(1) - 1, 0, nu - 1)
+        lo, hi = a[np.arange(len(move)), kk], a[np.arange(len(move)), kk + 1]
+        u_col += weight * (ug[kk] + (target - lo) / np.maximum(hi - lo, 1e-12) * (ug[1] - ug[0]))
+    u_new = u.copy()
+    u_new[move] = u[move] + member[move] * (u_col - u[move])
+    out = surface.copy()
+    # Vertices fully inside the segment go to their new place on its surface; the blend
+    # zone (partial membership, e.g. the armpit) is only translated along the axis.
+    inside = move[member[move] > 0.5]
+    out[inside] = surface_at(theta[inside], u_new[inside])
+    blend = move[member[move] <= 0.5]
+    out[blend] += limb_point(u_new[blend], chain) - limb_point(u[blend], chain)
     return out, u_new
 
 
@@ -547,8 +617,9 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
         anchor, lo, hi = TORSO_CUT
         u = (y_top - surf[:, 1]) / height
         member = membership(template.segment == SEGMENT_TORSO)
-        axis = lambda uu: np.stack([np.zeros_like(uu), y_top - uu * height, np.zeros_like(uu)], -1)  # noqa: E731
-        surf, _ = _slide(surf, faces, member, u, anchor, hi, lo + (hi - lo) * style["length"], axis)
+        spine = [joints["spine2"], 0.5 * (joints["left_hip"] + joints["right_hip"])]  # u = 1 at hip height
+        surf, _ = _slide(surf, member, u, spine, anchor, hi, lo + (hi - lo) * style["length"],
+                         length=float(np.linalg.norm(spine[1] - spine[0])))
         length_name = "sleeve_length"
     else:
         length_name = "leg_length"
@@ -558,14 +629,57 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
         chain = [joints[n] for n in _chain(kind, side)]
         member = membership(template.segment == seg_id)
         u = limb_coordinate(surf, chain)
-        surf, u_new = _slide(surf, faces, member, u, anchor, hi, u_cut, lambda uu, c=chain: limb_point(uu, c))
+        surf, u_new = _slide(surf, member, u, chain, anchor, hi, u_cut,
+                             length=float(np.mean([np.linalg.norm(b - a) for a, b in zip(chain[:-1], chain[1:])])))
         ramp = np.clip((u_new - anchor) / max(u_cut - anchor, 1e-9), 0.0, 1.0)
         extra += member * ramp * style["width_profile"]
-    normals = mesh_ops.smooth_normals(surf, faces, iterations=10)
+    edges, _ = mesh_ops.unique_edges(faces)
+    edge = float(np.median(np.linalg.norm(surf[edges[:, 1]] - surf[edges[:, 0]], axis=1)))
+    normals = mesh_ops.smooth_normals(surf, faces, iterations=max(10, int(np.ceil((OFFSET_NORMAL_RADIUS_M / edge) ** 2))))
     body_query = mesh_ops.ClosestPointQuery(bv, body.faces)
     offset = safe_offsets(surf, normals, style["looseness"] + extra, faces, body_query)
-    verts = surf + normals * offset[:, None]
+    verts = unfold_offset(surf + normals * offset[:, None], surf, faces)
     return relax_outside(verts, faces, body_query).astype(np.float32)
+
+
+def unfold_offset(points: np.ndarray, surface: np.ndarray, faces: np.ndarray, *, rounds: int = 10) -> np.ndarray:
+    """Smooths away the places where offsetting ``surface`` (V, 3) [m] to ``points`` folded
+    or collapsed triangles: faces turned more than 60 degrees from their surface face or
+    shrunk below UNFOLD_AREA_FRACTION of its area (offsets larger than a concavity's
+    radius, e.g. a loose hem over the lumbar curve, cross each other there). Those faces'
+    vertices and two rings around them are Laplacian-smoothed, repeatedly; boundary
+    vertices (hems, cuffs) only along their boundary, so the openings do not pull in."""
+    n_vert = len(points)
+    adj = mesh_ops.vertex_adjacency(faces, n_vert)
+    bnd = mesh_ops.boundary_edges_directed(faces)
+    on_boundary = np.zeros(n_vert, dtype=bool)
+    on_boundary[bnd.ravel()] = True
+    interior_rows = sparse.diags((~on_boundary).astype(np.float64)) @ adj
+    bnd_ij = np.concatenate([bnd, bnd[:, ::-1]])
+    smoothing = (interior_rows + sparse.csr_matrix((np.ones(len(bnd_ij)), (bnd_ij[:, 0], bnd_ij[:, 1])),
+                                                   shape=(n_vert, n_vert))).tocsr()
+    degree = np.maximum(np.asarray(smoothing.sum(1)).ravel(), 1.0)
+
+    def area_normal(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        c = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+        a = np.linalg.norm(c, axis=1)
+        return a, c / np.maximum(a, 1e-15)[:, None]
+
+    a0, n0 = area_normal(surface)
+    out = np.asarray(points, dtype=np.float64).copy()
+    for _ in range(rounds):
+        a, n = area_normal(out)
+        bad = (np.einsum("ij,ij->i", n, n0) < 0.5) | (a < UNFOLD_AREA_FRACTION * a0)
+        if not bad.any():
+            break
+        region = np.zeros(n_vert)
+        region[faces[bad].ravel()] = 1.0
+        for _ in range(2):
+            region = np.maximum(region, (adj @ region > 0).astype(np.float64))
+        free = (region > 0.5)[:, None]
+        for _ in range(5):
+            out += np.where(free, 0.5 * ((smoothing @ out) / degree[:, None] - out), 0.0)
+    return out
 
 
 def safe_offsets(surface: np.ndarray, normals: np.ndarray, offset: np.ndarray, faces: np.ndarray,
