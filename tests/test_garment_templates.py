@@ -128,3 +128,64 @@ def test_templates_are_deterministic(templates, anny_body):
     for garment_type in ("skirt", "shorts"):
         again = make_template(garment_type, anny_body, resolution=TEST_RESOLUTION)
         assert again.content_hash() == templates[garment_type].content_hash(), f"{garment_type} differs between builds"
+
+
+def _grid_faces(rows: int, cols: int, *, wrap: bool) -> np.ndarray:
+    """Two triangles per quad of a (rows, cols) vertex grid, row-major; columns wrap around if ``wrap``."""
+    faces = []
+    for r in range(rows - 1):
+        for c in range(cols if wrap else cols - 1):
+            a, b = r * cols + c, r * cols + (c + 1) % cols
+            faces += [(a, a + cols, b), (b, a + cols, b + cols)]
+    return np.asarray(faces, dtype=np.int64)
+
+
+def test_slide_spaces_rows_evenly_in_arc_length():
+    """A tube with a bulge (like the buttocks below the lumbar curve): sliding the hem halfway
+    up keeps every column's rows evenly compressed along the surface. Sliding by height alone
+    squeezes the rows that land on the bulge's flanks to 0.3x their old spacing."""
+    from simulate.garment.templates import _slide
+
+    rows, cols = 41, 48
+    y = np.linspace(0.0, -0.4, rows)  # u = 0 at the top, 1 at the hem
+    theta = np.linspace(-np.pi, np.pi, cols, endpoint=False)
+    radius = 0.12 + 0.06 * np.exp(-((y + 0.3) / 0.04) ** 2)
+    pts = np.stack([np.outer(radius, np.sin(theta)), np.repeat(y[:, None], cols, 1),
+                    np.outer(radius, np.cos(theta))], -1).reshape(-1, 3)
+    u = -pts[:, 1] / 0.4
+    chain = [np.zeros(3), np.array([0.0, -0.4, 0.0])]
+    out, u_new = _slide(pts, np.ones(len(pts)), u, chain, 0.0, 1.0, 0.5, length=0.4)
+    assert np.isfinite(out).all() and u_new.max() < 0.5 + 1e-6
+    before = np.linalg.norm(np.diff(pts.reshape(rows, cols, 3), axis=0), axis=2)
+    after = np.linalg.norm(np.diff(out.reshape(rows, cols, 3), axis=0), axis=2)
+    ratio = after / before
+    assert 0.4 < ratio.min() and ratio.max() < 0.6, (ratio.min(), ratio.max())
+    # the moved vertices stay on the tube (radius at their new height)
+    r_new = np.linalg.norm(out[:, [0, 2]], axis=1)
+    assert np.abs(r_new - np.interp(-out[:, 1], -y, radius)).max() < 0.004
+
+
+def test_unfold_offset_removes_folds_of_a_loose_offset_over_a_groove():
+    """Offsetting a 1.5 cm wide, 1 cm deep groove by 3 cm along its normals crosses the
+    offset rows over each other (flipped faces); unfold_offset leaves none flipped and no
+    face under 10 % of its surface area, and does not touch the flat parts."""
+    from simulate.garment.templates import unfold_offset
+
+    rows, cols = 40, 30
+    x = np.linspace(-0.1, 0.1, rows)
+    z = np.linspace(0.0, 0.1, cols)
+    xx, zz = np.meshgrid(x, z, indexing="ij")
+    surface = np.stack([xx, -0.01 * np.exp(-(xx / 0.015) ** 2), zz], -1).reshape(-1, 3)
+    faces = _grid_faces(rows, cols, wrap=False)[:, ::-1]  # normals up, into the groove's open side
+    normals = mesh_ops.smooth_normals(surface, faces, iterations=1)
+    assert normals[:, 1].min() > 0
+    offset = surface + 0.03 * normals
+    n0 = mesh_ops.face_normals(surface, faces)
+    flipped = lambda v: int((np.einsum("ij,ij->i", mesh_ops.face_normals(v, faces), n0) < 0).sum())  # noqa: E731
+    assert flipped(offset) > 0, "test setup: the offset should fold"
+    out = unfold_offset(offset, surface, faces)
+    assert flipped(out) == 0
+    area = lambda v: np.linalg.norm(np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]]), axis=1)  # noqa: E731
+    assert (area(out) / area(surface)).min() > 0.1
+    flat = np.abs(surface[:, 0]) > 0.07
+    np.testing.assert_allclose(out[flat], offset[flat], atol=1e-9)
