@@ -46,8 +46,9 @@ case $stage in
     T=${T:-150} run python -m cProfile -s tottime bench/bench_dataset.py --spec tailornet-tshirt --poses 3 --test-poses 2 \
       --device cuda:0 --out /tmp/tn-prof --sim tolerance=0.05 ;;
   learn)
-    # DATA=/tmp/tn-scale trains on a kept dataset-scale run (KEEP=1) of the same warm machine
-    T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data ${DATA:-/tmp/tn} --out /tmp/tn-run --device cuda --epochs ${EPOCHS:-40} --no-progress
+    # DATA=/tmp/tn-scale trains on a kept dataset-scale run (KEEP=1) of the same warm machine; the paper's
+    # epochs per stage (LF 100, HF 800, g 400, baseline 100) unless EPOCHS sets one count for all
+    T=${T_TRAIN:-400} run python -m pipelines.cli train tailornet --data ${DATA:-/tmp/tn} --out /tmp/tn-run --device cuda ${EPOCHS:+--epochs $EPOCHS} --no-progress
     T=${T_EVAL:-90} run python -m pipelines.cli evaluate /tmp/tn-run --data ${DATA:-/tmp/tn} --device cuda --out "$out/eval" ;;
   scale-probe)
     # where the full-width run's time goes: the t-shirt's raw stepping cost at the pipeline's widths, then
