@@ -81,3 +81,15 @@ def test_self_contact_bvh_is_built_where_it_is_refit(device: str) -> None:
     np.testing.assert_array_equal(contact.points.numpy(), built)
     per_world = built.reshape(model.world_count, -1, 3)
     assert np.ptp(per_world[:, :, 0].mean(axis=1)) > 1.0, "worlds must sit in separate cells"
+
+
+def test_self_contact_relaxation_is_validated() -> None:
+    from simulate.contact.self_contact import SelfContact
+
+    verts, faces = grid_cloth(3, 3, 0.1, 0.1, plane="xz")
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton")
+    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="relaxation"):
+            SelfContact(model, relaxation=bad)

@@ -5,7 +5,7 @@ per-world grid cells (as for the body), so one refit and one query launch serve 
 and a world never sees another world's cloth.  Once per substep each particle finds the
 nearest triangle outside its 2-ring within ``thickness + margin`` (BVH AABB query, exact
 point-triangle distance) and remembers which side of it it was on.  In every solver
-iteration the particle is then pushed back to ``thickness`` on that side (one-sided: the
+iteration the particle is then pushed back toward ``thickness`` on that side (under-relaxed) (one-sided: the
 particle moves, each triangle's corners are pushed by their own queries), written to a
 per-particle delta so results stay deterministic.  None of this runs unless
 ``Features.self_contact`` is on.
@@ -170,11 +170,12 @@ def project_self_contacts(
     candidate: wp.array(dtype=wp.int32),
     side: wp.array(dtype=float),
     thickness: float,
+    relaxation: float,
     x: wp.array(dtype=wp.vec3),
     # Out:
     delta_out: wp.array(dtype=wp.vec3),
 ):
-    """Correction [m] pushing a particle back to ``thickness`` on its remembered side of its triangle."""
+    """Correction [m]: ``relaxation`` times the push back to ``thickness`` on the particle's side of its triangle."""
     i = wp.tid()
     delta_out[i] = wp.vec3(0.0)
     t = candidate[i]
@@ -193,14 +194,14 @@ def project_self_contacts(
     closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
     gap = wp.dot(p - closest, n)
     if gap < thickness:
-        delta_out[i] = n * (thickness - gap)
+        delta_out[i] = n * (relaxation * (thickness - gap))
 
 
 class SelfContact:
     """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
 
     def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3,
-                 rest_exclusion: float | None = None) -> None:
+                 rest_exclusion: float | None = None, relaxation: float = 0.3) -> None:
         """
         Args:
             model: cloth model.
@@ -209,6 +210,10 @@ class SelfContact:
             margin: extra search distance when candidates are found once per substep [m].
             rest_exclusion: particle-triangle pairs closer than this in the rest geometry are never
                 contacts [m]; default twice the contact reach (thickness + margin).
+            relaxation: fraction of the push applied per solver iteration, in (0, 1]. The full
+                push (1) separates layers but keeps them moving: on a CPU dataset slice (1.8k
+                t-shirt, 42 targets) 34 holds of 42 never converged; 0.3: 12 (7 without
+                self-contact), and 22 frames kept instead of 6 (16 without).
         """
         self.model = model
         dev = model.device
@@ -222,6 +227,9 @@ class SelfContact:
         if not (np.isfinite(rest_exclusion) and rest_exclusion >= 0.0):
             raise ValueError(f"self-contact rest_exclusion must be >= 0 [m] (got {rest_exclusion!r})")
         self.rest_exclusion = rest_exclusion
+        if not (np.isfinite(relaxation) and 0.0 < relaxation <= 1.0):
+            raise ValueError(f"self-contact relaxation must be in (0, 1] (got {relaxation!r})")
+        self.relaxation = float(relaxation)
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
         offsets = world_cell_offsets(model.world_count, 4.0 * extent + 2.0)
@@ -256,5 +264,5 @@ class SelfContact:
         """Corrections for the current positions into ``delta`` (applied by the particle pass)."""
         m = self.model
         wp.launch(project_self_contacts, dim=m.particle_count,
-                  inputs=[m.tri_indices, m.particle_inv_mass, self.candidate, self.side, self.thickness, x],
+                  inputs=[m.tri_indices, m.particle_inv_mass, self.candidate, self.side, self.thickness, self.relaxation, x],
                   outputs=[self.delta], device=m.device)
