@@ -32,12 +32,12 @@ def scene(anny_body):
     return anny_body, template, draped[0], canonical, small, jump
 
 
-def _run(scene, key_lists, *, recover: bool, lookahead: int = 8):
+def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: float = 0.05):
     body, template, start, *_ = scene
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=25, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
     frames = []
@@ -76,22 +76,21 @@ def test_posing_bodies_ahead_changes_no_frame_and_batches_the_body_model(scene):
     when reached gives, through an explosion recovery (which replaces a schedule) included."""
     *_, canonical, small, jump = scene
     keys = [[small, jump, canonical, small], [small, small, canonical, small]]
-    ahead, stats_ahead = _run(scene, keys, recover=True, lookahead=8)
-    single, stats_single = _run(scene, keys, recover=True, lookahead=1)
+    # holds end at 0.02 m/s (not the file's 0.05): a hold that ends a frame earlier or later through a
+    # rounding-level change then moves the drape less (at 0.05 with the arc-length styles: 5.3 mm at
+    # one vertex; the bound below was set at 2.8 mm measured)
+    ahead, stats_ahead = _run(scene, keys, recover=True, lookahead=8, tolerance=0.02)
+    single, stats_single = _run(scene, keys, recover=True, lookahead=1, tolerance=0.02)
     assert stats_ahead["recoveries"] == stats_single["recoveries"] == 1
-    # per world in order (across worlds the interleaving follows which hold ends first, see below)
-    ahead, single = sorted(ahead, key=lambda f: f.task), sorted(single, key=lambda f: f.task)
     assert [(f.task, f.key, f.status) for f in ahead] == [(f.task, f.key, f.status) for f in single]
     # the same bodies up to float32 rounding of the body model's batched matrix products (1 ulp at
     # ~1 m: 1.2e-7 m; a wrong entry, one pose off, moves the body by centimetres). The drapes agree
     # less tightly: a rounding-level change can stop a hold one frame earlier or later (measured up
-    # to 5.3 mm at one vertex, under 0.1 mm on average), which is why generate-dataset keeps a task's batch a function of the spec alone.
+    # to 2.8 mm), which is why generate-dataset keeps a task's batch a function of the spec alone.
     for a, b in zip(ahead, single):
         np.testing.assert_allclose(a.body_vertices, b.body_vertices, rtol=0, atol=5e-7, err_msg=f"task {a.task} key {a.key}: body")
         if a.status != WorldStatus.EXPLODED:  # an exploded frame's cloth is chaotic by definition
-            diff = np.linalg.norm(a.positions - b.positions, axis=1)
-            assert diff.mean() < 1e-3 and diff.max() < 1e-2, f"task {a.task} key {a.key}: garment moved {diff.mean():.2e} m " \
-                f"on average, {diff.max():.2e} m at most"
+            np.testing.assert_allclose(a.positions, b.positions, rtol=0, atol=5e-3, err_msg=f"task {a.task} key {a.key}: garment")
     # schedules of 2 + 4 entries (+ 1-2 slerp'ed) per world: one call at the start, one after the recovery
     assert stats_ahead["body_calls"] <= 3 < stats_single["body_calls"], (stats_ahead["body_calls"], stats_single["body_calls"])
 
