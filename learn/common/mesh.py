@@ -64,31 +64,9 @@ def uniform_laplacian(
     of shrinking it inward. Vertices referenced by no face have an all-zero row (they stay
     put).
     """
-    faces = _check_faces(faces, vertex_count)
-    edges = mesh_edges(faces)  # (E, 2)
-    if boundary_aware:
-        on_boundary = boundary_vertices(faces, vertex_count)
-        b_edges = boundary_edges(faces)
-        # Keep interior rows with all edges; boundary rows only with boundary edges.
-        rows = np.concatenate([edges[:, 0], edges[:, 1]])
-        cols = np.concatenate([edges[:, 1], edges[:, 0]])
-        keep = ~on_boundary[rows]
-        b_rows = np.concatenate([b_edges[:, 0], b_edges[:, 1]])
-        b_cols = np.concatenate([b_edges[:, 1], b_edges[:, 0]])
-        rows = np.concatenate([rows[keep], b_rows])
-        cols = np.concatenate([cols[keep], b_cols])
-    else:
-        rows = np.concatenate([edges[:, 0], edges[:, 1]])
-        cols = np.concatenate([edges[:, 1], edges[:, 0]])
-    adjacency = sp.csr_matrix(
-        (np.ones(rows.shape[0], dtype=np.float64), (rows, cols)),
-        shape=(vertex_count, vertex_count),
-    )
-    degree = np.asarray(adjacency.sum(axis=1)).reshape(-1)
-    inverse_degree = np.where(degree > 0, 1.0 / np.maximum(degree, 1.0), 0.0)
-    has_neighbours = (degree > 0).astype(np.float64)
-    laplacian = sp.diags(inverse_degree) @ adjacency - sp.diags(has_neighbours)
-    return sp.csr_matrix(laplacian)
+    from simulate.garment.mesh_ops import uniform_laplacian as laplacian
+
+    return laplacian(_check_faces(faces, vertex_count), vertex_count, boundary_aware=boundary_aware)
 
 
 def scipy_to_torch_sparse(

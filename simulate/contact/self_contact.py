@@ -5,9 +5,9 @@ per-world grid cells (as for the body), so one refit and one query launch serve 
 and a world never sees another world's cloth.  Once per substep each particle finds the
 nearest triangle outside its 2-ring within ``thickness + margin`` (BVH AABB query, exact
 point-triangle distance) and remembers which side of it it was on.  In every solver
-iteration the particle is then pushed back toward ``thickness`` on that side (under-relaxed) (one-sided: the
-particle moves, each triangle's corners are pushed by their own queries), written to a
-per-particle delta so results stay deterministic.  None of this runs unless
+iteration the particle is then pushed part of the way (``relaxation``) back to ``thickness`` on
+that side (one-sided: the particle moves, each triangle's corners are pushed by their own
+queries), written to a per-particle delta so results stay deterministic.  None of this runs unless
 ``Features.self_contact`` is on.
 """
 

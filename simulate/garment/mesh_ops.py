@@ -319,6 +319,29 @@ def vertex_adjacency(faces: np.ndarray, vertex_count: int) -> sparse.csr_matrix:
     return sparse.csr_matrix((np.ones(len(ij)), (ij[:, 0], ij[:, 1])), shape=(vertex_count, vertex_count))
 
 
+def uniform_laplacian(faces: np.ndarray, vertex_count: int, *, boundary_aware: bool = True) -> sparse.csr_matrix:
+    """Uniform graph Laplacian L = A_normalized - I, shape (vertex_count, vertex_count).
+
+    Row i of ``L @ x`` is the mean of the neighbours of vertex i minus x_i. With
+    ``boundary_aware`` (TailorNet's choice), a vertex on an open boundary averages only its
+    neighbours along boundary edges, so smoothing slides the boundary along itself instead
+    of shrinking it inward. Vertices referenced by no face have an all-zero row (they stay put).
+    """
+    edges, counts = edge_face_counts(faces)
+    rows = np.concatenate([edges[:, 0], edges[:, 1]])
+    cols = np.concatenate([edges[:, 1], edges[:, 0]])
+    if boundary_aware:
+        # interior rows keep all their edges, boundary rows only their boundary edges
+        on_boundary = np.zeros(vertex_count, dtype=bool)
+        on_boundary[edges[counts == 1].ravel()] = True
+        keep = ~on_boundary[rows] | np.concatenate([counts == 1, counts == 1])
+        rows, cols = rows[keep], cols[keep]
+    adjacency = sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(vertex_count, vertex_count))
+    degree = np.asarray(adjacency.sum(axis=1)).reshape(-1)
+    inverse_degree = np.where(degree > 0, 1.0 / np.maximum(degree, 1.0), 0.0)
+    return sparse.csr_matrix(sparse.diags(inverse_degree) @ adjacency - sparse.diags((degree > 0).astype(np.float64)))
+
+
 def smooth_vertex_values(values: np.ndarray, faces: np.ndarray, *, iterations: int = 10,
                          lam: float = 0.5, fixed: np.ndarray | None = None) -> np.ndarray:
     """Uniform-Laplacian diffusion of per-vertex values (V, C): x += lam * (mean(nbrs) - x).

@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy import sparse
 from scipy.spatial import cKDTree
 
 from simulate.body.base import PARTS, POSE_JOINTS
@@ -651,14 +650,7 @@ def unfold_offset(points: np.ndarray, surface: np.ndarray, faces: np.ndarray, *,
     vertices (hems, cuffs) only along their boundary, so the openings do not pull in."""
     n_vert = len(points)
     adj = mesh_ops.vertex_adjacency(faces, n_vert)
-    bnd = mesh_ops.boundary_edges_directed(faces)
-    on_boundary = np.zeros(n_vert, dtype=bool)
-    on_boundary[bnd.ravel()] = True
-    interior_rows = sparse.diags((~on_boundary).astype(np.float64)) @ adj
-    bnd_ij = np.concatenate([bnd, bnd[:, ::-1]])
-    smoothing = (interior_rows + sparse.csr_matrix((np.ones(len(bnd_ij)), (bnd_ij[:, 0], bnd_ij[:, 1])),
-                                                   shape=(n_vert, n_vert))).tocsr()
-    degree = np.maximum(np.asarray(smoothing.sum(1)).ravel(), 1.0)
+    laplacian = mesh_ops.uniform_laplacian(faces, n_vert, boundary_aware=True)
 
     def area_normal(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         c = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
@@ -678,7 +670,7 @@ def unfold_offset(points: np.ndarray, surface: np.ndarray, faces: np.ndarray, *,
             region = np.maximum(region, (adj @ region > 0).astype(np.float64))
         free = (region > 0.5)[:, None]
         for _ in range(5):
-            out += np.where(free, 0.5 * ((smoothing @ out) / degree[:, None] - out), 0.0)
+            out += np.where(free, 0.5 * (laplacian @ out), 0.0)
     return out
 
 
