@@ -45,6 +45,9 @@ records and hashes. Schema (every key optional unless marked required)::
       outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
                                         tolerance when it counts as converged (vertices caught where
                                         the arm and torso skins interpenetrate jitter forever)
+      limit_cycle_window: int = 0       frames of position history: a vertex back within tolerance x frame_dt
+                                        of where it was 2..N frames ago (a small limit cycle of
+                                        alternating contacts) also counts as at rest (0 = off)
       damping: float [1/s] = 20          velocity damping: settles quasi-static drapes fast
       explosion_stretch: float = 50      triangle stretch ratio that marks a world exploded (real
                                         blow-ups; a few triangles at first contact reach 10-30x
@@ -56,7 +59,8 @@ records and hashes. Schema (every key optional unless marked required)::
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
-      contact: {thickness [m], friction, self_contact: bool}
+      contact: {thickness [m], friction, self_contact: bool,
+                self_contact_detect_every: int = 1}  find self-contact candidates every N substeps
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
       max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
@@ -93,8 +97,9 @@ DEFAULTS: dict[str, Any] = {
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
         "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
+        "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
-        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False},
+        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
@@ -207,6 +212,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number(f"{sim}.explosion_stretch", 1.0, lo_open=True)
     c.integer(f"{sim}.patience", 1)
     c.integer(f"{sim}.max_relax_frames", 1)
+    c.integer(f"{sim}.limit_cycle_window", 0)
     c.integer(f"{sim}.shape_transition_frames", 1)
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     c.integer(f"{sim}.min_hold_frames", 1)
@@ -216,6 +222,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number(f"{sim}.contact.friction", 0.0, 2.0)
     if not isinstance(spec[sim]["contact"]["self_contact"], bool):
         c.fail(f"{sim}.contact.self_contact", "true or false")
+    c.integer(f"{sim}.contact.self_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)
     c.number("filters.max_distorted_fraction", 0.0, 1.0)

@@ -93,3 +93,37 @@ def test_self_contact_relaxation_is_validated() -> None:
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="relaxation"):
             SelfContact(model, relaxation=bad)
+    for bad in (0, 2.5):
+        with pytest.raises(ValueError, match="detect_every"):
+            SelfContact(model, detect_every=bad)
+
+
+def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
+    """self_contact_detect_every=5 with 5 substeps: one candidate search per frame instead of 5,
+    and the falling layer still rests on the table layer at the contact thickness."""
+    lower_v, lower_f = grid_cloth(9, 9, 0.4, 0.4, plane="xz", origin=(-0.2, 0.0, -0.2))
+    upper_v, upper_f = grid_cloth(7, 7, 0.3, 0.3, plane="xz", origin=(-0.16, 0.02, -0.14))
+    builder = ClothBuilder()
+    builder.add_garment(np.vstack([lower_v, upper_v]), np.vstack([lower_f, upper_f + len(lower_v)]), fabric="cotton",
+                        pinned=np.arange(len(lower_v)))
+    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    calls = {}
+    for every in (1, 5):
+        sim = QuasiStaticSimulator(model, None, settings=SimSettings(substeps=5, iterations=5, damping=2.0,
+                                                                     self_contact_detect_every=every))
+        contact = sim.solver.self_contact
+        assert contact.detect_every == every
+        detect = contact.detect
+        calls[every] = 0
+
+        def counted(*args, _detect=detect, _every=every):
+            calls[_every] += 1
+            _detect(*args)
+
+        contact.detect = counted
+        for _ in range(30):
+            sim.step_frame()
+        upper = sim.positions()[len(lower_v):]
+        assert upper[:, 1].min() > contact.thickness - ATOL_GAP_M, (every, upper[:, 1].min())
+        assert upper[:, 1].max() < 0.01, every
+    assert calls == {1: 150, 5: 30}, calls

@@ -275,3 +275,55 @@ def test_setting_one_worlds_positions_leaves_the_others_alone(device: str) -> No
         sim.set_positions(new[:-1], world=1)
     with pytest.raises(ValueError, match="finite"):
         sim.set_positions(np.full_like(new, np.nan), world=1)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_small_limit_cycles_count_as_rest_and_drift_does_not(device: str) -> None:
+    """limit_cycle_window: a particle orbiting between two positions 2 mm apart (0.12 m/s, above
+    the 0.05 m/s tolerance) counts as at rest once the window holds its history; one drifting
+    2 mm per frame, or orbiting 1 cm (beyond window x tolerance x frame_dt = 3.3 mm), does not;
+    without the window all three move; new positions (set_positions) forget the history."""
+    verts, faces = grid_cloth(3, 3, 0.2, 0.2)
+    builder = ClothBuilder()
+    for _ in range(3):
+        builder.add_garment(verts, faces)
+    model = builder.finalize(device, features=Features(body_contact=False))
+    base = model.particle_q_rest_np.astype(np.float32)
+    world = model.particle_world_np
+    n = np.bincount(world)
+
+    def frame_positions(t: int) -> np.ndarray:
+        q = base.copy()
+        q[world == 0, 1] += 0.002 * (t % 2)  # period 2, 2 mm
+        q[world == 1, 1] += 0.002 * t  # drift, 2 mm per frame
+        q[world == 2, 1] += 0.01 * (t % 2)  # period 2, 1 cm
+        return q
+
+    def fast_counts(window: int, frames: int, reset_at: int | None = None) -> list[np.ndarray]:
+        sim = QuasiStaticSimulator(model, None, settings=SimSettings(tolerance=0.05, limit_cycle_window=window))
+        qd = np.zeros_like(base)
+        qd[:, 1] = 0.12
+        out = []
+        for t in range(frames):
+            if t == reset_at:
+                sim.set_positions(frame_positions(t)[world == 0], world=0)
+            sim.state_0.particle_q.assign(frame_positions(t))
+            sim.state_0.particle_qd.assign(qd)
+            sim._measure()
+            out.append(sim.world_fast_count.numpy().copy())
+        return out
+
+    counts = fast_counts(4, 8)
+    for t in range(4):  # history not yet full of the particle's own positions
+        np.testing.assert_array_equal(counts[t], n)
+    for t in range(4, 8):
+        np.testing.assert_array_equal(counts[t], [0, n[1], n[2]])
+    for c in fast_counts(0, 8):
+        np.testing.assert_array_equal(c, n)
+    after_reset = fast_counts(4, 12, reset_at=6)
+    np.testing.assert_array_equal(after_reset[5][0], 0)
+    for t in range(6, 10):
+        assert after_reset[t][0] == n[0], (t, after_reset[t])
+    np.testing.assert_array_equal(after_reset[11][0], 0)
+    with pytest.raises(ValueError, match="limit_cycle_window"):
+        SimSettings(limit_cycle_window=-1)

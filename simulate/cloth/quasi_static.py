@@ -8,7 +8,8 @@ advances one substep.  After the frame a per-world check decides:
   ratio above ``explosion_stretch``; the world is frozen (no longer integrated) and the
   others continue untouched (no kernel mixes worlds).
 * CONVERGED: every particle but at most ``outlier_fraction`` of the world's slower than
-  ``tolerance`` for ``patience`` consecutive frames; frozen.
+  ``tolerance`` (or, with ``limit_cycle_window``, circling in a small limit cycle) for
+  ``patience`` consecutive frames; frozen.
 * MAX_STEPS: still moving after ``max_frames`` frames; frozen.
 
 On CUDA the whole frame (substeps, body refits, metrics) is captured once as a CUDA graph and
@@ -35,6 +36,8 @@ from simulate.solvers import common_kernels as ck
 from simulate.solvers import make_solver
 
 __all__ = ["QuasiStaticSimulator", "SimSettings", "WorldStatus"]
+
+_FAR = wp.vec3(1.0e6, 1.0e6, 1.0e6)  # [m] a history position no particle is near
 
 
 class WorldStatus(enum.IntEnum):
@@ -79,6 +82,16 @@ class SimSettings:
     surfaces interpenetrate (armpit, a lowered arm against the torso) can jitter forever;
     with e.g. 0.005 the rest of the garment still counts as at rest (the dataset filters then
     judge those particles through penetration)."""
+    limit_cycle_window: int = 0
+    """Frames of position history kept to recognize limit cycles (0 or 1 = off).  With N > 1 a
+    particle also counts as at rest when it is back within ``tolerance * frame_dt`` of where it
+    was 2..N frames ago and no further than ``N * tolerance * frame_dt`` from any of those
+    positions: contacts that alternate between two planes (armpits, a cuff against the torso)
+    keep a few particles in a small periodic orbit (period 2 to 7 frames seen) whose speed never
+    drops below the tolerance, though the garment does not move on.  Memory: N positions per particle."""
+    self_contact_detect_every: int = 1
+    """Self-contact (XPBD, when the model's features have it): find candidate triangles on
+    every this-many-th substep of a frame and reuse them in between (see SelfContact)."""
     max_frames: int = 600
     """Frames after which a still-moving world is marked MAX_STEPS."""
     explosion_speed: float = 50.0
@@ -99,6 +112,9 @@ class SimSettings:
             "tolerance": self.tolerance > 0.0,
             "patience": int(self.patience) == self.patience and self.patience >= 1,
             "max_frames": int(self.max_frames) == self.max_frames and self.max_frames >= 1,
+            "self_contact_detect_every": int(self.self_contact_detect_every) == self.self_contact_detect_every
+            and self.self_contact_detect_every >= 1,
+            "limit_cycle_window": int(self.limit_cycle_window) == self.limit_cycle_window and self.limit_cycle_window >= 0,
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
             "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
@@ -146,6 +162,7 @@ class QuasiStaticSimulator:
             opts.setdefault("mode", s.xpbd_mode)
             opts.setdefault("gs_relaxation", s.gs_relaxation)
             opts.setdefault("bending_mode", s.xpbd_bending_mode)
+            opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every)})
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:
             self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10
@@ -165,6 +182,13 @@ class QuasiStaticSimulator:
         self.world_bad = wp.zeros(w, dtype=wp.int32, device=dev)
         self.world_max_stretch = wp.zeros(w, dtype=float, device=dev)
         self.world_fast_count = wp.zeros(w, dtype=wp.int32, device=dev)
+        window = int(s.limit_cycle_window)
+        self._window = window if window > 1 else 0
+        # positions of the last ``window`` frames (ring; far away until written, so no cycle is
+        # recognized before a world has ``window`` frames of its own history)
+        self._position_history = wp.full((max(self._window, 1), max(model.particle_count, 1)), _FAR,
+                                         dtype=wp.vec3, device=dev)
+        self._history_slot = wp.zeros(1, dtype=wp.int32, device=dev)
         self._allowed_fast = np.floor(s.outlier_fraction * np.asarray(model.world_particle_count, np.float64))
         self.status = np.full(w, WorldStatus.RUNNING, dtype=np.int8)
         """Per-world WorldStatus values, shape (world_count,)."""
@@ -194,7 +218,7 @@ class QuasiStaticSimulator:
             if self.collider is not None:
                 self.collider.update((sub + 1) / self.substeps)
             if cpu_graphs is None:
-                self.solver.step(self.state_0, self.state_1, self.control, self.dt)
+                self.solver.step(self.state_0, self.state_1, self.control, self.dt, substep=sub)
             else:
                 wp.capture_launch(cpu_graphs[sub % 2])
             self.state_0, self.state_1 = self.state_1, self.state_0
@@ -215,10 +239,15 @@ class QuasiStaticSimulator:
         self.world_bad.zero_()
         self.world_max_stretch.zero_()
         self.world_fast_count.zero_()
+        s = self.settings
+        step = float(s.tolerance) * float(s.frame_dt)  # [m] moved in a frame at the tolerance speed
         wp.launch(ck.measure_particles, dim=m.particle_count,
                   inputs=[m.particle_world, self.control.world_active, self.state_0.particle_qd,
-                          self.state_0.particle_q, float(self.settings.tolerance)],
+                          self.state_0.particle_q, float(s.tolerance), self._position_history, self._history_slot,
+                          self._window, step, self._window * step],
                   outputs=[self.world_max_speed, self.world_bad, self.world_fast_count], device=m.device)
+        if self._window:
+            wp.launch(ck.advance_history_slot, dim=1, inputs=[self._window, self._history_slot], device=m.device)
         wp.launch(ck.measure_triangles, dim=m.tri_count,
                   inputs=[m.tri_indices, m.tri_dm_inv, m.tri_world, self.control.world_active,
                           self.state_0.particle_q],
@@ -229,7 +258,7 @@ class QuasiStaticSimulator:
         graphs = []
         for src, dst in ((self.state_0, self.state_1), (self.state_1, self.state_0)):
             with wp.ScopedCapture(device=dev) as capture:
-                self.solver.step(src, dst, self.control, self.dt)
+                self.solver.step(src, dst, self.control, self.dt)  # (no self-contact here: substep unused)
             graphs.append(capture.graph)
         with wp.ScopedCapture(device=dev) as capture:
             self._measure()
@@ -388,6 +417,10 @@ class QuasiStaticSimulator:
         dev = self.model.device
         wp.copy(self.state_0.particle_q, wp.array(pos, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
         wp.copy(self.state_0.particle_qd, wp.zeros(n, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
+        if self._window:  # the old history is not this state's: forget it
+            far = wp.full(n, _FAR, dtype=wp.vec3, device=dev)
+            for k in range(self._window):
+                wp.copy(self._position_history[k], far, dest_offset=start, count=n)
 
     @property
     def residual_history(self) -> np.ndarray:

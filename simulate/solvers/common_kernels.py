@@ -310,13 +310,25 @@ def measure_particles(
     v: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     tolerance: float,
+    history: wp.array2d(dtype=wp.vec3),
+    history_slot: wp.array(dtype=wp.int32),
+    window: int,
+    return_distance: float,
+    stray_distance: float,
     # Out (per world, reset by the caller):
     world_max_speed_out: wp.array(dtype=float),
     world_bad_out: wp.array(dtype=wp.int32),
     world_fast_count_out: wp.array(dtype=wp.int32),
 ):
     """Per world: max particle speed [m/s], a flag for non-finite positions/velocities and the
-    number of particles at or above ``tolerance`` [m/s]."""
+    number of particles not at rest.
+
+    A particle is at rest when it is slower than ``tolerance`` [m/s] or, with ``window`` > 1
+    frames of position history (``history`` (window, particle_count), ring slot
+    ``history_slot[0]`` = the oldest, overwritten here with ``x``), when it is back within
+    ``return_distance`` [m] of where it was 2..window frames ago and strayed no further than
+    ``stray_distance`` [m] from any of them: a small limit cycle (contact planes or pushes that
+    alternate between frames) instead of motion toward a rest state."""
     i = wp.tid()
     w = particle_world[i]
     if world_active[w] == 0:
@@ -327,10 +339,31 @@ def measure_particles(
     finite = wp.isfinite(speed) and wp.isfinite(xi[0]) and wp.isfinite(xi[1]) and wp.isfinite(xi[2])
     if finite:
         wp.atomic_max(world_max_speed_out, w, speed)
-        if speed >= tolerance:
+        rest = speed < tolerance
+        if window > 1:
+            oldest = history_slot[0]
+            newest = (oldest + window - 1) % window
+            nearest = float(1.0e30)
+            farthest = float(0.0)
+            for k in range(window):
+                d = wp.length(xi - history[k, i])
+                farthest = wp.max(farthest, d)
+                if k != newest:
+                    nearest = wp.min(nearest, d)
+            if nearest < return_distance and farthest < stray_distance:
+                rest = True
+        if not rest:
             wp.atomic_add(world_fast_count_out, w, 1)
     else:
         wp.atomic_max(world_bad_out, w, 1)
+    if window > 1:
+        history[history_slot[0], i] = xi
+
+
+@wp.kernel
+def advance_history_slot(window: int, history_slot: wp.array(dtype=wp.int32)):
+    """Moves the position-history ring of :func:`measure_particles` on by one frame."""
+    history_slot[0] = (history_slot[0] + 1) % window
 
 
 @wp.kernel

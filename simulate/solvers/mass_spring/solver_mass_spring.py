@@ -88,7 +88,8 @@ class SolverMassSpring(SolverBase):
         """Substeps per frame of ``frame_dt`` [s] that keep dt below ``safety * stable_dt()``."""
         return max(1, math.ceil(frame_dt / (self.safety * self.stable_dt())))
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+             substep: int = 0) -> None:
         """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation)."""
         self._check(state_in, state_out, control, dt)
         m = self.model

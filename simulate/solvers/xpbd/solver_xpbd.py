@@ -40,6 +40,7 @@ class SolverXPBD(SolverBase):
         body_contact: bool | None = None,
         extra_damping: float = 0.0,
         self_contact: bool | None = None,
+        self_contact_options: dict | None = None,
     ) -> None:
         """
         Args:
@@ -55,6 +56,8 @@ class SolverXPBD(SolverBase):
             body_contact: contact with ``control.collider`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             self_contact: vertex-triangle self-contact (default from model.features).
+            self_contact_options: keyword options of :class:`~simulate.contact.self_contact.SelfContact`
+                (thickness, margin, rest_exclusion, relaxation, detect_every).
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping)
         if int(iterations) != iterations or iterations < 1:
@@ -84,7 +87,7 @@ class SolverXPBD(SolverBase):
         if use_self:
             from simulate.contact.self_contact import SelfContact
 
-            self.self_contact = SelfContact(model)
+            self.self_contact = SelfContact(model, **dict(self_contact_options or {}))
         self.self_delta = self.self_contact.delta if self.self_contact else wp.zeros(1, dtype=wp.vec3, device=dev)
         self._particle_kernel = ck.make_particle_constraints_kernel(
             self._gather, self.body_contact, self.attachments, self.self_contact is not None)
@@ -93,8 +96,12 @@ class SolverXPBD(SolverBase):
         self._bend_ranges = [(a, b - a) for a, b in
                              zip(model.bend_colour_offsets[:-1], model.bend_colour_offsets[1:]) if b > a]
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
-        """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation)."""
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+             substep: int = 0) -> None:
+        """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation).
+
+        ``substep`` is the substep's index in its frame: self-contact candidates are found again
+        on substeps that are multiples of its ``detect_every`` (always with the default 0)."""
         self._check(state_in, state_out, control, dt)
         m = self.model
         dev = self.device
@@ -104,8 +111,8 @@ class SolverXPBD(SolverBase):
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, self.gravity, float(dt),
                           state_in.particle_q, state_in.particle_qd], outputs=[x], device=dev)
         self.detect_contacts(x, control)
-        if self.self_contact is not None:
-            self.self_contact.detect(state_in.particle_q, control.world_active)
+        if self.self_contact is not None and substep % self.self_contact.detect_every == 0:
+            self.self_contact.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt)
         self.tri_lambda.zero_()
         self.bend_lambda.zero_()
         if self.attachments:
