@@ -9,7 +9,15 @@ import warp as wp
 
 from simulate.contact import kernels
 
-__all__ = ["BodyCollider", "world_cell_offsets"]
+__all__ = ["BVH_OPTIONS", "BodyCollider", "world_cell_offsets"]
+
+BVH_OPTIONS = {"bvh_constructor": "sah", "bvh_leaf_size": 1}
+"""BVH of the contact meshes (body, cloth self-contact): built once (surface area heuristic, on
+the host) and only refit afterwards. ``bench/bench_contact_queries.py`` on an H200, 240 worlds of
+the 7.7k t-shirt on anny: against Warp's CUDA default (LBVH, 4 triangles per leaf) the body
+refit takes 0.56 instead of 2.27 ms, the body query 1.51 instead of 4.21 ms, the self-contact
+query 9.2 instead of 17.5 ms per launch; building both takes 4.5 s instead of 7 ms. (Ties
+between equally near faces can resolve differently: 795 of 1.6 M body contacts.)"""
 
 
 def world_cell_offsets(world_count: int, spacing: float) -> np.ndarray:
@@ -113,7 +121,7 @@ class BodyCollider:
         self.mesh_indices = wp.array(indices.reshape(-1), dtype=wp.int32, device=self.device)
         points = wp.array(flat + np.repeat(self.world_offset_np, self.vertex_count, axis=0),
                           dtype=wp.vec3, device=self.device)
-        self.mesh = wp.Mesh(points=points, indices=self.mesh_indices)
+        self.mesh = wp.Mesh(points=points, indices=self.mesh_indices, **BVH_OPTIONS)
         self.motion_scale = 0.0
         """Fraction of the frame's body motion covered by one substep (set by the driver)."""
 

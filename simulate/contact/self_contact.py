@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from simulate.cloth.model import ClothModel
-from simulate.contact.body_collider import world_cell_offsets
+from simulate.contact.body_collider import BVH_OPTIONS, world_cell_offsets
 
 wp.set_module_options({"enable_backward": False})
 
@@ -258,7 +258,7 @@ class SelfContact:
         self.rest = wp.array(rest, dtype=wp.vec3, device=dev)
         """Rest positions [m] on the model's device (rest-shape exclusion of near pairs)."""
         self.mesh = wp.Mesh(points=self.points, indices=wp.array(model.tri_indices_np.reshape(-1), dtype=wp.int32,
-                                                                 device=dev))
+                                                                 device=dev), **BVH_OPTIONS)
         self.candidate = wp.full(count, -1, dtype=wp.int32, device=dev)
         self.side = wp.ones(count, dtype=float, device=dev)
         self.delta = wp.zeros(count, dtype=wp.vec3, device=dev)
