@@ -79,6 +79,7 @@ def main() -> None:
     parser.add_argument("--gs-relaxation", type=float, default=1.0, help="XPBD Gauss-Seidel over-relaxation")
     parser.add_argument("--bending-mode", default=None, choices=["gauss_seidel", "jacobi"],
                         help="XPBD bending sweep (default: same as --mode)")
+    parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (Features.self_contact)")
     parser.add_argument("--frames", type=int, default=20, help="timed frames for raw throughput")
     parser.add_argument("--relax", action="store_true", help="also time relaxation to rest")
     parser.add_argument("--tolerance", type=float, default=0.01)
@@ -90,6 +91,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="also append JSON lines to this file")
     args = parser.parse_args()
 
+    from simulate.cloth import Features
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
     from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
 
@@ -105,7 +107,8 @@ def main() -> None:
         # the t-shirt is fitted to the body: a sideways shift would push it into the torso (worlds
         # then explode and freeze, and the bench times fewer live worlds than it reports)
         jitter = 0.0 if args.scene == "tshirt" else 0.02
-        model, collider = batched_drape(scene, worlds, args.device, jitter=jitter, seed=worlds)
+        model, collider = batched_drape(scene, worlds, args.device, jitter=jitter, seed=worlds,
+                                        features=Features(self_contact=args.self_contact))
         build_s = time.perf_counter() - t_build
         substeps = None if args.solver == "mass_spring" else args.substeps
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
@@ -127,7 +130,7 @@ def main() -> None:
             "mode": args.mode if args.solver == "xpbd" else None, "worlds": worlds, "vertices_per_world": vertices,
             "body": scene["body_kind"], "scene": args.scene, "substeps": sim.substeps, "iterations": args.iterations,
             "gs_relaxation": args.gs_relaxation, "bending_mode": args.bending_mode or args.mode,
-            "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
+            "self_contact": args.self_contact, "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),
             "amortized_ms_per_world_frame": round(1e3 * wall / (args.frames * worlds), 4),
@@ -161,7 +164,7 @@ def main() -> None:
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=eager)
             records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
                             "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
-                            "mode": args.mode, "graph_ms_per_frame": record["ms_per_frame"],
+                            "mode": args.mode, "self_contact": args.self_contact, "graph_ms_per_frame": record["ms_per_frame"],
                             **kernel_profile(sim, args.profile_frames)})
         for rec in records:
             line = json.dumps(rec)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy|self-contact  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -75,11 +75,17 @@ case $stage in
       --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ${EXTRA:-} ;;
   self-contact)
     # the same slice (20+20 pairs, POSES train poses per pair, 30-pose tasks) without and with self-contact:
-    # what it does to the self-intersection drops, explosions and time
+    # what it does to the self-intersection drops, explosions and time; EXTRA passes more bench flags to both
     for sc in ${SC:-false true}; do
       T=${T:-270} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses ${TEST_POSES:-10} \
-        --sim poses_per_task=30 --sim contact.self_contact=$sc --device cuda:0 --out /tmp/tn-sc-$sc
+        --sim poses_per_task=30 --sim contact.self_contact=$sc --device cuda:0 --out /tmp/tn-sc-$sc ${EXTRA:-}
     done ;;
+  profile-self-contact)
+    # a frame's GPU time by kernel, 240 t-shirts (7.7k), without and with self-contact
+    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
+      --frames 10 --profile --out "$jl"
+    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
+      --frames 10 --profile --self-contact --out "$jl" ;;
   *) echo "unknown stage $stage"; exit 2 ;;
 esac
 # JSON lines the benches printed but did not write with --out themselves (no duplicates)
