@@ -179,6 +179,8 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
                                                          "exploded_speed", "exploded_stretch") if k in beat},
         "world_frames_per_target": round(per_target, 1) if done else None,
         "ms_per_world_frame": round(ms, 3) if beat.get("frames") else None,
+        # the filters' verdicts so far, over the shards already complete (``shards`` of ``tasks``)
+        "kept_in_shards": beat.get("kept_in_shards"), "dropped_in_shards": beat.get("dropped_in_shards"),
     }
 
 

@@ -275,8 +275,9 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
 
     Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds.
     ``on_heartbeat`` (local executor, with or without bars) gets the same numbers as a dict at each
-    heartbeat: seconds since simulation began, target poses done and total, shards written, and the
-    simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries)."""
+    heartbeat: seconds since simulation began, target poses done and total, shards written, frames
+    kept and dropped by reason over the shards listed so far (kept_in_shards, dropped_in_shards),
+    and the simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries)."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -341,8 +342,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
             elapsed = now - t_sim
             ph = dict(ctx.phases or {}) if executor == "local" else {}
             if on_heartbeat is not None:
+                totals = manifest.totals
                 on_heartbeat({"elapsed_s": elapsed, "targets_done": beat["done"], "targets_total": total_keys,
-                              "shards": len(manifest.shards), "tasks": len(ctx.plan.tasks), **ph})
+                              "shards": len(manifest.shards), "tasks": len(ctx.plan.tasks),
+                              "kept_in_shards": totals["frames_kept"], "dropped_in_shards": totals["frames_dropped"], **ph})
             if progress:
                 return
             line = (f"  {elapsed:7.1f} s: {beat['done']}/{total_keys} target poses "

@@ -219,6 +219,9 @@ def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
                    "train_train-p000-c001"], ids
     for shard in shards:  # one target pose per piece, kept or dropped
         assert shard["frame_count"] + sum(shard["filter_stats"].values()) == 1, shard
+    # the last heartbeat already counts every shard's verdicts (a run cut short still reports them)
+    assert last["kept_in_shards"] == sum(s["frame_count"] for s in shards), last
+    assert last["kept_in_shards"] + sum(last["dropped_in_shards"].values()) == 5, last
     reader = DatasetReader(tmp_path)
     assert reader.num_frames("train_train") == sum(s["frame_count"] for s in shards if s["task_id"].startswith("train_train"))
 
