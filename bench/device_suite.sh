@@ -82,10 +82,10 @@ case $stage in
     done ;;
   profile-self-contact)
     # a frame's GPU time by kernel, 240 t-shirts (7.7k), without and with self-contact
-    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
-      --frames 10 --profile --out "$jl"
-    T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
-      --frames 10 --profile --self-contact --out "$jl" ;;
+    for sc in "" --self-contact; do
+      T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
+        --frames 10 --profile $sc --out "$jl"
+    done ;;
   *) echo "unknown stage $stage"; exit 2 ;;
 esac
 # JSON lines the benches printed but did not write with --out themselves (no duplicates)

@@ -418,9 +418,7 @@ class QuasiStaticSimulator:
         wp.copy(self.state_0.particle_q, wp.array(pos, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
         wp.copy(self.state_0.particle_qd, wp.zeros(n, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
         if self._window:  # the old history is not this state's: forget it
-            far = wp.full(n, _FAR, dtype=wp.vec3, device=dev)
-            for k in range(self._window):
-                wp.copy(self._position_history[k], far, dest_offset=start, count=n)
+            self._position_history[:, start:start + n].fill_(_FAR)
 
     @property
     def residual_history(self) -> np.ndarray:
