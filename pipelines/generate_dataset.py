@@ -104,7 +104,8 @@ def sequence_settings(spec: dict):
     return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
-                            friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]))
+                            friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
+                            restart_after_rejects=int(s["restart_after_rejects"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:
@@ -194,11 +195,12 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
 
     rest_areas = {t.style_index: triangle_areas(ctx.style_rest[t.style_index], tmpl.faces) for t in tasks}
 
-    def record(frame) -> None:
+    def record(frame) -> bool:
+        """Filters and writes one target frame; returns whether it was kept."""
         t = tasks[frame.task]
         writer = writers[frame.task]
         if writer is None:  # finished in an earlier run
-            return
+            return True
         x = np.asarray(frame.positions, np.float64)
         # the status filters first: a frame they drop needs no geometric metrics
         reason = status_drop_reason(bool(np.isfinite(x).all()), frame.status, filters)
@@ -223,6 +225,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             records.append(writer.record)
             if on_shard is not None:
                 on_shard(writer.record)
+        return reason is None
 
     seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
@@ -265,6 +268,8 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
                      f"{int(phases.get('frames', 0))} simulator frames")
         lines.append(f"  {'  explosions recovered':<26}{int(phases.get('recoveries', 0)):>6}")
         lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
+        lines.append(f"  {'  restarts after rejects':<26}{int(phases.get('restarts_after_rejects', 0)):>6}  "
+                     f"(worlds sent back to the canonical drape after dropped frames)")
     return "\n".join(lines)
 
 
@@ -357,6 +362,7 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                          f"({int(ph.get('restarts', 0))} restarts; explosions "
                          f"non-finite / speed / stretch {int(ph.get('exploded_non_finite', 0))} / "
                          f"{int(ph.get('exploded_speed', 0))} / {int(ph.get('exploded_stretch', 0))}), "
+                         f"{int(ph.get('restarts_after_rejects', 0))} restarts after rejects, "
                          f"{int(ph.get('body_calls', 0))} body-model calls")
             log(line)
 

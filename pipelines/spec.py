@@ -56,6 +56,10 @@ records and hashes. Schema (every key optional unless marked required)::
       shape_transition_frames: int = 10
       interpolation_threshold: float [rad] = 0.1
       min_hold_frames: int = 2          frames each target pose is held at least
+      restart_after_rejects: int = 0    after this many target frames in a row dropped by the filters,
+                                        the world goes back to its settled canonical drape and heads
+                                        for its next target from there (a tangle is not carried along
+                                        the rest of the sequence; 0 = never)
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
@@ -99,6 +103,7 @@ DEFAULTS: dict[str, Any] = {
         "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
+        "restart_after_rejects": 0,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
@@ -216,6 +221,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.shape_transition_frames", 1)
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     c.integer(f"{sim}.min_hold_frames", 1)
+    c.integer(f"{sim}.restart_after_rejects", 0)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)

@@ -120,3 +120,73 @@ def test_a_world_that_keeps_exploding_starts_over_from_the_canonical_drape(scene
     assert keyed[3][1] != "EXPLODED" and keyed[4][1] != "EXPLODED", keyed
     _, never = run(0)
     assert never["restarts"] == 0 and never["recoveries"] == 2, never
+
+
+def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_target_from_there(scene, monkeypatch):
+    """restart_after_rejects: after a frame the caller rejects (on_frame returns False) the world is
+    put back at its settled canonical drape (the state it had when the settle hold ended) and
+    reaches its next target from the canonical pose, as a world whose task starts at that target."""
+    from simulate.cloth import quasi_static
+
+    body, template, start, canonical, small, _ = scene
+    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
+    revived = []
+    revive = quasi_static.QuasiStaticSimulator.revive
+
+    def spy(self, world, positions):
+        revived.append((world, np.array(positions)))
+        revive(self, world, positions)
+
+    monkeypatch.setattr(quasi_static.QuasiStaticSimulator, "revive", spy)
+
+    def run(keys, restart_after, reject_keys=()):
+        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                            shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
+        settings = SequenceSettings(
+            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                            explosion_stretch=50.0),
+            shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=restart_after)
+        frames = []
+
+        def on_frame(frame):
+            frames.append(frame)
+            return frame.key not in reject_keys
+
+        revived.clear()
+        stats = run_sequences(body, template.faces, [task], body_faces=body.part_faces(("torso", "arms")),
+                              settings=settings, device="cpu", on_frame=on_frame)
+        return frames, stats, list(revived)
+
+    frames, stats, calls = run([bent, small], 1, reject_keys=(0,))
+    assert [f.key for f in frames] == [0, 1] and stats["restarts_after_rejects"] == 1, stats
+    assert len(calls) == 1 and calls[0][0] == 0, "one world sent home once"
+    # home: the start of a task whose first target is `small` (same shape, same settle)
+    fresh, fresh_stats, _ = run([small], 1)
+    assert fresh_stats["restarts_after_rejects"] == 0
+    carried, carried_stats, carried_calls = run([bent, small], 0, reject_keys=(0,))
+    assert carried_stats["restarts_after_rejects"] == 0 and not carried_calls
+    home_error = np.abs(frames[1].positions - fresh[0].positions).max()
+    carried_error = np.abs(carried[1].positions - fresh[0].positions).max()
+    assert home_error < 1e-3, f"after going home the drape is the fresh task's: {home_error * 1e3:.2f} mm"
+    # carried along instead, the bend's drape leaves its mark (measured 50 mm against 0.02 mm)
+    assert carried_error > 10 * home_error + 1e-3, (carried_error, home_error)
+    # accepted frames never send a world home
+    _, accepted_stats, accepted_calls = run([bent, small], 1)
+    assert accepted_stats["restarts_after_rejects"] == 0 and not accepted_calls
+
+
+def test_rerouting_a_schedule_equals_planning_it_afresh():
+    """_reroute (used when a world goes home or back to its last good state) keeps the entries after
+    the next target and re-plans only the way to it: the same entries as a full re-plan."""
+    from simulate.sequence import _reroute, _schedule, _visit_entries
+
+    rng = np.random.default_rng(1)
+    task = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
+                        poses=rng.normal(0.0, 0.4, (12, 60)).astype(np.float32))
+    schedule = _schedule(task, np.zeros(60, np.float32), np.zeros(6, np.float32), SequenceSettings())
+    start = rng.normal(0.0, 0.3, 60).astype(np.float32)
+    for next_key in (0, 5, 11):
+        rerouted = _reroute(task, schedule, next_key, start, 0.1)
+        fresh = _visit_entries(task, next_key, start, 0.1)
+        for a, b in zip(rerouted, fresh):
+            np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}")

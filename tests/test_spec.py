@@ -26,6 +26,7 @@ def test_shipped_specs_validate():
     ({"filters": {"max_area_shrink": 1.5}}, "spec.filters.max_area_shrink must be a number > 0.0 and <= 1.0"),
     ({"colour": "red"}, "spec.colour is not a known field"),
     ({"simulation": {"poses_per_task": 0}}, "spec.simulation.poses_per_task must be an integer >= 1"),
+    ({"simulation": {"restart_after_rejects": -1}}, "spec.simulation.restart_after_rejects must be an integer >= 0"),
     ({"simulation": {"outlier_fraction": 0.9}}, "spec.simulation.outlier_fraction must be a number >= 0.0 and <= 0.5"),
     ({"splits": {"test_test": "some"}}, "spec.splits.test_test must be an integer >= 0 or one of ('all',)"),
 ])
