@@ -108,6 +108,36 @@ def test_planted_bad_frame_is_dropped_and_counted(tmp_path, monkeypatch):
     assert manifest.totals["frames_dropped"].get("distortion", 0) >= 1
 
 
+def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
+    """The pipeline tells the sequence driver which frames the filters dropped, and with
+    simulation.restart_after_rejects the world goes back to its canonical drape after one."""
+    import simulate.sequence as sequence
+    from pipelines.generate_dataset import generate
+
+    real = sequence.run_sequences
+    verdicts: list[tuple[bool, object]] = []
+
+    def planting(*args, on_frame, **kwargs):
+        def corrupt(frame):
+            planted = not verdicts
+            if planted:  # blow the first target frame up: triangle areas grow 4x
+                c = frame.positions.mean(0)
+                frame.positions = c + 2.0 * (frame.positions - c)
+            verdicts.append((planted, on_frame(frame)))
+            return verdicts[-1][1]
+
+        return real(*args, on_frame=corrupt, **kwargs)
+
+    monkeypatch.setattr(sequence, "run_sequences", planting)
+    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, simulation__restart_after_rejects=1)
+    manifest = generate(spec, tmp_path, progress=False, log=lambda m: None)
+    assert verdicts[0] == (True, False), verdicts
+    assert all(isinstance(v, bool) for _, v in verdicts), verdicts
+    assert sum(v for _, v in verdicts) == manifest.totals["frames_kept"], (verdicts, manifest.totals)
+    # the planted frame was the first of the task's two targets: one trip home
+    assert manifest.audit["simulation"]["phases"]["restarts_after_rejects"] == 1, manifest.audit["simulation"]["phases"]
+
+
 def _run_cli(spec_path: Path, out: Path) -> subprocess.Popen:
     env = dict(os.environ, TQDM_DISABLE="1", PYTHONUNBUFFERED="1")
     return subprocess.Popen([sys.executable, "-m", "pipelines.cli", "generate-dataset", str(spec_path), "--out", str(out),
