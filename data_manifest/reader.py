@@ -21,6 +21,10 @@ import numpy as np
 from .manifest import Manifest
 from .schema import (
     BODY_TRANSLATION,
+    DROPPED_FRAME_INDEX,
+    DROPPED_GROUP,
+    DROPPED_POSE,
+    DROPPED_REASON,
     FRAME_INDEX,
     POSE,
     POSED_VERTICES,
@@ -290,6 +294,33 @@ class DatasetReader:
         # body_translation is kept only when every shard of the split has it
         return {key: np.concatenate(values, axis=0) for key, values in parts.items() if key in keys
                 and len(values) == len(parts["pose"])}
+
+    def dropped_frames(self, split: str) -> dict[str, np.ndarray]:
+        """The frames of ``split`` that the filters dropped, as logged by the shards that log
+        them (``dropped`` group): ``shard_no`` (D,) int64, ``frame_index`` (D,) int64 (index in
+        the task's sequence), ``reason`` (D,) str, ``pose`` (D, P) float32 [rad]. Shards
+        written without the log contribute nothing; their drops are still counted in the
+        manifest's ``filter_stats``."""
+        parts: dict[str, list[np.ndarray]] = {"shard_no": [], "frame_index": [], "reason": [], "pose": []}
+        for number in self._split_shards(split):
+            if not sum(self._entries[number].get("filter_stats", {}).values()):
+                continue
+            handle = self._open(number)
+            try:
+                if DROPPED_GROUP not in handle:
+                    continue
+                index = np.asarray(handle[DROPPED_FRAME_INDEX][()], dtype=np.int64)
+                parts["frame_index"].append(index)
+                parts["reason"].append(np.array([r.decode() if isinstance(r, bytes) else str(r)
+                                                 for r in handle[DROPPED_REASON][()]], dtype=str))
+                parts["pose"].append(np.asarray(handle[DROPPED_POSE][()], dtype=np.float32))
+                parts["shard_no"].append(np.full(len(index), number, dtype=np.int64))
+            except (OSError, KeyError) as error:
+                raise self._corrupt(number, error) from None
+        if not parts["pose"]:
+            return {"shard_no": np.zeros(0, np.int64), "frame_index": np.zeros(0, np.int64),
+                    "reason": np.zeros(0, dtype=str), "pose": np.zeros((0, 0), np.float32)}
+        return {key: np.concatenate(values, axis=0) for key, values in parts.items()}
 
     def _empty_split(self) -> dict[str, np.ndarray]:
         vertex_count = self.template["rest_vertices"].shape[0] if self._entries else 0

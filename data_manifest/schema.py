@@ -71,6 +71,10 @@ STYLE = "style"
 FRAME_INDEX = "frame_index"
 QUALITY_GROUP = "quality"
 EXTRA_GROUP = "extra"
+DROPPED_GROUP = "dropped"
+DROPPED_FRAME_INDEX = "dropped/frame_index"
+DROPPED_REASON = "dropped/reason"
+DROPPED_POSE = "dropped/pose"
 TEMPLATE_GROUP = "template"
 TEMPLATE_FACES = "template/faces"
 TEMPLATE_REST_VERTICES = "template/rest_vertices"
@@ -120,7 +124,10 @@ SHARD_LAYOUT: tuple[DatasetLayout, ...] = (
     DatasetLayout(TEMPLATE_UV, ("V", 2), "float32", "optional", "Texture coordinates per vertex."),
 )
 """Every fixed dataset of a shard. Per-metric ``quality/<metric>`` datasets are (F,) float32,
-and optional ``extra/<name>`` datasets are (F, ...) float32."""
+and optional ``extra/<name>`` datasets are (F, ...) float32. The optional ``dropped`` group logs
+the frames the filters dropped: ``dropped/frame_index`` (D,) int32 (their index in the task's
+sequence, disjoint from ``frame_index``), ``dropped/reason`` (D,) str and ``dropped/pose`` (D, P)
+float32; when present, its reasons count exactly the ``filter_stats_json`` attribute."""
 
 SHARD_ATTRS: dict[str, str] = {
     "format": f"str, always {SHARD_FORMAT!r}",

@@ -33,6 +33,10 @@ import numpy as np
 from .schema import (
     BODY_TRANSLATION,
     COMPRESSIONS,
+    DROPPED_FRAME_INDEX,
+    DROPPED_GROUP,
+    DROPPED_POSE,
+    DROPPED_REASON,
     EXTRA_GROUP,
     FLOAT16_MAX_ABS_M,
     FRAME_INDEX,
@@ -261,6 +265,8 @@ class ShardWriter:
         self._origin: list[np.ndarray] = []
         self._extra_shapes: dict[str, tuple[int, ...]] = {}
         self._pose_size: int | None = None
+        self._dropped_log: list[tuple[int, str, np.ndarray]] = []  # (frame_index, reason, pose)
+        self._dropped_unlogged = 0
 
     # -- lifecycle ------------------------------------------------------------------------
 
@@ -344,11 +350,40 @@ class ShardWriter:
 
     # -- frames ---------------------------------------------------------------------------
 
-    def record_dropped(self, reason: str, count: int = 1) -> None:
-        """Count ``count`` frames of this task dropped by a filter for ``reason``."""
+    def record_dropped(self, reason: str, count: int = 1, *, frame_index: int | None = None,
+                       pose: Any | None = None) -> None:
+        """Count ``count`` frames of this task dropped by a filter for ``reason``.
+
+        With ``frame_index`` (the frame's index in the task's sequence) and ``pose`` (P,) [rad]
+        the one dropped frame is also logged in the shard's ``dropped`` group, so readers can see
+        which poses the filters removed. A shard logs all its dropped frames or none."""
         _check_name(reason, where="dropped frame reason")
         if isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 0:
             raise ValueError(f"dropped frame count for {reason!r} must be a non-negative integer (got {count!r})")
+        if (frame_index is None) != (pose is None):
+            raise ValueError(f"dropped frame ({reason!r}) of task {self.task_id!r}: give frame_index and pose "
+                             f"together, or neither")
+        if frame_index is not None:
+            where = f"dropped frame ({reason!r}) of task {self.task_id!r}"
+            if count != 1:
+                raise ValueError(f"{where}: a logged drop counts one frame (got count={count!r})")
+            if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or not \
+                    0 <= frame_index <= np.iinfo(np.int32).max:
+                raise ValueError(f"frame_index of {where} must be a non-negative int32 (got {frame_index!r})")
+            pose_array = _vector(pose, where=f"pose of {where}")
+            size = self._pose_size or (len(self._dropped_log[0][2]) if self._dropped_log else None)
+            if size is not None and pose_array.shape[0] != size:
+                raise ValueError(f"pose of {where} must have length {size} like the other frames "
+                                 f"(got {pose_array.shape[0]})")
+            if self._dropped_unlogged:
+                raise ValueError(f"{where}: {self._dropped_unlogged} earlier dropped frames were counted "
+                                 f"without frame_index; a shard logs all its dropped frames or none")
+            self._dropped_log.append((int(frame_index), reason, pose_array.astype(np.float32)))
+        elif count:
+            if self._dropped_log:
+                raise ValueError(f"dropped frames ({reason!r}) of task {self.task_id!r} need frame_index and pose: "
+                                 f"earlier dropped frames were logged, and a shard logs all its dropped frames or none")
+            self._dropped_unlogged += int(count)
         self.filter_stats[reason] = self.filter_stats.get(reason, 0) + int(count)
 
     def _grow(self, needed: int) -> None:
@@ -530,6 +565,21 @@ class ShardWriter:
             for dataset in self._frame_datasets.values():
                 dataset.resize(frames, axis=0)
             del group
+            if self._dropped_log:
+                kept_index = set(self._frame_index)
+                log = sorted(self._dropped_log, key=lambda row: row[0])
+                if self._pose_size is not None and len(log[0][2]) != self._pose_size:
+                    raise ValueError(f"task {self.task_id!r}: dropped frames' poses have length {len(log[0][2])}, "
+                                     f"the kept frames' {self._pose_size}")
+                indices = [row[0] for row in log]
+                if len(set(indices)) != len(indices) or kept_index & set(indices):
+                    raise ValueError(f"task {self.task_id!r}: dropped frames' frame_index values must be unique and "
+                                     f"differ from the kept frames' (got {indices})")
+                handle.create_group(DROPPED_GROUP)
+                small(DROPPED_FRAME_INDEX, np.array(indices, dtype=np.int32))
+                small(DROPPED_POSE, np.stack([row[2] for row in log]))
+                handle.create_dataset(DROPPED_REASON, data=np.array([row[1] for row in log], dtype=object),
+                                      dtype=h5py.string_dtype(), track_times=False)
             handle.attrs["filter_stats_json"] = canonical_json(dict(sorted(self.filter_stats.items())))
             handle.flush()
             handle.close()
@@ -677,6 +727,41 @@ def check_shard_layout(handle: h5py.File) -> list[str]:
             problems.append(f"dataset 'frame_index' cannot be read: {error}")
     if precision == "float32" and POSITION_ORIGIN in handle:
         problems.append(f"dataset {POSITION_ORIGIN!r} is only allowed in float16 shards")
+    if DROPPED_GROUP in handle:
+        problems += _check_dropped_log(handle, attrs.get("filter_stats") or {}, dims.get("P"))
+    return problems
+
+
+def _check_dropped_log(handle: h5py.File, filter_stats: dict, pose_size: int | None) -> list[str]:
+    """Problems of the optional ``dropped`` group: shapes, counts against filter_stats, indices."""
+    names = (DROPPED_FRAME_INDEX, DROPPED_REASON, DROPPED_POSE)
+    missing = [n for n in names if n not in handle or not isinstance(handle[n], h5py.Dataset)]
+    if missing:
+        return [f"group {DROPPED_GROUP!r} lacks the datasets {missing}"]
+    index, reason, pose = (handle[n] for n in names)
+    count = index.shape[0] if index.ndim == 1 else -1
+    problems = []
+    if index.dtype != np.int32 or count < 0:
+        problems.append(f"dataset {DROPPED_FRAME_INDEX!r} must be (D,) int32 (got {index.shape} {index.dtype})")
+    if reason.shape != (count,) or h5py.check_string_dtype(reason.dtype) is None:
+        problems.append(f"dataset {DROPPED_REASON!r} must be ({count},) str (got {reason.shape} {reason.dtype})")
+    if pose.ndim != 2 or pose.shape[0] != count or pose.dtype != np.float32 or (pose_size and pose.shape[1] != pose_size):
+        problems.append(f"dataset {DROPPED_POSE!r} must be ({count}, {pose_size or 'P'}) float32 "
+                        f"(got {pose.shape} {pose.dtype})")
+    if problems:
+        return problems
+    try:
+        reasons = [r.decode() if isinstance(r, bytes) else str(r) for r in reason[()]]
+        logged = {r: reasons.count(r) for r in sorted(set(reasons))}
+        stats = {str(k): int(v) for k, v in filter_stats.items() if int(v)}
+        if logged != stats:
+            problems.append(f"{DROPPED_GROUP!r} logs {logged} dropped frames but filter_stats_json counts {stats}")
+        values = index[()].astype(np.int64)
+        kept = handle[FRAME_INDEX][()] if FRAME_INDEX in handle else np.zeros(0)
+        if len(np.unique(values)) != len(values) or np.intersect1d(values, kept).size:
+            problems.append(f"dataset {DROPPED_FRAME_INDEX!r} must hold unique indices that no kept frame has")
+    except OSError as error:
+        problems.append(f"group {DROPPED_GROUP!r} cannot be read: {error}")
     return problems
 
 

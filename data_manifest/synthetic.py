@@ -81,8 +81,8 @@ def write_synthetic_dataset(
 ) -> Manifest:
     """Write a complete tiny dataset (shards + manifest) under ``root`` and return its
     manifest. ``splits``: split -> number of tasks (default ``{"train": 2, "test": 1}``).
-    Every task drops one frame as ``nan`` and keeps ``frames_per_task``. Deterministic for a
-    given ``seed``."""
+    Every task drops one frame as ``nan`` (logged in its ``dropped`` group at frame index 1)
+    and keeps ``frames_per_task``. Deterministic for a given ``seed``."""
     splits = {"train": 2, "test": 1} if splits is None else splits
     root = Path(root)
     rng = np.random.default_rng(seed)
@@ -105,7 +105,7 @@ def write_synthetic_dataset(
                 for frame in range(frames_per_task):
                     writer.write_frame(**synthetic_frame(template, rng, translation_m=translation),
                                        frame_index=2 * frame)
-                writer.record_dropped("nan")
+                writer.record_dropped("nan", frame_index=1, pose=rng.uniform(-0.5, 0.5, POSE_SIZE))
                 writer.timings["simulate_s"] = 0.5
             manifest.add_shard(writer.record)
             manifest.save()

@@ -220,7 +220,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             writer.write_frame(x, unposed - base, t.poses[frame.key], metrics, frame_index=int(frame.key),
                                pose_id=np.array([t.pose_ids[frame.key]], np.float32))
         else:
-            writer.record_dropped(reason)
+            writer.record_dropped(reason, frame_index=int(frame.key), pose=t.poses[frame.key])
         remaining[frame.task] -= 1
         if remaining[frame.task] == 0:
             writer.timings["wall_s"] = time.perf_counter() - t_start

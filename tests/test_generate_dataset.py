@@ -106,6 +106,15 @@ def test_planted_bad_frame_is_dropped_and_counted(tmp_path, monkeypatch):
     spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0)
     manifest = generate(spec, tmp_path, progress=False, log=lambda m: None)
     assert manifest.totals["frames_dropped"].get("distortion", 0) >= 1
+    # every dropped frame is logged in its shard, with its index in the sequence and its pose
+    reader = DatasetReader(tmp_path)
+    dropped = reader.dropped_frames("train_train")
+    assert len(dropped["reason"]) == sum(manifest.totals["frames_dropped"].values()), dropped
+    assert (0, "distortion") in zip(dropped["frame_index"].tolist(), dropped["reason"].tolist()), dropped
+    kept = reader.load_split("train_train")
+    assert sorted(dropped["frame_index"].tolist() + kept["frame_index"].tolist()) == [0, 1]
+    assert dropped["pose"].shape == (len(dropped["reason"]), 60) and np.isfinite(dropped["pose"]).all()
+    assert validate_dataset(tmp_path).ok
 
 
 def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):

@@ -167,3 +167,18 @@ def test_task_with_every_frame_dropped(tmp_path):
     assert loaded["posed_vertices"].shape == (2, 50, 3) and loaded["pose"].shape == (2, 6)
     assert reader.load_task("a")["posed_vertices"].shape == (0, 50, 3)
     assert manifest.totals["frames_dropped"] == {"not_converged": 9}
+    assert reader.dropped_frames("train")["pose"].shape == (0, 0), "counted but unlogged drops list no rows"
+
+
+def test_reader_lists_the_logged_dropped_frames_by_split(tmp_path):
+    from data_manifest.synthetic import write_synthetic_dataset
+
+    write_synthetic_dataset(tmp_path, splits={"train": 2, "test": 1}, frames_per_task=2)
+    reader = DatasetReader(tmp_path, verify=True)
+    dropped = reader.dropped_frames("train")
+    assert dropped["reason"].tolist() == ["nan", "nan"] and dropped["frame_index"].tolist() == [1, 1]
+    assert dropped["shard_no"].tolist() == [reader.shard_no("train-000"), reader.shard_no("train-001")]
+    assert dropped["pose"].shape == (2, 6) and np.abs(dropped["pose"]).max() <= 0.5
+    assert len(reader.dropped_frames("test")["reason"]) == 1
+    with pytest.raises(ValueError, match="split"):
+        reader.dropped_frames("val")

@@ -272,3 +272,46 @@ def test_rejected_first_frame_does_not_fix_the_layout(tmp_path):
         assert check_shard_layout(handle) == []
         assert handle["pose"].shape == (1, 6) and sorted(handle["quality"]) == sorted(frame["quality"])
         assert handle.attrs["position_origin_rule"] == "body_translation"
+
+
+def test_dropped_frames_are_logged_with_their_pose_and_reason(tmp_path):
+    """record_dropped(frame_index=, pose=) logs each dropped frame in the shard's `dropped`
+    group; the layout check ties the log to filter_stats_json and to the kept frames' indices."""
+    frames = frames_for(3)
+    path = shard_path(tmp_path, "task-0")
+    poses = {1: np.full(6, 0.25), 4: np.full(6, -0.5)}
+    with ShardWriter(path, template=tube_template(), task=make_task()) as writer:
+        writer.write_frame(**frames[0], frame_index=0)
+        writer.record_dropped("penetration", frame_index=4, pose=poses[4])
+        writer.record_dropped("nan", frame_index=1, pose=poses[1])
+        writer.write_frame(**frames[1], frame_index=3)
+        with pytest.raises(ValueError, match="logs all its dropped frames or none"):
+            writer.record_dropped("nan")  # a drop without its index, after logged ones
+        with pytest.raises(ValueError, match="pose of dropped frame .* must have length 6"):
+            writer.record_dropped("nan", frame_index=5, pose=np.zeros(4))
+    assert writer.record.filter_stats == {"nan": 1, "penetration": 1}
+    with h5py.File(path, "r") as handle:
+        assert check_shard_layout(handle) == []
+        np.testing.assert_array_equal(handle["dropped/frame_index"][()], [1, 4])  # sorted by index
+        assert [r.decode() for r in handle["dropped/reason"][()]] == ["nan", "penetration"]
+        np.testing.assert_array_equal(handle["dropped/pose"][()], np.stack([poses[1], poses[4]]).astype(np.float32))
+    with h5py.File(path, "r+") as handle:  # a log that disagrees with the counts is reported
+        handle.attrs["filter_stats_json"] = '{"nan":2,"penetration":1}'
+        assert any("counts" in p for p in check_shard_layout(handle)), check_shard_layout(handle)
+        handle.attrs["filter_stats_json"] = '{"nan":1,"penetration":1}'
+        handle["dropped/frame_index"][0] = 3  # the index of a kept frame
+        assert any("no kept frame has" in p for p in check_shard_layout(handle)), check_shard_layout(handle)
+    other = shard_path(tmp_path, "task-1")
+    with pytest.raises(ValueError, match="must be unique and differ from the kept frames'"):
+        with ShardWriter(other, template=tube_template(), task=make_task("task-1")) as writer:
+            writer.write_frame(**frames[2], frame_index=2)
+            writer.record_dropped("nan", frame_index=2, pose=np.zeros(6))
+    assert not other.exists() and not list(other.parent.glob("*.tmp")), "a refused shard leaves nothing"
+    unlogged = shard_path(tmp_path, "task-2")
+    with ShardWriter(unlogged, template=tube_template(), task=make_task("task-2")) as writer:
+        writer.record_dropped("nan", 2)
+        with pytest.raises(ValueError, match="earlier dropped frames were counted without frame_index"):
+            writer.record_dropped("nan", frame_index=3, pose=np.zeros(6))
+        writer.write_frame(**frames[2], frame_index=0)
+    with h5py.File(unlogged, "r") as handle:
+        assert "dropped" not in handle and check_shard_layout(handle) == []
