@@ -16,9 +16,14 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import h5py
+import numpy as np
 
 from .manifest import Manifest, _parse_time
 from .schema import (
+    DROPPED_FRAME_INDEX,
+    DROPPED_GROUP,
+    DROPPED_REASON,
+    FRAME_INDEX,
     MANIFEST_NAME,
     SHARD_SUFFIX,
     TMP_SUFFIX,
@@ -246,7 +251,8 @@ def _size(count: int) -> str:
 
 def info(root: str | os.PathLike[str]) -> str:
     """Summary of a dataset from its manifest: identity and provenance, tasks and frames per
-    split, frames kept and dropped by reason, size, precision, timings. Raises
+    split, frames kept and dropped by reason, size, precision, timings; and, from the shards'
+    frame indices and dropped-frame logs, the kept share by position in the sequence. Raises
     FileNotFoundError / ValueError like ``Manifest.load``."""
     manifest = Manifest.load(root)
     totals = manifest.totals
@@ -299,7 +305,51 @@ def info(root: str | os.PathLike[str]) -> str:
                      f"{seen / wall_s:.2f} simulated frames/s over {wall_s:.1f} s wall")
     if manifest.audit is not None:
         lines.extend(_audit_lines(manifest.audit))
+    position_rows = _keep_by_position(Path(root), shards)
+    if position_rows:
+        lines.append("")
+        lines.append(format_table(["position in sequence", "frames", "kept", "most dropped for"], position_rows))
     return "\n".join(lines).rstrip() + "\n"
+
+
+#: Buckets of a frame's position in its task's sequence (frame_index) for ``info``: (first, last).
+POSITION_BUCKETS = ((0, 0), (1, 1), (2, 4), (5, 9), (10, 19), (20, 49), (50, None))
+
+
+def _keep_by_position(root: Path, shards: list[dict]) -> list[list[Any]]:
+    """Kept share per position bucket of the target poses in their tasks' sequences, from the
+    shards' ``frame_index`` and their ``dropped`` logs; empty unless every shard with dropped frames
+    logs them. Tangles carried along a sequence show as a keep rate that falls with the position."""
+    kept_idx, dropped_idx, reasons = [], [], []
+    for entry in shards:
+        try:
+            with h5py.File(root / entry["path"], "r") as handle:
+                kept_idx.append(handle[FRAME_INDEX][()].astype(np.int64))
+                if sum(entry["filter_stats"].values()):
+                    if DROPPED_GROUP not in handle:
+                        return []
+                    dropped_idx.append(handle[DROPPED_FRAME_INDEX][()].astype(np.int64))
+                    reasons += [r.decode() if isinstance(r, bytes) else str(r) for r in handle[DROPPED_REASON][()]]
+        except (OSError, KeyError):
+            return []  # validate reports unreadable shards; the summary leaves the table out
+    if not dropped_idx:
+        return []
+    kept = np.concatenate(kept_idx) if kept_idx else np.zeros(0, np.int64)
+    dropped = np.concatenate(dropped_idx)
+    reasons_arr = np.array(reasons, dtype=str)
+    rows = []
+    for first, last in POSITION_BUCKETS:
+        upper = np.iinfo(np.int64).max if last is None else last
+        k = int(((kept >= first) & (kept <= upper)).sum())
+        in_bucket = (dropped >= first) & (dropped <= upper)
+        d = int(in_bucket.sum())
+        if k + d == 0:
+            continue
+        names, counts = np.unique(reasons_arr[in_bucket], return_counts=True)
+        worst = f"{names[counts.argmax()]} ({100.0 * counts.max() / (k + d):.0f} %)" if d else "-"
+        label = str(first) if first == last else (f"{first}-{last}" if last is not None else f"{first}+")
+        rows.append([label, k + d, f"{100.0 * k / (k + d):.1f} %", worst])
+    return rows
 
 
 def _audit_lines(audit: dict) -> list[str]:

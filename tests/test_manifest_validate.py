@@ -140,6 +140,12 @@ def test_info_prints_the_table(dataset):
     assert rows["kept"][1:] == ["12", "80.0", "%"]
     assert "dropped: nan" in text and text.count("\n") > 10
     assert rows["simulate_s"][1:] == ["1.50", "0.500"], f"timings row {rows['simulate_s']}"
+    # kept share by position in the sequence, from frame_index and the dropped logs: each synthetic
+    # task keeps frames 0, 2, 4, 6 and drops frame 1 as nan
+    table = text.split("position in sequence")[1].splitlines()[2:]
+    by_position = {line.split()[0]: line.split()[1:] for line in table if line.strip()}
+    assert by_position == {"0": ["3", "100.0", "%", "-"], "1": ["3", "0.0", "%", "nan", "(100", "%)"],
+                           "2-4": ["6", "100.0", "%", "-"], "5-9": ["3", "100.0", "%", "-"]}, by_position
 
 
 def test_cli_exit_codes_and_output(dataset, capsys):

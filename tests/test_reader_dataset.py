@@ -168,6 +168,9 @@ def test_task_with_every_frame_dropped(tmp_path):
     assert reader.load_task("a")["posed_vertices"].shape == (0, 50, 3)
     assert manifest.totals["frames_dropped"] == {"not_converged": 9}
     assert reader.dropped_frames("train")["pose"].shape == (0, 0), "counted but unlogged drops list no rows"
+    from data_manifest.validate import info
+
+    assert "position in sequence" not in info(tmp_path), "without the logs the position table would lie"
 
 
 def test_reader_lists_the_logged_dropped_frames_by_split(tmp_path):
