@@ -6,7 +6,9 @@ to the task's shape over ``shape_transition_frames`` frames and the garment rela
 then the body visits the target poses in the given order; slerp'ed poses are
 inserted where any joint would turn more than ``interpolation_threshold`` in one
 frame (one frame each), and every target pose is held until the world converges
-(or hits ``max_relax_frames``), when the frame is handed to ``on_frame``.
+(or hits ``max_relax_frames``), when the frame is handed to ``on_frame``. A world whose
+frames ``on_frame`` rejects (``restart_after_rejects``), or that keeps exploding, goes back home
+(its drape at the end of the settle) and heads for its next target from the canonical pose.
 
 Many tasks run as parallel worlds of one simulator. Worlds follow their own
 schedules; a world whose current entry is done moves on without waiting for the
