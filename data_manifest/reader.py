@@ -21,10 +21,6 @@ import numpy as np
 from .manifest import Manifest
 from .schema import (
     BODY_TRANSLATION,
-    DROPPED_FRAME_INDEX,
-    DROPPED_GROUP,
-    DROPPED_POSE,
-    DROPPED_REASON,
     FRAME_INDEX,
     POSE,
     POSED_VERTICES,
@@ -36,7 +32,7 @@ from .schema import (
     CorruptShardError,
     MissingShardError,
 )
-from .shard import decode_positions, read_template
+from .shard import decode_positions, read_dropped_log, read_template
 
 
 class DatasetReader:
@@ -305,18 +301,15 @@ class DatasetReader:
         for number in self._split_shards(split):
             if not sum(self._entries[number].get("filter_stats", {}).values()):
                 continue
-            handle = self._open(number)
             try:
-                if DROPPED_GROUP not in handle:
-                    continue
-                index = np.asarray(handle[DROPPED_FRAME_INDEX][()], dtype=np.int64)
-                parts["frame_index"].append(index)
-                parts["reason"].append(np.array([r.decode() if isinstance(r, bytes) else str(r)
-                                                 for r in handle[DROPPED_REASON][()]], dtype=str))
-                parts["pose"].append(np.asarray(handle[DROPPED_POSE][()], dtype=np.float32))
-                parts["shard_no"].append(np.full(len(index), number, dtype=np.int64))
+                log = read_dropped_log(self._open(number))
             except (OSError, KeyError) as error:
                 raise self._corrupt(number, error) from None
+            if log is None:
+                continue
+            for key, value in log.items():
+                parts[key].append(value)
+            parts["shard_no"].append(np.full(len(log["frame_index"]), number, dtype=np.int64))
         if not parts["pose"]:
             return {"shard_no": np.zeros(0, np.int64), "frame_index": np.zeros(0, np.int64),
                     "reason": np.zeros(0, dtype=str), "pose": np.zeros((0, 0), np.float32)}

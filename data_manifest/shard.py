@@ -371,7 +371,7 @@ class ShardWriter:
                     0 <= frame_index <= np.iinfo(np.int32).max:
                 raise ValueError(f"frame_index of {where} must be a non-negative int32 (got {frame_index!r})")
             pose_array = _vector(pose, where=f"pose of {where}")
-            size = self._pose_size or (len(self._dropped_log[0][2]) if self._dropped_log else None)
+            size = self._known_pose_size()
             if size is not None and pose_array.shape[0] != size:
                 raise ValueError(f"pose of {where} must have length {size} like the other frames "
                                  f"(got {pose_array.shape[0]})")
@@ -385,6 +385,12 @@ class ShardWriter:
                                  f"earlier dropped frames were logged, and a shard logs all its dropped frames or none")
             self._dropped_unlogged += int(count)
         self.filter_stats[reason] = self.filter_stats.get(reason, 0) + int(count)
+
+    def _known_pose_size(self) -> int | None:
+        """Pose length fixed by the frames written or logged so far (None before any)."""
+        if self._pose_size is not None:
+            return self._pose_size
+        return len(self._dropped_log[0][2]) if self._dropped_log else None
 
     def _grow(self, needed: int) -> None:
         if needed <= self._capacity:
@@ -428,8 +434,9 @@ class ShardWriter:
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"{name} of {where} contains NaN or inf; filter such frames before writing")
         pose_array = _vector(pose, where=f"pose of {where}")
-        if self._pose_size is not None and pose_array.shape[0] != self._pose_size:
-            raise ValueError(f"pose of {where} must have length {self._pose_size} like earlier frames "
+        known = self._known_pose_size()
+        if known is not None and pose_array.shape[0] != known:
+            raise ValueError(f"pose of {where} must have length {known} like earlier frames "
                              f"(got {pose_array.shape[0]})")
         if not isinstance(quality, Mapping):
             raise ValueError(f"quality of {where} must be a dict metric -> float (got {type(quality).__name__})")
@@ -568,9 +575,6 @@ class ShardWriter:
             if self._dropped_log:
                 kept_index = set(self._frame_index)
                 log = sorted(self._dropped_log, key=lambda row: row[0])
-                if self._pose_size is not None and len(log[0][2]) != self._pose_size:
-                    raise ValueError(f"task {self.task_id!r}: dropped frames' poses have length {len(log[0][2])}, "
-                                     f"the kept frames' {self._pose_size}")
                 indices = [row[0] for row in log]
                 if len(set(indices)) != len(indices) or kept_index & set(indices):
                     raise ValueError(f"task {self.task_id!r}: dropped frames' frame_index values must be unique and "
@@ -732,6 +736,16 @@ def check_shard_layout(handle: h5py.File) -> list[str]:
     return problems
 
 
+def read_dropped_log(handle: h5py.File) -> dict[str, np.ndarray] | None:
+    """The ``dropped`` group of an open shard: ``frame_index`` (D,) int64, ``reason`` (D,) str,
+    ``pose`` (D, P) float32 [rad]; None when the shard does not log its dropped frames."""
+    if DROPPED_GROUP not in handle:
+        return None
+    return {"frame_index": np.asarray(handle[DROPPED_FRAME_INDEX][()], dtype=np.int64),
+            "reason": np.asarray(handle[DROPPED_REASON].asstr()[()], dtype=str),
+            "pose": np.asarray(handle[DROPPED_POSE][()], dtype=np.float32)}
+
+
 def _check_dropped_log(handle: h5py.File, filter_stats: dict, pose_size: int | None) -> list[str]:
     """Problems of the optional ``dropped`` group: shapes, counts against filter_stats, indices."""
     names = (DROPPED_FRAME_INDEX, DROPPED_REASON, DROPPED_POSE)
@@ -751,12 +765,13 @@ def _check_dropped_log(handle: h5py.File, filter_stats: dict, pose_size: int | N
     if problems:
         return problems
     try:
-        reasons = [r.decode() if isinstance(r, bytes) else str(r) for r in reason[()]]
-        logged = {r: reasons.count(r) for r in sorted(set(reasons))}
+        log = read_dropped_log(handle)
+        names, counts = np.unique(log["reason"], return_counts=True)
+        logged = {str(r): int(c) for r, c in zip(names, counts)}
         stats = {str(k): int(v) for k, v in filter_stats.items() if int(v)}
         if logged != stats:
             problems.append(f"{DROPPED_GROUP!r} logs {logged} dropped frames but filter_stats_json counts {stats}")
-        values = index[()].astype(np.int64)
+        values = log["frame_index"]
         kept = handle[FRAME_INDEX][()] if FRAME_INDEX in handle else np.zeros(0)
         if len(np.unique(values)) != len(values) or np.intersect1d(values, kept).size:
             problems.append(f"dataset {DROPPED_FRAME_INDEX!r} must hold unique indices that no kept frame has")

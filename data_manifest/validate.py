@@ -20,9 +20,6 @@ import numpy as np
 
 from .manifest import Manifest, _parse_time
 from .schema import (
-    DROPPED_FRAME_INDEX,
-    DROPPED_GROUP,
-    DROPPED_REASON,
     FRAME_INDEX,
     MANIFEST_NAME,
     SHARD_SUFFIX,
@@ -30,7 +27,7 @@ from .schema import (
     ManifestSchemaError,
     template_sha256,
 )
-from .shard import check_shard_layout, file_sha256, read_shard_attrs, read_template
+from .shard import check_shard_layout, file_sha256, read_dropped_log, read_shard_attrs, read_template
 
 ERROR_KINDS = ("missing", "schema", "checksum", "size", "corrupt", "layout", "template",
                "frame_count", "split", "totals", "pending")
@@ -326,17 +323,18 @@ def _keep_by_position(root: Path, shards: list[dict]) -> list[list[Any]]:
             with h5py.File(root / entry["path"], "r") as handle:
                 kept_idx.append(handle[FRAME_INDEX][()].astype(np.int64))
                 if sum(entry["filter_stats"].values()):
-                    if DROPPED_GROUP not in handle:
+                    log = read_dropped_log(handle)
+                    if log is None:
                         return []
-                    dropped_idx.append(handle[DROPPED_FRAME_INDEX][()].astype(np.int64))
-                    reasons += [r.decode() if isinstance(r, bytes) else str(r) for r in handle[DROPPED_REASON][()]]
+                    dropped_idx.append(log["frame_index"])
+                    reasons.append(log["reason"])
         except (OSError, KeyError):
             return []  # validate reports unreadable shards; the summary leaves the table out
     if not dropped_idx:
         return []
     kept = np.concatenate(kept_idx) if kept_idx else np.zeros(0, np.int64)
     dropped = np.concatenate(dropped_idx)
-    reasons_arr = np.array(reasons, dtype=str)
+    reasons_arr = np.concatenate(reasons)
     rows = []
     for first, last in POSITION_BUCKETS:
         upper = np.iinfo(np.int64).max if last is None else last

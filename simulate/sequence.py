@@ -407,11 +407,14 @@ def run_sequences(
             if kind != TRANSITION:
                 r0 = time.perf_counter()
                 positions_w = sim.world_positions(w)
-                if settings.recover_explosions or (kind == SETTLE and settings.restart_after_rejects > 0):
-                    last_good[w] = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].clone(),
-                                    "skin": body_now["skin"][w].clone(), "rest": body_now["rest"][w].clone()}
+                if settings.recover_explosions or kind == SETTLE:
+                    state = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].clone(),
+                             "skin": body_now["skin"][w].clone(), "rest": body_now["rest"][w].clone()}
+                    if settings.recover_explosions:
+                        last_good[w] = state
                     if kind == SETTLE:
-                        home[w] = last_good[w]
+                        home[w] = state
+                went_home = False
                 if kind == KEY:
                     accepted = on_frame(frame_of(w, keys_w[ptr[w]], positions_w, st)) is not False
                     finished_keys += 1
@@ -423,9 +426,10 @@ def run_sequences(
                         rejects[w] = 0
                         stats["restarts_after_rejects"] += 1
                         go_home(w, next_key)
-                        stats["record_s"] += time.perf_counter() - r0
-                        continue
+                        went_home = True
                 stats["record_s"] += time.perf_counter() - r0
+                if went_home:
+                    continue
             ptr[w] += 1
             held[w] = 0
             if ptr[w] >= len(kinds_w):
