@@ -370,11 +370,7 @@ class ShardWriter:
             if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) or not \
                     0 <= frame_index <= np.iinfo(np.int32).max:
                 raise ValueError(f"frame_index of {where} must be a non-negative int32 (got {frame_index!r})")
-            pose_array = _vector(pose, where=f"pose of {where}")
-            size = self._known_pose_size()
-            if size is not None and pose_array.shape[0] != size:
-                raise ValueError(f"pose of {where} must have length {size} like the other frames "
-                                 f"(got {pose_array.shape[0]})")
+            pose_array = self._checked_pose(pose, where)
             if self._dropped_unlogged:
                 raise ValueError(f"{where}: {self._dropped_unlogged} earlier dropped frames were counted "
                                  f"without frame_index; a shard logs all its dropped frames or none")
@@ -386,11 +382,15 @@ class ShardWriter:
             self._dropped_unlogged += int(count)
         self.filter_stats[reason] = self.filter_stats.get(reason, 0) + int(count)
 
-    def _known_pose_size(self) -> int | None:
-        """Pose length fixed by the frames written or logged so far (None before any)."""
-        if self._pose_size is not None:
-            return self._pose_size
-        return len(self._dropped_log[0][2]) if self._dropped_log else None
+    def _checked_pose(self, pose: Any, where: str) -> np.ndarray:
+        """``pose`` as a finite 1-D array of the length fixed by the frames written or logged so far."""
+        pose_array = _vector(pose, where=f"pose of {where}")
+        known = self._pose_size if self._pose_size is not None else (
+            len(self._dropped_log[0][2]) if self._dropped_log else None)
+        if known is not None and pose_array.shape[0] != known:
+            raise ValueError(f"pose of {where} must have length {known} like earlier frames "
+                             f"(got {pose_array.shape[0]})")
+        return pose_array
 
     def _grow(self, needed: int) -> None:
         if needed <= self._capacity:
@@ -433,11 +433,7 @@ class ShardWriter:
                 raise ValueError(f"{name} of {where} must have shape ({self.vertex_count}, 3) (got {array.shape})")
             if not np.all(np.isfinite(array)):
                 raise ValueError(f"{name} of {where} contains NaN or inf; filter such frames before writing")
-        pose_array = _vector(pose, where=f"pose of {where}")
-        known = self._known_pose_size()
-        if known is not None and pose_array.shape[0] != known:
-            raise ValueError(f"pose of {where} must have length {known} like earlier frames "
-                             f"(got {pose_array.shape[0]})")
+        pose_array = self._checked_pose(pose, where)
         if not isinstance(quality, Mapping):
             raise ValueError(f"quality of {where} must be a dict metric -> float (got {type(quality).__name__})")
         if row == 0:
