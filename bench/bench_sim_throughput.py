@@ -77,6 +77,9 @@ def main() -> None:
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--iterations", type=int, default=10)
     parser.add_argument("--gs-relaxation", type=float, default=1.0, help="XPBD Gauss-Seidel over-relaxation")
+    parser.add_argument("--gs-sweep", default="world_blocks", choices=["world_blocks", "colour_launches"],
+                        help="XPBD Gauss-Seidel launches: a block per world, or a launch per colour")
+    parser.add_argument("--gs-block-dim", type=int, default=256, help="threads per world block (world_blocks)")
     parser.add_argument("--bending-mode", default=None, choices=["gauss_seidel", "jacobi"],
                         help="XPBD bending sweep (default: same as --mode)")
     parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (Features.self_contact)")
@@ -114,6 +117,7 @@ def main() -> None:
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
         raw = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode, tolerance=1e-12,
                           gs_relaxation=args.gs_relaxation, xpbd_bending_mode=args.bending_mode,
+                          gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                           max_frames=10 ** 9)
         sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw)
         sim.step_frame()  # compile + first frame
@@ -130,6 +134,7 @@ def main() -> None:
             "mode": args.mode if args.solver == "xpbd" else None, "worlds": worlds, "vertices_per_world": vertices,
             "body": scene["body_kind"], "scene": args.scene, "substeps": sim.substeps, "iterations": args.iterations,
             "gs_relaxation": args.gs_relaxation, "bending_mode": args.bending_mode or args.mode,
+            "gs_sweep": args.gs_sweep, "gs_block_dim": args.gs_block_dim,
             "self_contact": args.self_contact, "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),
@@ -141,6 +146,7 @@ def main() -> None:
             collider.set_pose(scene["body_vertices"])
             settings = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode,
                                    gs_relaxation=args.gs_relaxation, xpbd_bending_mode=args.bending_mode,
+                          gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    tolerance=args.tolerance,
                                    max_frames=args.max_frames)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings)

@@ -201,6 +201,50 @@ def test_cpu_graph_replay_matches_eager(mode: str, substeps: int) -> None:
     assert np.array_equal(out[False][1], out[True][1]), "CPU graph velocities differ from eager"
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("bending_mode", ["gauss_seidel", "jacobi"])
+@pytest.mark.parametrize("shared", [True, False])
+def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str, shared: bool) -> None:
+    """One launch per iteration with a block per world (a barrier between colours), positions in
+    shared memory or in global memory, sweeps the colours exactly as one launch per colour does:
+    worlds of different sizes and fabrics (the last world's tile reaches past the array), a
+    frozen world, contact with the sphere."""
+    out = {}
+    for sweep in ("colour_launches", "world_blocks"):
+        builder = ClothBuilder()
+        for n, fab in ((9, "cotton"), (12, "silk"), (7, "denim")):
+            verts, faces = grid_cloth(n, n, 0.6, 0.6, plane="xz", origin=(-0.3, 0.28, -0.3))
+            builder.add_garment(verts, faces, fabric=fab)
+        model = builder.finalize(device)
+        sv, sf = icosphere(0.25, subdivisions=2)
+        collider = BodyCollider(sv, sf, device=device, world_count=3)
+        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(
+            substeps=4, iterations=3, xpbd_bending_mode=bending_mode, gs_sweep=sweep, gs_block_dim=64),
+            solver_options={"gs_shared": shared})
+        if sweep == "world_blocks":
+            assert (sim.solver._shared_kernel is not None) == shared
+        sim.status[2] = WorldStatus.CONVERGED  # frozen: its block returns at once
+        for _ in range(12):
+            sim.step_frame()
+        out[sweep] = sim.positions()
+    rest = np.asarray(model.particle_q_rest_np)
+    assert np.abs(out["world_blocks"] - rest)[: 81 + 144].max() > 0.1, "the cloth did not fall"
+    assert np.array_equal(out["world_blocks"][81 + 144:], rest[81 + 144:]), "the frozen world moved"
+    assert np.array_equal(out["world_blocks"], out["colour_launches"]), (
+        f"sweeps differ by {np.abs(out['world_blocks'] - out['colour_launches']).max():.3g} m")
+
+
+def test_world_colour_offsets_locate_each_worlds_elements() -> None:
+    from simulate.solvers.xpbd.solver_xpbd import world_colour_offsets
+
+    # colour 0: worlds 0, 0, 2; colour 1: world 1; colour 2: nothing for 3 worlds
+    offs = world_colour_offsets([0, 3, 4], np.array([0, 0, 2, 1]), 3)
+    assert offs.tolist() == [[0, 2, 2, 3], [3, 3, 4, 4]]
+    with pytest.raises(ValueError, match="colour 0 are not sorted by world"):
+        world_colour_offsets([0, 2], np.array([1, 0]), 2)
+    assert world_colour_offsets([0], np.zeros(0), 2).tolist() == [[0, 0, 0]]
+
+
 def test_driver_and_solver_argument_errors() -> None:
     from simulate.solvers import make_solver
 
@@ -211,6 +255,12 @@ def test_driver_and_solver_argument_errors() -> None:
         make_solver("xpbd", model, mode="red_black")
     with pytest.raises(ValueError, match="iterations must be an integer >= 1"):
         make_solver("xpbd", model, iterations=0)
+    with pytest.raises(ValueError, match="gs_sweep must be one of"):
+        make_solver("xpbd", model, gs_sweep="by_colour")
+    with pytest.raises(ValueError, match=r"gs_block_dim must be a multiple of 32 in \[32, 1024\] \(got 100\)"):
+        make_solver("xpbd", model, gs_block_dim=100)
+    with pytest.raises(ValueError, match="SimSettings.gs_sweep is invalid"):
+        SimSettings(gs_sweep="x")
     with pytest.raises(ValueError, match="SimSettings.tolerance is invalid"):
         SimSettings(tolerance=-1.0)
     _, one_world = _sphere_scene(["cotton"], "cpu", n=5)

@@ -68,6 +68,12 @@ class SimSettings:
     gs_relaxation: float = 1.0
     """XPBD Gauss-Seidel over-relaxation in (0, 2); 1.5-1.6 roughly halves the error at equal
     substeps x iterations on the cape drape (1.8 can oscillate at few iterations)."""
+    gs_sweep: str = "world_blocks"
+    """How XPBD launches its Gauss-Seidel colours: "world_blocks" (one launch per iteration, one
+    thread block per world, a barrier between colours) or "colour_launches" (one launch per
+    colour).  Same result; see ``SolverXPBD``."""
+    gs_block_dim: int = 256
+    """Threads per world block of the "world_blocks" sweep (CUDA)."""
     damping: float = 5.0
     """Velocity damping rate [1/s] added to each fabric's damping.  Quasi-static relaxation only
     needs the rest state, so this is strong (velocities decay e-fold in 0.2 s): a 10k-vertex
@@ -118,6 +124,9 @@ class SimSettings:
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
             "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
+            "gs_sweep": self.gs_sweep in ("world_blocks", "colour_launches"),
+            "gs_block_dim": int(self.gs_block_dim) == self.gs_block_dim and 32 <= self.gs_block_dim <= 1024
+            and self.gs_block_dim % 32 == 0,
             "outlier_fraction": 0.0 <= self.outlier_fraction < 1.0,
         }
         for name, ok in checks.items():
@@ -162,6 +171,8 @@ class QuasiStaticSimulator:
             opts.setdefault("mode", s.xpbd_mode)
             opts.setdefault("gs_relaxation", s.gs_relaxation)
             opts.setdefault("bending_mode", s.xpbd_bending_mode)
+            opts.setdefault("gs_sweep", s.gs_sweep)
+            opts.setdefault("gs_block_dim", s.gs_block_dim)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every)})
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:

@@ -3,7 +3,9 @@
 Gauss-Seidel kernels run over one graph colour at a time (``offset`` + thread id) and write
 positions in place: elements of one colour share no particle, so there is no race.  Jacobi
 kernels read positions and write one correction per (element, corner) slot; the particle
-pass sums them.  Each Jacobi element takes the share ``relaxation / max_k n_k`` of its
+pass sums them.  ``solve_elements_gs_world_blocks`` runs the same Gauss-Seidel sweep as the
+per-colour kernels, every colour of every element kind, in one launch: one thread block per
+world, a block barrier between colours.  Each Jacobi element takes the share ``relaxation / max_k n_k`` of its
 multiplier step (n_k = elements of its kind, triangle or bending, touching corner k), so a
 particle's summed correction is an average-like step while multiplier and positions stay
 consistent."""
@@ -65,6 +67,194 @@ def solve_triangles_gs(
     x[i1] = x[i1] + d1
     x[i2] = x[i2] + d2
     tri_lambda[t] = lam
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+__syncthreads();
+#endif
+""")
+def block_sync():
+    """Barrier of the thread block (CUDA ``__syncthreads``): every write before it is visible to
+    the whole block after it.  A no-op on CPU, where a tiled launch runs one lane per block."""
+    ...
+
+
+@wp.kernel
+def solve_elements_gs_world_blocks(
+    # Model:
+    tri_world_offsets: wp.array2d(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_dm_inv: wp.array(dtype=wp.mat22),
+    tri_compliance: wp.array(dtype=wp.vec3),
+    bend_world_offsets: wp.array2d(dtype=wp.int32),
+    bend_indices: wp.array2d(dtype=wp.int32),
+    bend_rest_angle: wp.array(dtype=float),
+    bend_compliance: wp.array(dtype=float),
+    inv_mass: wp.array(dtype=float),
+    world_active: wp.array(dtype=wp.int32),
+    inv_dt2: float,
+    relaxation: float,
+    # In/out:
+    tri_lambda: wp.array(dtype=wp.vec3),
+    bend_lambda: wp.array(dtype=float),
+    x: wp.array(dtype=wp.vec3),
+):
+    """One Gauss-Seidel iteration of one world's triangles then bending elements, colour by colour.
+
+    Launched tiled with one block per world (``dim=[worlds]``).  ``*_world_offsets[c, w]`` ..
+    ``[c, w + 1]`` are world w's elements of colour c (elements are sorted by colour, then world).
+    The block's lanes stride over a colour's elements (no two share a particle), then meet at a
+    barrier before the next colour, so the sweep equals one launch per colour; positions stay in
+    global memory, where a world's ~100 KB stays in the SM's L1 cache."""
+    w, lane = wp.tid()
+    if world_active[w] == 0:
+        return
+    stride = wp.block_dim()
+    for c in range(tri_world_offsets.shape[0]):
+        for t in range(tri_world_offsets[c, w] + lane, tri_world_offsets[c, w + 1], stride):
+            i0 = tri_indices[t, 0]
+            i1 = tri_indices[t, 1]
+            i2 = tri_indices[t, 2]
+            d0, d1, d2, tlam = triangle_constraint_deltas(x[i0], x[i1], x[i2], inv_mass[i0], inv_mass[i1],
+                                                         inv_mass[i2], tri_dm_inv[t], tri_compliance[t],
+                                                         tri_lambda[t], inv_dt2, relaxation)
+            x[i0] = x[i0] + d0
+            x[i1] = x[i1] + d1
+            x[i2] = x[i2] + d2
+            tri_lambda[t] = tlam
+        block_sync()
+    for c in range(bend_world_offsets.shape[0]):
+        for b in range(bend_world_offsets[c, w] + lane, bend_world_offsets[c, w + 1], stride):
+            i1 = bend_indices[b, 0]
+            i2 = bend_indices[b, 1]
+            i3 = bend_indices[b, 2]
+            i4 = bend_indices[b, 3]
+            e1, e2, e3, e4, blam = bending_deltas(x[i1], x[i2], x[i3], x[i4], inv_mass[i1], inv_mass[i2],
+                                                 inv_mass[i3], inv_mass[i4], bend_rest_angle[b],
+                                                 bend_compliance[b], bend_lambda[b], inv_dt2, relaxation)
+            x[i1] = x[i1] + e1
+            x[i2] = x[i2] + e2
+            x[i3] = x[i3] + e3
+            x[i4] = x[i4] + e4
+            bend_lambda[b] = blam
+        block_sync()
+
+
+def make_elements_gs_shared_kernel(tile_particles: int):
+    """The world-block Gauss-Seidel iteration with the world's positions in shared memory.
+
+    Same sweep and result as ``solve_elements_gs_world_blocks``; the block loads its world's
+    positions (at most ``tile_particles``, 12 bytes each) into a shared-memory tile, sweeps every
+    colour there (each element's corners written with ``tile_scatter_masked``, which ends with a
+    block barrier) and stores them back.  Global positions written by one lane and read by another
+    go through L2 on every colour; in shared memory they stay on the SM.  One kernel per tile size
+    (a compile-time shape)."""
+
+    @wp.kernel
+    def solve_elements_gs_shared(
+        # Model:
+        world_particle_start: wp.array(dtype=wp.int32),
+        world_particle_count: wp.array(dtype=wp.int32),
+        tri_world_offsets: wp.array2d(dtype=wp.int32),
+        tri_indices: wp.array2d(dtype=wp.int32),
+        tri_dm_inv: wp.array(dtype=wp.mat22),
+        tri_compliance: wp.array(dtype=wp.vec3),
+        bend_world_offsets: wp.array2d(dtype=wp.int32),
+        bend_indices: wp.array2d(dtype=wp.int32),
+        bend_rest_angle: wp.array(dtype=float),
+        bend_compliance: wp.array(dtype=float),
+        inv_mass: wp.array(dtype=float),
+        world_active: wp.array(dtype=wp.int32),
+        inv_dt2: float,
+        relaxation: float,
+        # In/out:
+        tri_lambda: wp.array(dtype=wp.vec3),
+        bend_lambda: wp.array(dtype=float),
+        x: wp.array(dtype=wp.vec3),
+    ):
+        w, lane = wp.tid()
+        if world_active[w] == 0:
+            return
+        stride = wp.block_dim()
+        base = world_particle_start[w]
+        xs = wp.tile_load(x, shape=tile_particles, offset=base, storage="shared")
+        zero = wp.vec3(0.0)
+        for c in range(tri_world_offsets.shape[0]):
+            first = tri_world_offsets[c, w]
+            count = tri_world_offsets[c, w + 1] - first
+            for r in range((count + stride - 1) // stride):  # the same round count on every lane
+                t = first + r * stride + lane
+                has = r * stride + lane < count
+                j0 = int(0)
+                j1 = int(0)
+                j2 = int(0)
+                n0 = zero
+                n1 = zero
+                n2 = zero
+                if has:
+                    i0 = tri_indices[t, 0]
+                    i1 = tri_indices[t, 1]
+                    i2 = tri_indices[t, 2]
+                    j0 = i0 - base
+                    j1 = i1 - base
+                    j2 = i2 - base
+                    p0 = xs[j0]
+                    p1 = xs[j1]
+                    p2 = xs[j2]
+                    d0, d1, d2, tlam = triangle_constraint_deltas(p0, p1, p2, inv_mass[i0], inv_mass[i1],
+                                                                  inv_mass[i2], tri_dm_inv[t], tri_compliance[t],
+                                                                  tri_lambda[t], inv_dt2, relaxation)
+                    n0 = p0 + d0
+                    n1 = p1 + d1
+                    n2 = p2 + d2
+                    tri_lambda[t] = tlam
+                wp.tile_scatter_masked(xs, j0, n0, has)
+                wp.tile_scatter_masked(xs, j1, n1, has)
+                wp.tile_scatter_masked(xs, j2, n2, has)
+        for c in range(bend_world_offsets.shape[0]):
+            first = bend_world_offsets[c, w]
+            count = bend_world_offsets[c, w + 1] - first
+            for r in range((count + stride - 1) // stride):
+                b = first + r * stride + lane
+                has = r * stride + lane < count
+                k1 = int(0)
+                k2 = int(0)
+                k3 = int(0)
+                k4 = int(0)
+                m1 = zero
+                m2 = zero
+                m3 = zero
+                m4 = zero
+                if has:
+                    i1 = bend_indices[b, 0]
+                    i2 = bend_indices[b, 1]
+                    i3 = bend_indices[b, 2]
+                    i4 = bend_indices[b, 3]
+                    k1 = i1 - base
+                    k2 = i2 - base
+                    k3 = i3 - base
+                    k4 = i4 - base
+                    q1 = xs[k1]
+                    q2 = xs[k2]
+                    q3 = xs[k3]
+                    q4 = xs[k4]
+                    e1, e2, e3, e4, blam = bending_deltas(q1, q2, q3, q4, inv_mass[i1], inv_mass[i2],
+                                                         inv_mass[i3], inv_mass[i4], bend_rest_angle[b],
+                                                         bend_compliance[b], bend_lambda[b], inv_dt2, relaxation)
+                    m1 = q1 + e1
+                    m2 = q2 + e2
+                    m3 = q3 + e3
+                    m4 = q4 + e4
+                    bend_lambda[b] = blam
+                wp.tile_scatter_masked(xs, k1, m1, has)
+                wp.tile_scatter_masked(xs, k2, m2, has)
+                wp.tile_scatter_masked(xs, k3, m3, has)
+                wp.tile_scatter_masked(xs, k4, m4, has)
+        for i in range(lane, world_particle_count[w], stride):
+            x[base + i] = xs[i]
+
+    return solve_elements_gs_shared
 
 
 @wp.kernel

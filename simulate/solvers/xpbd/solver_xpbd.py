@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import warp as wp
 
 from simulate.cloth.model import ClothControl, ClothModel, ClothState
@@ -12,6 +13,41 @@ from simulate.solvers.xpbd import kernels
 __all__ = ["SolverXPBD"]
 
 MODES = ("gauss_seidel", "jacobi")
+GS_SWEEPS = ("world_blocks", "colour_launches")
+SHARED_TILE_MAX_BYTES = 160 * 1024
+"""On CUDA, world blocks keep their positions in shared memory when a world's tile (12 bytes per
+particle, rounded up to 64 particles) is at most this (13,600 particles; an H100/H200 SM has
+228 KB); larger worlds sweep in global memory."""
+_SHARED_KERNELS: dict[int, wp.Kernel] = {}
+
+
+def _shared_kernel(tile_particles: int) -> wp.Kernel:
+    if tile_particles not in _SHARED_KERNELS:
+        _SHARED_KERNELS[tile_particles] = kernels.make_elements_gs_shared_kernel(tile_particles)
+    return _SHARED_KERNELS[tile_particles]
+
+
+def world_colour_offsets(colour_offsets: list[int], element_world: np.ndarray, world_count: int) -> np.ndarray:
+    """Where each world's elements of each colour lie in elements sorted by colour, then world.
+
+    Args:
+        colour_offsets: colour c spans elements ``colour_offsets[c]`` .. ``colour_offsets[c + 1]``.
+        element_world: world of each element, shape (E,), non-decreasing within a colour.
+        world_count: worlds W.
+    Returns:
+        int32 (C, W + 1): world w's elements of colour c are ``[c, w]`` .. ``[c, w + 1]``; one
+        row of zeros (empty ranges) when there are no elements.
+    """
+    rows = []
+    worlds = np.arange(world_count + 1)
+    for a, b in zip(colour_offsets[:-1], colour_offsets[1:]):
+        wid = np.asarray(element_world[a:b])
+        if np.any(np.diff(wid) < 0):
+            raise ValueError(f"elements of colour {len(rows)} are not sorted by world")
+        rows.append(a + np.searchsorted(wid, worlds, side="left"))
+    if not rows:
+        return np.zeros((1, world_count + 1), dtype=np.int32)
+    return np.asarray(rows, dtype=np.int32)
 
 
 class SolverXPBD(SolverBase):
@@ -21,8 +57,10 @@ class SolverXPBD(SolverBase):
     attachments (soft, releasable), body contact (hard, one plane per particle found once per
     substep) with Coulomb friction, pinning (inverse mass 0).  Compliance alpha = 1 / (k dt^2).
 
-    ``mode="gauss_seidel"`` sweeps the graph colours computed at finalize (one launch per
-    colour, in place); ``mode="jacobi"`` projects all elements from the same positions, each
+    ``mode="gauss_seidel"`` sweeps the graph colours computed at finalize, in place: by default
+    (``gs_sweep="world_blocks"``) one launch per iteration with one thread block per world and a
+    block barrier between colours, or one launch per colour (``"colour_launches"``; same result,
+    3,300 launches per frame on the 7.7k t-shirt at 10 x 10); ``mode="jacobi"`` projects all elements from the same positions, each
     element taking the share ``jacobi_relaxation / max_k n_k`` of its step (n_k = elements
     of its kind at its corner k), and sums the corrections per particle.  Both are
     deterministic (no float atomics).
@@ -41,6 +79,9 @@ class SolverXPBD(SolverBase):
         extra_damping: float = 0.0,
         self_contact: bool | None = None,
         self_contact_options: dict | None = None,
+        gs_sweep: str = "world_blocks",
+        gs_block_dim: int = 256,
+        gs_shared: bool | None = None,
     ) -> None:
         """
         Args:
@@ -58,6 +99,13 @@ class SolverXPBD(SolverBase):
             self_contact: vertex-triangle self-contact (default from model.features).
             self_contact_options: keyword options of :class:`~simulate.contact.self_contact.SelfContact`
                 (thickness, margin, rest_exclusion, relaxation, detect_every).
+            gs_sweep: how the Gauss-Seidel colours are launched: "world_blocks" (one launch per
+                iteration, a block per world) or "colour_launches" (one launch per colour).
+            gs_block_dim: threads per world block (CUDA; CPU runs one lane per block).
+            gs_shared: world blocks sweep the positions in a shared-memory tile (True) or in global
+                memory (False); None = on CUDA when the tile fits ``SHARED_TILE_MAX_BYTES``.  On
+                CPU both give the same result at the same speed, and each tile size is a kernel
+                of its own to compile.
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping)
         if int(iterations) != iterations or iterations < 1:
@@ -73,6 +121,12 @@ class SolverXPBD(SolverBase):
             raise ValueError(f"bending_mode must be one of {MODES} (got {bending_mode!r})")
         if not 0.0 < gs_relaxation < 2.0:
             raise ValueError(f"gs_relaxation must be in (0, 2) (got {gs_relaxation!r})")
+        if gs_sweep not in GS_SWEEPS:
+            raise ValueError(f"gs_sweep must be one of {GS_SWEEPS} (got {gs_sweep!r})")
+        if int(gs_block_dim) != gs_block_dim or not 32 <= gs_block_dim <= 1024 or gs_block_dim % 32:
+            raise ValueError(f"gs_block_dim must be a multiple of 32 in [32, 1024] (got {gs_block_dim!r})")
+        self.gs_sweep = gs_sweep
+        self.gs_block_dim = int(gs_block_dim)
         self.jacobi_relaxation = float(jacobi_relaxation)
         self.gs_relaxation = float(gs_relaxation)
         dev = self.device
@@ -95,6 +149,22 @@ class SolverXPBD(SolverBase):
                             if b > a]
         self._bend_ranges = [(a, b - a) for a, b in
                              zip(model.bend_colour_offsets[:-1], model.bend_colour_offsets[1:]) if b > a]
+        self._world_blocks = mode == "gauss_seidel" and gs_sweep == "world_blocks"
+        if self._world_blocks:
+            w = model.world_count
+            self._tri_world_offsets = wp.array(
+                world_colour_offsets(model.tri_colour_offsets, model.tri_world.numpy(), w), dtype=wp.int32, device=dev)
+            bend_gs = self.bending_mode == "gauss_seidel" and model.bend_count > 0
+            self._bend_world_offsets = wp.array(
+                world_colour_offsets(model.bend_colour_offsets if bend_gs else [0],
+                                     model.bend_world.numpy() if bend_gs else np.zeros(0), w),
+                dtype=wp.int32, device=dev)
+            tile = 64 * -(-int(np.max(model.world_particle_count)) // 64)
+            if gs_shared is None:
+                gs_shared = dev.is_cuda and 12 * tile <= SHARED_TILE_MAX_BYTES
+            self._shared_kernel = _shared_kernel(tile) if gs_shared else None
+            self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
+            self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
@@ -127,6 +197,19 @@ class SolverXPBD(SolverBase):
                                   m.particle_inv_mass, control.world_active, inv_dt2, self.jacobi_relaxation, x,
                                   self.tri_lambda],
                           outputs=[self.slot_delta], device=dev)
+            elif self._world_blocks:
+                # Triangles, then bending unless it is swept by Jacobi (its offsets are empty then).
+                args = [self._tri_world_offsets, m.tri_indices, m.tri_dm_inv, m.tri_compliance,
+                        self._bend_world_offsets, m.bend_indices, m.bend_rest_angle, m.bend_compliance,
+                        m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation, self.tri_lambda,
+                        self.bend_lambda, x]
+                if self._shared_kernel is not None:
+                    wp.launch_tiled(self._shared_kernel, dim=[m.world_count],
+                                    inputs=[self._world_start, self._world_count, *args],
+                                    block_dim=self.gs_block_dim, device=dev)
+                else:
+                    wp.launch_tiled(kernels.solve_elements_gs_world_blocks, dim=[m.world_count], inputs=args,
+                                    block_dim=self.gs_block_dim, device=dev)
             else:
                 for offset, count in self._tri_ranges:
                     wp.launch(kernels.solve_triangles_gs, dim=count,
@@ -140,7 +223,7 @@ class SolverXPBD(SolverBase):
                                   m.bend_world, m.bend_jacobi_scale, m.particle_inv_mass, control.world_active,
                                   inv_dt2, self.jacobi_relaxation, x, self.bend_lambda],
                           outputs=[self.slot_delta], device=dev)
-            else:
+            elif not self._world_blocks:
                 for offset, count in self._bend_ranges:
                     wp.launch(kernels.solve_bending_gs, dim=count,
                               inputs=[offset, m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.bend_world,
