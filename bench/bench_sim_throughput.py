@@ -146,7 +146,7 @@ def main() -> None:
             collider.set_pose(scene["body_vertices"])
             settings = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode,
                                    gs_relaxation=args.gs_relaxation, xpbd_bending_mode=args.bending_mode,
-                          gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
+                                   gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    tolerance=args.tolerance,
                                    max_frames=args.max_frames)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings)

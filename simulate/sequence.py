@@ -298,16 +298,20 @@ def run_sequences(
     home: list[dict | None] = [None] * w_count  # settled canonical drape on the task's shape
     rejects = np.zeros(w_count, dtype=np.int64)  # rejected target frames in a row per world
 
+    def put_back(w: int, state: dict) -> None:
+        """Puts world ``w``'s body and garment back at a saved state (held from frame 0 again)."""
+        for name in ("vertices", "skin", "rest"):
+            body_now[name][w] = state[name]
+        collider.place_world(w, state["vertices"])
+        sim.revive(w, state["positions"])
+        held[w] = 0
+
     def go_home(w: int, next_key: int) -> None:
         """Puts world ``w`` back at its home state, heading for target ``next_key`` from the
         canonical pose (the caller knows that target exists)."""
         h = home[w]
-        for name in ("vertices", "skin", "rest"):
-            body_now[name][w] = h[name]
-        collider.place_world(w, h["vertices"])
-        sim.revive(w, h["positions"])
+        put_back(w, h)
         last_good[w] = h
-        held[w] = 0
         schedules[w] = _reroute(tasks[w], schedules[w], next_key, h["pose"], settings.interpolation_threshold)
         ptr[w] = 0
         changed[w] = True
@@ -339,11 +343,7 @@ def run_sequences(
                         "skin": start.skinning_transforms[w], "rest": start.rest_vertices[w]}
             else:
                 good = last_good[w]
-            for name in ("vertices", "skin", "rest"):
-                body_now[name][w] = good[name]
-            collider.place_world(w, good["vertices"])
-            sim.revive(w, good["positions"])
-            held[w] = 0
+            put_back(w, good)
             if next_key >= len(tasks[w].poses):
                 done[w] = True
                 sim.status[w] = WorldStatus.CONVERGED  # frozen again: nothing left to do

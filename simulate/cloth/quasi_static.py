@@ -34,6 +34,7 @@ from simulate.cloth.model import ClothModel
 from simulate.contact.body_collider import BodyCollider
 from simulate.solvers import common_kernels as ck
 from simulate.solvers import make_solver
+from simulate.solvers.xpbd.solver_xpbd import GS_SWEEPS
 
 __all__ = ["QuasiStaticSimulator", "SimSettings", "WorldStatus"]
 
@@ -124,7 +125,7 @@ class SimSettings:
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
             "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
-            "gs_sweep": self.gs_sweep in ("world_blocks", "colour_launches"),
+            "gs_sweep": self.gs_sweep in GS_SWEEPS,
             "gs_block_dim": int(self.gs_block_dim) == self.gs_block_dim and 32 <= self.gs_block_dim <= 1024
             and self.gs_block_dim % 32 == 0,
             "outlier_fraction": 0.0 <= self.outlier_fraction < 1.0,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import warp as wp
 
@@ -18,13 +20,8 @@ SHARED_TILE_MAX_BYTES = 160 * 1024
 """On CUDA, world blocks keep their positions in shared memory when a world's tile (12 bytes per
 particle, rounded up to 64 particles) is at most this (13,600 particles; an H100/H200 SM has
 228 KB); larger worlds sweep in global memory."""
-_SHARED_KERNELS: dict[int, wp.Kernel] = {}
-
-
-def _shared_kernel(tile_particles: int) -> wp.Kernel:
-    if tile_particles not in _SHARED_KERNELS:
-        _SHARED_KERNELS[tile_particles] = kernels.make_elements_gs_shared_kernel(tile_particles)
-    return _SHARED_KERNELS[tile_particles]
+_shared_kernel = functools.cache(kernels.make_elements_gs_shared_kernel)
+"""One shared-memory sweep kernel per tile size (Warp compiles each once)."""
 
 
 def world_colour_offsets(colour_offsets: list[int], element_world: np.ndarray, world_count: int) -> np.ndarray:
@@ -60,8 +57,8 @@ class SolverXPBD(SolverBase):
     ``mode="gauss_seidel"`` sweeps the graph colours computed at finalize, in place: by default
     (``gs_sweep="world_blocks"``) one launch per iteration with one thread block per world and a
     block barrier between colours, or one launch per colour (``"colour_launches"``; same result,
-    3,300 launches per frame on the 7.7k t-shirt at 10 x 10); ``mode="jacobi"`` projects all elements from the same positions, each
-    element taking the share ``jacobi_relaxation / max_k n_k`` of its step (n_k = elements
+    3,300 launches per frame on the 7.7k t-shirt at 10 x 10).  ``mode="jacobi"`` projects all
+    elements from the same positions, each element taking the share ``jacobi_relaxation / max_k n_k`` of its step (n_k = elements
     of its kind at its corner k), and sums the corrections per particle.  Both are
     deterministic (no float atomics).
     """
@@ -163,8 +160,9 @@ class SolverXPBD(SolverBase):
             if gs_shared is None:
                 gs_shared = dev.is_cuda and 12 * tile <= SHARED_TILE_MAX_BYTES
             self._shared_kernel = _shared_kernel(tile) if gs_shared else None
-            self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
-            self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
+            if gs_shared:  # where each world's tile starts and how much of it is the world's
+                self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
+                self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
