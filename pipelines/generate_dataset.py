@@ -158,6 +158,27 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     return ctx
 
 
+class _Unskinner:
+    """Inverse skinning of garment frames (TailorNet Eq. 5's W^-1) in float64, batched, on the
+    CUDA device when the simulation runs there (torch on the CPU otherwise)."""
+
+    def __init__(self, weights: np.ndarray, device: str) -> None:
+        import torch
+
+        self.torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
+        self.weights = torch.as_tensor(np.asarray(weights, np.float64), device=self.torch_device)
+
+    def __call__(self, positions: np.ndarray, transforms: np.ndarray) -> np.ndarray:
+        """positions (n, V, 3) [m], skinning transforms (n, J, 4, 4) -> unposed (n, V, 3) [m], float64."""
+        import torch
+
+        from simulate.body import inverse_lbs_torch
+
+        x = torch.as_tensor(np.asarray(positions, np.float64), device=self.torch_device)
+        t = torch.as_tensor(np.asarray(transforms, np.float64), device=self.torch_device)
+        return inverse_lbs_torch(x, self.weights, t).cpu().numpy()
+
+
 def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard: Callable[[Any], None] | None = None,
                    on_progress: Callable[[int], None] | None = None, skip: set[str] | frozenset = frozenset()) -> list[dict]:
     """Simulates a batch of tasks as parallel worlds and writes their shards.
@@ -169,7 +190,6 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     import torch
 
     from data_manifest.shard import ShardWriter, shard_path
-    from simulate.body import inverse_lbs
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
 
@@ -197,38 +217,52 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     from simulate.quality import triangle_areas
 
     rest_areas = {t.style_index: triangle_areas(ctx.style_rest[t.style_index], tmpl.faces) for t in tasks}
+    unskin = _Unskinner(weights, ctx.device)
 
-    def record(frame) -> bool:
-        """Filters and writes one target frame; returns whether it was kept."""
-        t = tasks[frame.task]
-        writer = writers[frame.task]
-        if writer is None:  # finished in an earlier run
-            return True
-        x = np.asarray(frame.positions, np.float64)
-        # the status filters first: a frame they drop needs no geometric metrics
-        reason = status_drop_reason(bool(np.isfinite(x).all()), frame.status, filters)
-        if reason is None:
-            metrics = meter.measure(x, frame.body_vertices, collision_depth=filters["collision_depth"],
-                                    rest_areas=rest_areas[t.style_index],
-                                    area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
-            reason = drop_reason(metrics, frame.status, filters)
-        if reason is None:
-            unposed = inverse_lbs(x[None], weights, frame.skinning_transforms[None])[0]
-            base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
-            metrics = dict(metrics, status=float(frame.status), frames=float(frame.frames))
-            # frame_index: position in the visiting order; pose_id: index into the split's pose set
-            writer.write_frame(x, unposed - base, t.poses[frame.key], metrics, frame_index=int(frame.key),
-                               pose_id=np.array([t.pose_ids[frame.key]], np.float32))
-        else:
-            writer.record_dropped(reason, frame_index=int(frame.key), pose=t.poses[frame.key])
-        remaining[frame.task] -= 1
-        if remaining[frame.task] == 0:
-            writer.timings["wall_s"] = time.perf_counter() - t_start
-            writer.close()
-            records.append(writer.record)
-            if on_shard is not None:
-                on_shard(writer.record)
-        return reason is None
+    def record_frames(frames: list) -> list[bool]:
+        """Filters and writes target frames that finished together (one per world); returns
+        which were kept. The geometric metrics and the inverse skinning of all of them run as
+        one batch each, on the simulation device."""
+        reasons: dict[int, str | None] = {}
+        metrics: dict[int, dict] = {}
+        for i, frame in enumerate(frames):
+            if writers[frame.task] is not None:  # else finished in an earlier run
+                # the status filters first: a frame they drop needs no geometric metrics
+                reasons[i] = status_drop_reason(bool(np.isfinite(frame.positions).all()), frame.status, filters)
+        measured = [i for i, r in reasons.items() if r is None]
+        if measured:
+            batch = meter.measure_batch(
+                np.stack([frames[i].positions for i in measured]), np.stack([frames[i].body_vertices for i in measured]),
+                collision_depth=filters["collision_depth"],
+                rest_areas=np.stack([rest_areas[tasks[frames[i].task].style_index] for i in measured]),
+                area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
+            for i, m in zip(measured, batch):
+                metrics[i] = m
+                reasons[i] = drop_reason(m, frames[i].status, filters)
+        keep = [i for i in measured if reasons[i] is None]
+        unposed = unskin(np.stack([frames[i].positions for i in keep]),
+                         np.stack([frames[i].skinning_transforms for i in keep])) if keep else None
+        for i, reason in reasons.items():
+            frame = frames[i]
+            t = tasks[frame.task]
+            writer = writers[frame.task]
+            if reason is None:
+                x = np.asarray(frame.positions, np.float64)
+                base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
+                row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
+                # frame_index: position in the visiting order; pose_id: index into the split's pose set
+                writer.write_frame(x, unposed[keep.index(i)] - base, t.poses[frame.key], row, frame_index=int(frame.key),
+                                   pose_id=np.array([t.pose_ids[frame.key]], np.float32))
+            else:
+                writer.record_dropped(reason, frame_index=int(frame.key), pose=t.poses[frame.key])
+            remaining[frame.task] -= 1
+            if remaining[frame.task] == 0:
+                writer.timings["wall_s"] = time.perf_counter() - t_start
+                writer.close()
+                records.append(writer.record)
+                if on_shard is not None:
+                    on_shard(writer.record)
+        return [reasons.get(i) is None for i in range(len(frames))]
 
     seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
@@ -238,7 +272,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 ctx.phases = {}
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
-                          device=ctx.device, on_frame=record, on_progress=on_progress, stats=ctx.phases)
+                          device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases)
     except BaseException:
         for w in writers:
             if w is not None and w.record is None:

@@ -6,7 +6,8 @@ to the task's shape over ``shape_transition_frames`` frames and the garment rela
 then the body visits the target poses in the given order; slerp'ed poses are
 inserted where any joint would turn more than ``interpolation_threshold`` in one
 frame (one frame each), and every target pose is held until the world converges
-(or hits ``max_relax_frames``), when the frame is handed to ``on_frame``. A world whose
+(or hits ``max_relax_frames``), when the frame is handed to ``on_frame`` (or, with the
+other worlds' frames that finished with it, to ``on_frames``). A world whose
 frames ``on_frame`` rejects (``restart_after_rejects``), or that keeps exploding, goes back home
 (its drape at the end of the settle) and heads for its next target from the canonical pose.
 
@@ -218,7 +219,8 @@ def run_sequences(
     body_faces: np.ndarray,
     settings: SequenceSettings,
     device: str,
-    on_frame: Callable[[RecordedFrame], None],
+    on_frame: Callable[[RecordedFrame], object] | None = None,
+    on_frames: Callable[[list[RecordedFrame]], list] | None = None,
     on_progress: Callable[[int], None] | None = None,
     stats: dict[str, float] | None = None,
 ) -> dict[str, float]:
@@ -234,6 +236,11 @@ def run_sequences(
         on_frame: called once per (task, target pose) in visiting order per task; returning
             ``False`` rejects the frame (see ``SequenceSettings.restart_after_rejects``), any other
             value accepts it.
+        on_frames: instead of ``on_frame``: called with the list of frames that finished in the same
+            simulator frame (one per world; an exploded world's failed targets come in lists of
+            their own), returning one answer per frame. Their positions and bodies left the device
+            in one copy each, and the caller can measure them together. The frames and answers are
+            those ``on_frame`` would get; only the grouping differs.
         on_progress: called after each frame with the number of target poses it finished (often 0).
         stats: a dict to add the statistics to as they accrue (heartbeats of long runs read it; a
             dict that already holds counts, e.g. of earlier batches, keeps adding).
@@ -247,6 +254,8 @@ def run_sequences(
     """
     import time
 
+    if (on_frame is None) == (on_frames is None):
+        raise ValueError("run_sequences needs exactly one of on_frame and on_frames")
     w_count = len(tasks)
     neutral = np.asarray(body.shape_default, np.float32)
     canonical = np.asarray(body.canonical_pose, np.float32)
@@ -280,10 +289,34 @@ def run_sequences(
     body_now: dict[str, torch.Tensor] = {
         "vertices": start.vertices.clone(), "skin": start.skinning_transforms.clone(), "rest": start.rest_vertices.clone()}
 
+    def frames_of(worlds: list[int], keys: list[int], positions: np.ndarray, statuses: list[int]) -> list[RecordedFrame]:
+        """Frames of ``worlds`` at their current bodies, positions (n, V, 3) [m]: each body tensor
+        leaves the device once for all of them (indexing copies, so the next frames cannot alias them)."""
+        idx_t = torch.as_tensor(np.asarray(worlds, np.int64), device=torch_device)
+        body = {name: body_now[name][idx_t].cpu().numpy() for name in ("vertices", "skin", "rest")}
+        return [RecordedFrame(int(w), int(k), positions[j], int(st), int(held[w]), body["vertices"][j], body["skin"][j],
+                              body["rest"][j]) for j, (w, k, st) in enumerate(zip(worlds, keys, statuses))]
+
     def frame_of(w: int, key: int, positions: np.ndarray, st: int) -> RecordedFrame:
-        # copies: on CPU, numpy() would alias rows that the next frames overwrite
-        return RecordedFrame(w, int(key), positions, st, int(held[w]), body_now["vertices"][w].cpu().numpy().copy(),
-                             body_now["skin"][w].cpu().numpy().copy(), body_now["rest"][w].cpu().numpy().copy())
+        return frames_of([w], [key], positions[None], [st])[0]
+
+    def deliver(frames: list[RecordedFrame]) -> list[bool]:
+        """Hands frames over (one ``on_frames`` call, or ``on_frame`` per frame); True where accepted."""
+        if on_frames is None:
+            return [on_frame(f) is not False for f in frames]
+        answers = list(on_frames(frames))
+        if len(answers) != len(frames):
+            raise ValueError(f"on_frames must return one answer per frame ({len(frames)}), got {len(answers)}")
+        return [a is not False for a in answers]
+
+    def advance(w: int) -> None:
+        """World ``w`` moves on to its next schedule entry (or is done)."""
+        ptr[w] += 1
+        held[w] = 0
+        if ptr[w] >= len(schedules[w][2]):
+            done[w] = True
+        else:
+            changed[w] = True
 
     ahead = _PosedAhead(pose_bodies, start, w_count, settings.body_lookahead)
     stats = {} if stats is None else stats
@@ -327,7 +360,7 @@ def run_sequences(
         if settings.recover_explosions and (last_good[w] is not None or can_restart) and len(failed):
             # lose only the target being approached or held, then resume from the last good state
             j = ptr[w] + int(failed[0])
-            on_frame(frame_of(w, keys_w[j], sim.world_positions(w), st))
+            deliver([frame_of(w, keys_w[j], sim.world_positions(w), st)])
             stats["recoveries"] += 1
             streak[w] += 1
             next_key = int(keys_w[j]) + 1
@@ -360,7 +393,7 @@ def run_sequences(
         handed = 0
         for j in range(ptr[w], len(kinds_w)):
             if kinds_w[j] == KEY:
-                on_frame(frame_of(w, keys_w[j], sim.world_positions(w), st))
+                deliver([frame_of(w, keys_w[j], sim.world_positions(w), st)])
                 handed += 1
         done[w] = True
         return handed
@@ -387,9 +420,9 @@ def run_sequences(
         held[~done] += 1
         changed[:] = False
         finished_keys = 0
+        ready = []  # worlds whose hold (settle or target pose) ended this frame
         for w in np.nonzero(~done)[0]:
-            _, poses_w, kinds_w, keys_w = schedules[w]
-            kind = kinds_w[ptr[w]]
+            kind = schedules[w][2][ptr[w]]
             st = int(status[w])
             if st == WorldStatus.EXPLODED:
                 q0 = time.perf_counter()
@@ -397,45 +430,50 @@ def run_sequences(
                 stats["recover_s"] += time.perf_counter() - q0
                 continue
             if kind == TRANSITION:
-                finished = True
-            else:
-                finished = st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and held[w] >= settings.min_hold_frames
-                if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS) and not finished:
-                    sim.restart([w])  # keep holding the pose
-            if not finished:
+                advance(w)
                 continue
-            if kind != TRANSITION:
-                r0 = time.perf_counter()
-                positions_w = sim.world_positions(w)
+            if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS):
+                if held[w] >= settings.min_hold_frames:
+                    ready.append(w)
+                else:
+                    sim.restart([w])  # keep holding the pose
+        if ready:
+            # the worlds that finished together leave the device together and are handed over in one call
+            r0 = time.perf_counter()
+            positions = sim.worlds_positions(ready)
+            keyed = []
+            for j, w in enumerate(ready):
+                _, poses_w, kinds_w, _ = schedules[w]
+                kind = kinds_w[ptr[w]]
                 if settings.recover_explosions or kind == SETTLE:
-                    state = {"positions": positions_w, "pose": poses_w[ptr[w]], "vertices": body_now["vertices"][w].clone(),
-                             "skin": body_now["skin"][w].clone(), "rest": body_now["rest"][w].clone()}
+                    state = {"positions": positions[j].copy(), "pose": poses_w[ptr[w]],
+                             "vertices": body_now["vertices"][w].clone(), "skin": body_now["skin"][w].clone(),
+                             "rest": body_now["rest"][w].clone()}
                     if settings.recover_explosions:
                         last_good[w] = state
                     if kind == SETTLE:
                         home[w] = state
-                went_home = False
                 if kind == KEY:
-                    accepted = on_frame(frame_of(w, keys_w[ptr[w]], positions_w, st)) is not False
+                    keyed.append(j)
+                else:
+                    advance(w)
+            if keyed:
+                worlds = [ready[j] for j in keyed]
+                frames = frames_of(worlds, [schedules[w][3][ptr[w]] for w in worlds], positions[keyed],
+                                   [int(status[w]) for w in worlds])
+                for w, accepted in zip(worlds, deliver(frames)):
                     finished_keys += 1
                     streak[w] = 0
                     rejects[w] = 0 if accepted else rejects[w] + 1
-                    next_key = int(keys_w[ptr[w]]) + 1
+                    next_key = int(schedules[w][3][ptr[w]]) + 1
                     if (settings.restart_after_rejects > 0 and rejects[w] >= settings.restart_after_rejects
                             and home[w] is not None and next_key < len(tasks[w].poses)):
                         rejects[w] = 0
                         stats["restarts_after_rejects"] += 1
                         go_home(w, next_key)
-                        went_home = True
-                stats["record_s"] += time.perf_counter() - r0
-                if went_home:
-                    continue
-            ptr[w] += 1
-            held[w] = 0
-            if ptr[w] >= len(kinds_w):
-                done[w] = True
-            else:
-                changed[w] = True
+                    else:
+                        advance(w)
+            stats["record_s"] += time.perf_counter() - r0
         if on_progress is not None:  # every frame (also with 0), so heartbeats can fire during long holds
             on_progress(finished_keys)
         stats["loop_s"] += time.perf_counter() - t0

@@ -90,17 +90,17 @@ def test_planted_bad_frame_is_dropped_and_counted(tmp_path, monkeypatch):
 
     real = sequence.run_sequences
 
-    def planting(*args, on_frame, **kwargs):
+    def planting(*args, on_frames, **kwargs):
         planted = []
 
-        def corrupt(frame):
+        def corrupt(frames):
             if not planted:  # blow the first recorded frame up: triangle areas grow 4x
-                c = frame.positions.mean(0)
-                frame.positions = c + 2.0 * (frame.positions - c)
-                planted.append(frame.key)
-            on_frame(frame)
+                c = frames[0].positions.mean(0)
+                frames[0].positions = c + 2.0 * (frames[0].positions - c)
+                planted.append(frames[0].key)
+            return on_frames(frames)
 
-        return real(*args, on_frame=corrupt, **kwargs)
+        return real(*args, on_frames=corrupt, **kwargs)
 
     monkeypatch.setattr(sequence, "run_sequences", planting)
     spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0)
@@ -126,16 +126,17 @@ def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
     real = sequence.run_sequences
     verdicts: list[tuple[bool, object]] = []
 
-    def planting(*args, on_frame, **kwargs):
-        def corrupt(frame):
+    def planting(*args, on_frames, **kwargs):
+        def corrupt(frames):
             planted = not verdicts
             if planted:  # blow the first target frame up: triangle areas grow 4x
-                c = frame.positions.mean(0)
-                frame.positions = c + 2.0 * (frame.positions - c)
-            verdicts.append((planted, on_frame(frame)))
-            return verdicts[-1][1]
+                c = frames[0].positions.mean(0)
+                frames[0].positions = c + 2.0 * (frames[0].positions - c)
+            answers = on_frames(frames)
+            verdicts.extend((planted and i == 0, a) for i, a in enumerate(answers))
+            return answers
 
-        return real(*args, on_frame=corrupt, **kwargs)
+        return real(*args, on_frames=corrupt, **kwargs)
 
     monkeypatch.setattr(sequence, "run_sequences", planting)
     spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, simulation__restart_after_rejects=1)

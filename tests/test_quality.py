@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from simulate.quality import QualityMeter, triangle_areas, unique_edges
@@ -52,3 +53,45 @@ def test_helpers():
     verts, faces = _grid(n=3, size=2.0)
     assert np.isclose(triangle_areas(verts, faces).sum(), 4.0)
     assert len(unique_edges(faces)) == 16
+
+
+def test_a_batch_of_frames_measures_each_frame_as_if_it_were_alone():
+    """measure_batch packs frames one after another, one body and one rest-area row per frame: each
+    frame's metrics must be the ones it gets alone (wrong offsets, mesh slots or per-frame sums would
+    mix frames), and a non-finite frame must not disturb the others."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    verts, faces = _grid()
+    vertical = verts[:, [2, 0, 1]] + np.array([0.013, 0.0, 0.0])
+    both_faces = np.concatenate([faces, faces + len(verts)])
+    rest = np.concatenate([verts, vertical + [0.0, 0.0, 0.25]])
+    crossing = np.concatenate([verts, vertical]) + [0.0, 0.0, 0.25]  # the sheets pierce each other, inside the sphere
+    apart = rest * np.array([2.0, 1.0, 1.0])  # no piercing; the flat sheet twice its rest area, the upright one as it was
+    nan = rest.copy()
+    nan[3, 1] = np.nan
+    frames = np.stack([crossing, apart, nan, crossing])
+    bodies = np.stack([sphere.vertices, sphere.vertices + [0.0, 0.0, 5.0], sphere.vertices, sphere.vertices + [0.0, 0.0, 0.3]])
+    rest_rows = np.stack([triangle_areas(rest, both_faces), triangle_areas(rest, both_faces),
+                          triangle_areas(rest, both_faces), 0.5 * triangle_areas(rest, both_faces)])
+    meter = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices))
+    batch = meter.measure_batch(frames, bodies, rest_areas=rest_rows)
+    for i in range(len(frames)):
+        alone = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices)).measure(
+            frames[i], bodies[i], rest_areas=rest_rows[i])
+        assert batch[i].keys() == alone.keys()
+        for k in alone:
+            assert batch[i][k] == alone[k] or (np.isnan(alone[k]) and np.isnan(batch[i][k])), (i, k, batch[i][k], alone[k])
+    # and the values are the right ones, not just the same ones (areas in float64 of the float32
+    # positions the device holds, as the simulator's are)
+    ratio = triangle_areas(crossing.astype(np.float32).astype(np.float64), both_faces) / rest_rows[0]
+    assert abs(batch[0]["area_ratio_min"] - ratio.min()) < 1e-12 and abs(batch[0]["area_ratio_max"] - ratio.max()) < 1e-12
+    assert abs(batch[3]["area_ratio_min"] - 2.0 * batch[0]["area_ratio_min"]) < 1e-12
+    assert batch[0]["self_intersections"] > 0 and batch[1]["self_intersections"] == 0 and batch[3]["self_intersections"] > 0
+    assert abs(batch[1]["area_ratio_max"] - 2.0) < 1e-6 and abs(batch[1]["area_ratio_min"] - 1.0) < 1e-6 and batch[1]["penetration_fraction"] == 0.0
+    assert batch[2]["finite"] == 0.0 and batch[2]["self_intersections"] == -1.0
+    inside = (np.linalg.norm(crossing, axis=1) - 0.3 < -2e-3).mean()
+    assert abs(batch[0]["penetration_fraction"] - inside) < 0.05 and batch[0]["penetration_fraction"] > 0.2
+    # shape errors name the argument and the expected shape
+    with pytest.raises(ValueError, match=r"body_vertices must have shape \(4, "):
+        meter.measure_batch(frames, bodies[:3])
+    with pytest.raises(ValueError, match=r"rest_areas must have shape"):
+        meter.measure_batch(frames, bodies, rest_areas=rest_rows[:2])

@@ -190,3 +190,40 @@ def test_rerouting_a_schedule_equals_planning_it_afresh():
         fresh = _visit_entries(task, next_key, start, 0.1)
         for a, b in zip(rerouted, fresh):
             np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}")
+
+
+def test_frames_handed_over_together_are_the_frames_handed_over_one_by_one(scene):
+    """on_frames gets the frames that finished in the same simulator frame in one list (positions and
+    bodies gathered in one copy each); the frames, and what each answer does, are on_frame's."""
+    body, template, start, canonical, small, _ = scene
+    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
+    tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                          shape=np.asarray(body.shape_default, np.float32), poses=np.stack([bent, small])) for _ in range(2)]
+    settings = SequenceSettings(
+        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                        explosion_stretch=50.0),
+        shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1)
+    common = dict(body_faces=body.part_faces(("torso", "arms")), settings=settings, device="cpu")
+
+    def reject(frame):  # world 0's first target is rejected: that world alone goes home
+        return not (frame.task == 0 and frame.key == 0)
+
+    single = []
+    stats_single = run_sequences(body, template.faces, tasks, on_frame=lambda f: (single.append(f), reject(f))[1], **common)
+    batches = []
+    stats_batched = run_sequences(body, template.faces, tasks,
+                                  on_frames=lambda fs: (batches.append(fs), [reject(f) for f in fs])[1], **common)
+    assert stats_single["restarts_after_rejects"] == stats_batched["restarts_after_rejects"] == 1
+    assert max(len(b) for b in batches) == 2, "the twin worlds finish their first target in the same frame"
+    batched = sorted((f for b in batches for f in b), key=lambda f: (f.task, f.key))
+    single = sorted(single, key=lambda f: (f.task, f.key))
+    assert [(f.task, f.key, f.status, f.frames) for f in batched] == [(f.task, f.key, f.status, f.frames) for f in single]
+    for a, b in zip(batched, single):
+        for name in ("positions", "body_vertices", "skinning_transforms", "rest_body_vertices"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"task {a.task} key {a.key}: {name}")
+    # world 1 was accepted throughout and went on from its own drape: its second frame differs from world 0's
+    assert np.abs(batched[1].positions - batched[3].positions).max() > 1e-3
+    with pytest.raises(ValueError, match="exactly one of on_frame and on_frames"):
+        run_sequences(body, template.faces, tasks, **common)
+    with pytest.raises(ValueError, match="one answer per frame"):
+        run_sequences(body, template.faces, tasks, on_frames=lambda fs: [], **common)

@@ -414,6 +414,19 @@ class QuasiStaticSimulator:
         sl = self.model.world_slice(world)
         return self.state_0.particle_q[sl.start:sl.stop].numpy().copy()
 
+    def worlds_positions(self, worlds) -> np.ndarray:
+        """Positions [m] of several worlds with the same particle count, shape (n, V_w, 3): they are
+        gathered on the device and leave it in one copy (one wait for the device instead of n)."""
+        slices = [self.model.world_slice(int(w)) for w in worlds]
+        sizes = sorted({sl.stop - sl.start for sl in slices})
+        if len(sizes) > 1:
+            raise ValueError(f"worlds must have the same particle count to be gathered together (got counts {sizes})")
+        v = sizes[0] if sizes else 0
+        gathered = wp.empty(len(slices) * v, dtype=wp.vec3, device=self.model.device)
+        for i, sl in enumerate(slices):
+            wp.copy(gathered, self.state_0.particle_q, dest_offset=i * v, src_offset=sl.start, count=v)
+        return gathered.numpy().reshape(len(slices), v, 3)
+
     def set_positions(self, positions: np.ndarray, *, world: int | None = None) -> None:
         """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3)); zeroes their velocities.
 
