@@ -24,17 +24,21 @@ def _run_batch(spec: dict, out_dir: str, task_ids: list[str], device: str | None
 
 
 def run_local(ctx, out_dir: Path, batches: Iterable[list[str]], *, on_shard: Callable, on_progress: Callable,
-              skip: set[str] = frozenset()) -> None:
+              on_batch: Callable[[], None] | None = None, skip: set[str] = frozenset()) -> None:
+    """Runs the batches one after another in this process; ``on_batch()`` after each."""
     from pipelines.generate_dataset import simulate_batch
 
     for batch in batches:
         simulate_batch(ctx, out_dir, batch, on_shard=on_shard, on_progress=on_progress, skip=skip)
+        if on_batch is not None:
+            on_batch()
 
 
 def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, device: str | None, on_shard: Callable,
-            on_progress: Callable, address: str | None = None, num_cpus: int | None = None,
-            skip: set[str] = frozenset()) -> None:
-    """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA)."""
+            on_progress: Callable, on_batch: Callable[[], None] | None = None, address: str | None = None,
+            num_cpus: int | None = None, skip: set[str] = frozenset()) -> None:
+    """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA); ``on_batch()``
+    after each batch's shards are listed."""
     try:
         import ray
     except ImportError as exc:
@@ -56,6 +60,8 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, device: str 
                 for record in records:
                     on_shard(record)
                 on_progress(0, batch=batch)
+                if on_batch is not None:
+                    on_batch()
     finally:
         if started:
             ray.shutdown()

@@ -189,6 +189,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     """
     import torch
 
+    from data_manifest.background import BackgroundWriter
     from data_manifest.shard import ShardWriter, shard_path
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
@@ -251,21 +252,30 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
-                writer.write_frame(x, unposed[keep.index(i)] - base, t.poses[frame.key], row, frame_index=int(frame.key),
-                                   pose_id=np.array([t.pose_ids[frame.key]], np.float32))
+                background.submit(writer.write_frame, x, unposed[keep.index(i)] - base, t.poses[frame.key], row,
+                                  frame_index=int(frame.key), pose_id=np.array([t.pose_ids[frame.key]], np.float32))
             else:
-                writer.record_dropped(reason, frame_index=int(frame.key), pose=t.poses[frame.key])
+                background.submit(writer.record_dropped, reason, frame_index=int(frame.key), pose=t.poses[frame.key])
             remaining[frame.task] -= 1
             if remaining[frame.task] == 0:
-                writer.timings["wall_s"] = time.perf_counter() - t_start
-                writer.close()
-                records.append(writer.record)
-                if on_shard is not None:
-                    on_shard(writer.record)
+                background.submit_collect(close_shard, writer)
+        list_finished(background.completed())
         return [reasons.get(i) is None for i in range(len(frames))]
+
+    def close_shard(writer):
+        writer.timings["wall_s"] = time.perf_counter() - t_start
+        return writer.close()
+
+    def list_finished(finished: list) -> None:
+        for record in finished:
+            records.append(record)
+            if on_shard is not None:
+                on_shard(record)
 
     seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
+    # shards are written, closed and hashed on a thread of their own while the simulation goes on
+    background = BackgroundWriter()
     try:
         with torch.no_grad():
             if ctx.phases is None:
@@ -273,7 +283,9 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases)
+        list_finished(background.close())
     except BaseException:
+        background.close(raise_error=False)
         for w in writers:
             if w is not None and w.record is None:
                 w.abort()
@@ -312,14 +324,17 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
 
 def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local", device: str | None = None,
              ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             heartbeat_s: float = 30.0, on_heartbeat: Callable[[dict], None] | None = None) -> Any:
+             heartbeat_s: float = 30.0, on_heartbeat: Callable[[dict], None] | None = None,
+             save_every_s: float = 10.0) -> Any:
     """Runs (or resumes) a dataset generation; returns the finished Manifest.
 
     Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds.
     ``on_heartbeat`` (local executor, with or without bars) gets the same numbers as a dict at each
     heartbeat: seconds since simulation began, target poses done and total, shards written, frames
     kept and dropped by reason over the shards listed so far (kept_in_shards, dropped_in_shards),
-    and the simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries)."""
+    and the simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries).
+    The manifest is saved after each batch and, within a batch, at most every ``save_every_s`` seconds
+    as shards finish (0: after every shard)."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -361,10 +376,20 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
 
     kept_this_run = [0]
 
+    saved = {"at": time.perf_counter()}
+
+    def save_manifest() -> None:
+        manifest.save()
+        saved["at"] = time.perf_counter()
+
     def on_shard(record) -> None:
         kept_this_run[0] += int(record["frame_count"] if isinstance(record, dict) else record.frame_count)
         manifest.add_shard(record)
-        manifest.save()
+        # the manifest is rewritten whole: once per shard made the run quadratic in the shard count
+        # (24 ms per save at 140 shards on the device host). A shard that is complete but not yet
+        # listed is simply written again by a resumed run (its batch is simulated again anyway).
+        if time.perf_counter() - saved["at"] >= save_every_s:
+            save_manifest()
         bar.set_postfix(shards=f"{len(manifest.shards)}/{len(ctx.plan.tasks)}", refresh=False)
 
     log(f"simulating {len(pending)} tasks ({total_keys} target poses) in {len(batches)} batch(es) of at most "
@@ -377,8 +402,15 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         bar.update(count)
         beat["done"] += count
         beat["calls"] += 1  # local executor: one call per simulator frame
+        heartbeat()
+
+    def after_batch() -> None:
+        save_manifest()
+        heartbeat(force=True)  # the batch's last shards are listed only now (their writes finish in the background)
+
+    def heartbeat(force: bool = False) -> None:
         now = time.perf_counter()
-        if now - beat["last"] >= heartbeat_s:
+        if force or now - beat["last"] >= heartbeat_s:
             # headless runs (logs of cluster or device jobs) still say how far they are
             beat["last"] = now
             elapsed = now - t_sim
@@ -406,10 +438,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
     t_sim = time.perf_counter()
     ctx.phases = {}
     if executor == "local":
-        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress, skip=done)
+        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress, on_batch=after_batch, skip=done)
     else:
-        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress, address=ray_address,
-                skip=done)
+        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress,
+                on_batch=after_batch, address=ray_address, skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     if pending:

@@ -298,3 +298,24 @@ def test_dataset_info_reads_out_the_audit(reference):
     audit = json.loads((reference / "manifest.json").read_text())["audit"]
     assert f"vertex error max median {audit['max_mm']['median']:.2f}" in text, text
     assert f"{audit['simulation']['target_frames']} target frames" in text and "explosions recovered" in text, text
+
+
+def test_the_manifest_is_saved_after_each_batch_not_after_each_shard(tmp_path, monkeypatch):
+    """Saving the whole manifest after every shard made a run quadratic in its shard count; within
+    a batch it is saved at most every save_every_s, and always when a batch ends (its shards are
+    listed before the next batch starts)."""
+    from data_manifest.manifest import Manifest
+    from pipelines.generate_dataset import generate
+
+    listed: list[int] = []
+    save = Manifest.save
+
+    def spy(self, *args, **kwargs):
+        listed.append(len(self.shards))
+        return save(self, *args, **kwargs)
+
+    monkeypatch.setattr(Manifest, "save", spy)
+    manifest = generate(_with(), tmp_path, progress=False, log=lambda m: None, save_every_s=1e9)
+    # 4 tasks in batches of 2 worlds: one save per batch, then the finished manifest
+    assert listed == [2, 4, 4], listed
+    assert len(manifest.shards) == 4 and validate_dataset(tmp_path).ok
