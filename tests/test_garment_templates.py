@@ -189,3 +189,33 @@ def test_unfold_offset_removes_folds_of_a_loose_offset_over_a_groove():
     assert (area(out) / area(surface)).min() > 0.1
     flat = np.abs(surface[:, 0]) > 0.07
     np.testing.assert_allclose(out[flat], offset[flat], atol=1e-9)
+
+
+def test_closest_point_query_matches_brute_force_over_every_triangle():
+    """The BVH query's closest points, faces and signed distances against checking every triangle
+    (points near, far from and inside a bumpy closed surface, where a nearest-centroid shortcut fails)."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    rng = np.random.default_rng(4)
+    verts = sphere.vertices * (1.0 + 0.3 * rng.random((len(sphere.vertices), 1)))  # uneven triangles
+    faces = np.asarray(sphere.faces)
+    points = rng.normal(size=(300, 3)) * rng.choice([0.05, 0.3, 1.0], size=(300, 1))
+    closest, face, bary, signed = mesh_ops.ClosestPointQuery(verts, faces).query(points)
+    tri = verts[faces]  # (F, 3, 3)
+    q, _ = mesh_ops.closest_points_on_triangles(points[:, None], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    dist = np.linalg.norm(q - points[:, None], axis=-1)  # (N, F)
+    best = dist.min(axis=1)
+    np.testing.assert_allclose(np.linalg.norm(closest - points, axis=1), best, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(dist[np.arange(len(points)), face], best, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.einsum("nk,nkd->nd", bary, tri[face]), closest, rtol=0, atol=1e-9)
+    # inside: winding number 1 (solid angles of the triangles seen from the point, Van Oosterom-Strackee)
+    a, b, c = (tri[None, :, k] - points[:, None] for k in range(3))
+    la, lb, lc = (np.linalg.norm(x, axis=-1) for x in (a, b, c))
+    num = np.einsum("nfd,nfd->nf", a, np.cross(b, c))
+    den = la * lb * lc + (a * b).sum(-1) * lc + (a * c).sum(-1) * lb + (b * c).sum(-1) * la
+    inside = np.abs((2.0 * np.arctan2(num, den)).sum(axis=1) / (4.0 * np.pi)) > 0.5
+    far = best > 1e-3
+    assert ((signed < 0) == inside)[far].all(), "the sign follows the closest face's normal: negative inside"
+    with pytest.raises(ValueError, match="farther than max_distance"):
+        mesh_ops.ClosestPointQuery(verts, faces, max_distance=0.01).query(np.array([[5.0, 0.0, 0.0]]))

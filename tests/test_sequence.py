@@ -32,12 +32,12 @@ def scene(anny_body):
     return anny_body, template, draped[0], canonical, small, jump
 
 
-def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: float = 0.05):
+def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: float = 0.05, max_frames: int = 25):
     body, template, start, *_ = scene
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=25, damping=20.0,
+        sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
     frames = []
@@ -79,8 +79,10 @@ def test_posing_bodies_ahead_changes_no_frame_and_batches_the_body_model(scene):
     # holds end at 0.02 m/s (not the file's 0.05): a hold that ends a frame earlier or later through a
     # rounding-level change then moves the drape less (at 0.05 with the arc-length styles: 5.3 mm at
     # one vertex; the bound below was set at 2.8 mm measured)
-    ahead, stats_ahead = _run(scene, keys, recover=True, lookahead=8, tolerance=0.02)
-    single, stats_single = _run(scene, keys, recover=True, lookahead=1, tolerance=0.02)
+    # and a hold budget every hold meets (at 25 frames one hold that ends right at the budget came out
+    # converged in one run and at max-steps in the other)
+    ahead, stats_ahead = _run(scene, keys, recover=True, lookahead=8, tolerance=0.02, max_frames=60)
+    single, stats_single = _run(scene, keys, recover=True, lookahead=1, tolerance=0.02, max_frames=60)
     assert stats_ahead["recoveries"] == stats_single["recoveries"] == 1
     assert [(f.task, f.key, f.status) for f in ahead] == [(f.task, f.key, f.status) for f in single]
     # the same bodies up to float32 rounding of the body model's batched matrix products (1 ulp at
@@ -167,8 +169,11 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     assert carried_stats["restarts_after_rejects"] == 0 and not carried_calls
     home_error = np.abs(frames[1].positions - fresh[0].positions).max()
     carried_error = np.abs(carried[1].positions - fresh[0].positions).max()
-    assert home_error < 1e-3, f"after going home the drape is the fresh task's: {home_error * 1e3:.2f} mm"
-    # carried along instead, the bend's drape leaves its mark (measured 50 mm against 0.02 mm)
+    # the same drape up to where the hold stops: going home revives the world at rest, the fresh task
+    # arrives with the settle's last small velocities, so a hold can end a frame apart (measured 0.02 mm
+    # and, with another template mesh, 1.6 mm)
+    assert home_error < 3e-3, f"after going home the drape is the fresh task's: {home_error * 1e3:.2f} mm"
+    # carried along instead, the bend's drape leaves its mark (measured 50 mm)
     assert carried_error > 10 * home_error + 1e-3, (carried_error, home_error)
     # accepted frames never send a world home
     _, accepted_stats, accepted_calls = run([bent, small], 1)
