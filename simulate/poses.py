@@ -154,18 +154,60 @@ def greedy_order(poses: np.ndarray, start: np.ndarray) -> np.ndarray:
     return np.asarray(order, dtype=np.int64)
 
 
+def slerp_segments(starts: np.ndarray, ends: np.ndarray, segment: np.ndarray, fractions: np.ndarray) -> np.ndarray:
+    """Per-joint spherical interpolation along many segments at once: pose ``fractions[m]`` of the
+    way from ``starts[segment[m]]`` to ``ends[segment[m]]``; shapes (K, 60), (K, 60), (M,), (M,) -> (M, 60)."""
+    k = len(starts)
+    ra = axis_angle_to_matrix(torch.as_tensor(np.asarray(starts, np.float64).reshape(k, len(POSE_JOINTS), 3)))
+    rb = axis_angle_to_matrix(torch.as_tensor(np.asarray(ends, np.float64).reshape(k, len(POSE_JOINTS), 3)))
+    rel = matrix_to_axis_angle(ra.transpose(-1, -2) @ rb)  # (K, 20, 3): rotation taking start to end, per joint
+    seg = torch.as_tensor(np.asarray(segment, np.int64))
+    f = torch.as_tensor(np.asarray(fractions, np.float64))[:, None, None]
+    steps = ra[seg] @ axis_angle_to_matrix(rel[seg] * f)  # (M, 20, 3, 3)
+    return matrix_to_axis_angle(steps).reshape(len(seg), POSE_SIZE).numpy().astype(np.float32)
+
+
 def slerp_poses(a: np.ndarray, b: np.ndarray, fractions: np.ndarray) -> np.ndarray:
     """Per-joint spherical interpolation from pose a to b, shapes (60,), (60,), (T,) -> (T, 60)."""
-    ra = axis_angle_to_matrix(torch.as_tensor(np.asarray(a, np.float64).reshape(len(POSE_JOINTS), 3)))
-    rb = axis_angle_to_matrix(torch.as_tensor(np.asarray(b, np.float64).reshape(len(POSE_JOINTS), 3)))
-    rel = matrix_to_axis_angle(ra.transpose(-1, -2) @ rb)  # (20, 3): rotation taking a to b, per joint
-    f = torch.as_tensor(np.asarray(fractions, np.float64))[:, None, None]
-    steps = ra[None] @ axis_angle_to_matrix(rel[None] * f)  # (T, 20, 3, 3)
-    return matrix_to_axis_angle(steps).reshape(len(fractions), POSE_SIZE).numpy().astype(np.float32)
+    return slerp_segments(np.asarray(a)[None], np.asarray(b)[None], np.zeros(len(fractions), np.int64), fractions)
+
+
+def interpolate_segments(starts: np.ndarray, ends: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Slerp'ed poses along independent segments, each split into as many equal steps as keep every
+    joint's change per step within ``threshold`` [rad], all measured and interpolated in one batched
+    call (one segment at a time cost ~1 ms each, most of it in small torch calls).
+
+    Args:
+        starts, ends: segment end points, shapes (K, 60).
+        threshold: largest allowed per-joint angle change between consecutive poses [rad].
+    Returns:
+        (poses (M, 60), segment (M,)): segment k's inserted poses in order, then ``ends[k]`` itself,
+        for k = 0..K-1 one after another.
+    """
+    if threshold <= 0:
+        raise ValueError(f"simulation.interpolation_threshold must be > 0 rad, got {threshold}")
+    ends = np.asarray(ends, np.float32).reshape(-1, POSE_SIZE)
+    starts = np.asarray(starts, np.float32).reshape(-1, POSE_SIZE)
+    k = len(ends)
+    if k == 0:
+        return np.zeros((0, POSE_SIZE), np.float32), np.zeros(0, np.int64)
+    steps = np.ceil(joint_angle_change(starts, ends).max(axis=1) / threshold).astype(np.int64)  # frames per segment
+    inserted = np.maximum(steps - 1, 0)
+    segment = np.repeat(np.arange(k), inserted)
+    within = np.arange(len(segment)) - np.repeat(np.cumsum(inserted) - inserted, inserted)  # 0.. per segment
+    out = np.empty((k + len(segment), POSE_SIZE), np.float32)
+    end_row = np.cumsum(inserted + 1) - 1
+    is_end = np.zeros(len(out), dtype=bool)
+    is_end[end_row] = True
+    out[end_row] = ends
+    if len(segment):
+        out[~is_end] = slerp_segments(starts, ends, segment, (within + 1) / steps[segment])
+    return out, np.repeat(np.arange(k), inserted + 1)
 
 
 def interpolate_sequence(keys: np.ndarray, start: np.ndarray, threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """Inserts slerp'ed poses wherever consecutive poses differ by more than ``threshold`` [rad] at any joint.
+    """Inserts slerp'ed poses wherever consecutive poses differ by more than ``threshold`` [rad] at any joint
+    (the segments start -> key 0 -> key 1 ... of :func:`interpolate_segments`).
 
     Args:
         keys: target poses in visiting order, shape (N, 60).
@@ -174,17 +216,9 @@ def interpolate_sequence(keys: np.ndarray, start: np.ndarray, threshold: float) 
     Returns:
         (poses (M, 60), key_index (M,): index into ``keys`` for target poses, -1 for inserted ones).
     """
-    if threshold <= 0:
-        raise ValueError(f"simulation.interpolation_threshold must be > 0 rad, got {threshold}")
-    out, index = [], []
-    prev = np.asarray(start, np.float32)
-    for i, key in enumerate(keys):
-        change = float(joint_angle_change(prev, key).max())
-        n = int(np.ceil(change / threshold))
-        if n > 1:
-            out.append(slerp_poses(prev, key, np.arange(1, n) / n))
-            index.extend([-1] * (n - 1))
-        out.append(np.asarray(key, np.float32)[None])
-        index.append(i)
-        prev = key
-    return np.concatenate(out), np.asarray(index, dtype=np.int64)
+    keys = np.asarray(keys, np.float32).reshape(-1, POSE_SIZE)
+    prev = np.concatenate([np.asarray(start, np.float32).reshape(1, POSE_SIZE), keys[:-1]])
+    poses, segment = interpolate_segments(prev, keys, threshold)
+    is_key = np.ones(len(segment), dtype=bool)
+    is_key[:-1] = segment[1:] != segment[:-1]  # a segment's last row is its key
+    return poses, np.where(is_key, segment, -1)

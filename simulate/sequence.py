@@ -30,7 +30,7 @@ from simulate.body.base import BodyModel, PosedBody
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.contact import BodyCollider
-from simulate.poses import interpolate_sequence
+from simulate.poses import interpolate_segments, interpolate_sequence
 
 # Entry kinds of a world's schedule.
 TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
@@ -144,14 +144,30 @@ def _visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, t
             np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + first_key, -1))
 
 
-def _reroute(task: SequenceTask, schedule, next_key: int, start_pose: np.ndarray, threshold: float):
+def _reroute(task: SequenceTask, schedule, next_key: int, start_pose: np.ndarray, threshold: float,
+             route: np.ndarray | None = None):
     """``schedule`` re-planned from ``start_pose``: slerp'ed poses to target ``next_key``, then the
     entries that already follow that target (interpolation is sequential, so they are what a full
-    re-plan gives; re-planning a 30-pose task from scratch took ~18 ms, this ~0.5 ms)."""
+    re-plan gives; re-planning a 30-pose task from scratch took ~18 ms, this ~0.5 ms). ``route``:
+    the poses from ``start_pose`` to the target, ending with it, when already known (M, 60)."""
     _, _, kinds, keys = schedule
     j = int(np.nonzero((kinds == KEY) & (keys == next_key))[0][0])
-    head = _visit_entries(task, next_key, start_pose, threshold, stop=next_key + 1)
+    if route is None:
+        head = _visit_entries(task, next_key, start_pose, threshold, stop=next_key + 1)
+    else:
+        n = len(route)
+        head = (np.tile(task.shape, (n, 1)).astype(np.float32), np.asarray(route, np.float32),
+                np.where(np.arange(n) == n - 1, KEY, TRANSITION), np.where(np.arange(n) == n - 1, next_key, -1))
     return tuple(np.concatenate([h.astype(old.dtype), old[j + 1:]]) for h, old in zip(head, schedule))
+
+
+def _routes_from(task: SequenceTask, start_pose: np.ndarray, threshold: float) -> list[np.ndarray]:
+    """For every target of ``task``: the slerp'ed poses from ``start_pose`` to it, ending with it
+    (what ``_reroute`` inserts), all in one batched call."""
+    poses, segment = interpolate_segments(np.broadcast_to(np.asarray(start_pose, np.float32), task.poses.shape),
+                                          task.poses, threshold)
+    bounds = np.searchsorted(segment, np.arange(len(task.poses) + 1))
+    return [poses[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
 
 class _PosedAhead:
@@ -339,13 +355,20 @@ def run_sequences(
         sim.revive(w, state["positions"])
         held[w] = 0
 
+    home_routes: list[tuple[bytes, list[np.ndarray]] | None] = [None] * w_count  # (home pose, routes from it)
+
     def go_home(w: int, next_key: int) -> None:
         """Puts world ``w`` back at its home state, heading for target ``next_key`` from the
-        canonical pose (the caller knows that target exists)."""
+        canonical pose (the caller knows that target exists). The routes from home to every
+        target are planned together at the first trip home (worlds go home thousands of times)."""
         h = home[w]
         put_back(w, h)
         last_good[w] = h
-        schedules[w] = _reroute(tasks[w], schedules[w], next_key, h["pose"], settings.interpolation_threshold)
+        pose_key = np.asarray(h["pose"], np.float32).tobytes()
+        if home_routes[w] is None or home_routes[w][0] != pose_key:
+            home_routes[w] = (pose_key, _routes_from(tasks[w], h["pose"], settings.interpolation_threshold))
+        schedules[w] = _reroute(tasks[w], schedules[w], next_key, h["pose"], settings.interpolation_threshold,
+                                route=home_routes[w][1][next_key])
         ptr[w] = 0
         changed[w] = True
 

@@ -183,18 +183,22 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
 def test_rerouting_a_schedule_equals_planning_it_afresh():
     """_reroute (used when a world goes home or back to its last good state) keeps the entries after
     the next target and re-plans only the way to it: the same entries as a full re-plan."""
-    from simulate.sequence import _reroute, _schedule, _visit_entries
+    from simulate.sequence import _reroute, _routes_from, _schedule, _visit_entries
 
     rng = np.random.default_rng(1)
     task = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
                         poses=rng.normal(0.0, 0.4, (12, 60)).astype(np.float32))
     schedule = _schedule(task, np.zeros(60, np.float32), np.zeros(6, np.float32), SequenceSettings())
     start = rng.normal(0.0, 0.3, 60).astype(np.float32)
+    routes = _routes_from(task, start, 0.1)  # planned together, as going home does
+    assert len(routes) == len(task.poses)
     for next_key in (0, 5, 11):
         rerouted = _reroute(task, schedule, next_key, start, 0.1)
         fresh = _visit_entries(task, next_key, start, 0.1)
         for a, b in zip(rerouted, fresh):
             np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}")
+        for a, b in zip(_reroute(task, schedule, next_key, start, 0.1, route=routes[next_key]), fresh):
+            np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}, route planned with the others")
 
 
 def test_frames_handed_over_together_are_the_frames_handed_over_one_by_one(scene):
