@@ -105,3 +105,22 @@ def test_on_device_is_the_same_model_here_and_poses_where_it_lives(anny_body):
         on_cpu = anny_body.pose_torch(torch.as_tensor(shapes), torch.as_tensor(poses)).vertices
     assert on_gpu.is_cuda
     np.testing.assert_allclose(on_gpu.cpu().numpy(), on_cpu.numpy(), rtol=0, atol=ATOL_POSITION_M)
+
+
+def test_a_batch_that_repeats_shapes_poses_each_body_as_if_alone(anny_body):
+    """pose_torch blends each distinct shape once and shares it among the bodies that repeat it: every
+    body must still get its own shape (wrong inverse indices would hand one body another's)."""
+    import torch
+
+    rng = np.random.default_rng(2)
+    distinct = rng.uniform(0.2, 0.8, (3, anny_body.shape_size)).astype(np.float32)
+    which = np.array([2, 0, 0, 1, 2, 2, 1])
+    poses = (rng.normal(0.0, 0.2, (len(which), 60))).astype(np.float32)
+    with torch.no_grad():
+        batch = anny_body.pose_torch(torch.as_tensor(distinct[which]), torch.as_tensor(poses))
+        for i, k in enumerate(which):
+            alone = anny_body.pose_torch(torch.as_tensor(distinct[k][None]), torch.as_tensor(poses[i][None]))
+            np.testing.assert_allclose(batch.rest_vertices[i].numpy(), alone.rest_vertices[0].numpy(), rtol=0, atol=1e-6)
+            np.testing.assert_allclose(batch.vertices[i].numpy(), alone.vertices[0].numpy(), rtol=0, atol=1e-5)
+    # the shapes differ by centimetres somewhere, so a mix-up could not pass the checks above
+    assert np.abs(batch.rest_vertices[0].numpy() - batch.rest_vertices[1].numpy()).max() > 5e-3

@@ -227,7 +227,14 @@ class BodyModel(abc.ABC):
         batch = max(shape_t.shape[0], pose_t.shape[0])
         if shape_t.shape[0] not in (1, batch) or pose_t.shape[0] not in (1, batch):
             raise ValueError(f"shape batch ({shape_t.shape[0]}) and pose batch ({pose_t.shape[0]}) must match or be 1")
-        rest_vertices, rest_joints = self._rest_torch(shape_t)
+        if shape_t.shape[0] > 1 and not shape_t.requires_grad:
+            # batches repeat shapes (a dataset world poses one shape through many poses): the shape
+            # blend runs once per distinct shape (anny's took 8 of the 12 ms of a batched call)
+            distinct, inverse = torch.unique(shape_t, dim=0, return_inverse=True)
+            rest_vertices, rest_joints = self._rest_torch(distinct)
+            rest_vertices, rest_joints = rest_vertices[inverse], rest_joints[inverse]
+        else:
+            rest_vertices, rest_joints = self._rest_torch(shape_t)
         rest_vertices = rest_vertices.expand(batch, -1, -1)
         rest_joints = rest_joints.expand(batch, -1, -1)
         rot = self.local_rotations_torch(pose_t.expand(batch, -1, -1))
