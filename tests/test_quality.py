@@ -4,8 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+import warp as wp
 
 from simulate.quality import QualityMeter, triangle_areas, unique_edges
+
+DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
 def _grid(n=8, size=0.4, z=0.0):
@@ -55,7 +58,8 @@ def test_helpers():
     assert len(unique_edges(faces)) == 16
 
 
-def test_a_batch_of_frames_measures_each_frame_as_if_it_were_alone():
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_batch_of_frames_measures_each_frame_as_if_it_were_alone(device):
     """measure_batch packs frames one after another, one body and one rest-area row per frame: each
     frame's metrics must be the ones it gets alone (wrong offsets, mesh slots or per-frame sums would
     mix frames), and a non-finite frame must not disturb the others."""
@@ -72,10 +76,10 @@ def test_a_batch_of_frames_measures_each_frame_as_if_it_were_alone():
     bodies = np.stack([sphere.vertices, sphere.vertices + [0.0, 0.0, 5.0], sphere.vertices, sphere.vertices + [0.0, 0.0, 0.3]])
     rest_rows = np.stack([triangle_areas(rest, both_faces), triangle_areas(rest, both_faces),
                           triangle_areas(rest, both_faces), 0.5 * triangle_areas(rest, both_faces)])
-    meter = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices))
+    meter = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices), device=device)
     batch = meter.measure_batch(frames, bodies, rest_areas=rest_rows)
     for i in range(len(frames)):
-        alone = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices)).measure(
+        alone = QualityMeter(both_faces, rest, sphere.faces, len(sphere.vertices), device=device).measure(
             frames[i], bodies[i], rest_areas=rest_rows[i])
         assert batch[i].keys() == alone.keys()
         for k in alone:
