@@ -107,20 +107,32 @@ def test_on_device_is_the_same_model_here_and_poses_where_it_lives(anny_body):
     np.testing.assert_allclose(on_gpu.cpu().numpy(), on_cpu.numpy(), rtol=0, atol=ATOL_POSITION_M)
 
 
-def test_a_batch_that_repeats_shapes_poses_each_body_as_if_alone(anny_body):
-    """pose_torch blends each distinct shape once and shares it among the bodies that repeat it: every
-    body must still get its own shape (wrong inverse indices would hand one body another's)."""
+def test_a_batch_that_repeats_shapes_poses_each_body_as_if_alone(anny_body, monkeypatch):
+    """pose_torch blends each distinct shape once, alone, and keeps it: every body must still get its
+    own shape (wrong inverse indices would hand one body another's), bit for bit the shape's own
+    blend, and a shape seen before is not blended again."""
     import torch
 
     rng = np.random.default_rng(2)
     distinct = rng.uniform(0.2, 0.8, (3, anny_body.shape_size)).astype(np.float32)
     which = np.array([2, 0, 0, 1, 2, 2, 1])
     poses = (rng.normal(0.0, 0.2, (len(which), 60))).astype(np.float32)
+    blends = []
+    blend = anny_body._rest_torch
+
+    def counting(shape):
+        blends.append(shape.shape[0])
+        return blend(shape)
+
+    monkeypatch.setattr(anny_body, "_rest_torch", counting)
     with torch.no_grad():
         batch = anny_body.pose_torch(torch.as_tensor(distinct[which]), torch.as_tensor(poses))
+        assert blends == [1, 1, 1], f"one blend per distinct shape, each alone: {blends}"
         for i, k in enumerate(which):
+            own, _ = blend(torch.as_tensor(distinct[k][None]))
+            assert torch.equal(batch.rest_vertices[i], own[0]), f"body {i} did not get shape {k}"
             alone = anny_body.pose_torch(torch.as_tensor(distinct[k][None]), torch.as_tensor(poses[i][None]))
-            np.testing.assert_allclose(batch.rest_vertices[i].numpy(), alone.rest_vertices[0].numpy(), rtol=0, atol=1e-6)
             np.testing.assert_allclose(batch.vertices[i].numpy(), alone.vertices[0].numpy(), rtol=0, atol=1e-5)
+        assert blends == [1, 1, 1], "kept shapes are not blended again"
     # the shapes differ by centimetres somewhere, so a mix-up could not pass the checks above
     assert np.abs(batch.rest_vertices[0].numpy() - batch.rest_vertices[1].numpy()).max() > 5e-3
