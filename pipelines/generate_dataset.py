@@ -243,6 +243,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         keep = [i for i in measured if reasons[i] is None]
         unposed = unskin(np.stack([frames[i].positions for i in keep]),
                          np.stack([frames[i].skinning_transforms for i in keep])) if keep else None
+        unposed_row = {i: r for r, i in enumerate(keep)}
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
@@ -252,7 +253,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
-                background.submit(writer.write_frame, x, unposed[keep.index(i)] - base, t.poses[frame.key], row,
+                background.submit(writer.write_frame, x, unposed[unposed_row[i]] - base, t.poses[frame.key], row,
                                   frame_index=int(frame.key), pose_id=np.array([t.pose_ids[frame.key]], np.float32))
             else:
                 background.submit(writer.record_dropped, reason, frame_index=int(frame.key), pose=t.poses[frame.key])

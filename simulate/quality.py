@@ -245,6 +245,9 @@ class QualityMeter:
         """Per-vertex signed distance [m] along the nearest body face normal: (n, V, 3) garments
         against (n, Vb, 3) bodies -> (n, V)."""
         points, n = self._garment_points(garment_vertices)
+        return self._signed_distances(points, n, body_vertices)
+
+    def _signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> np.ndarray:
         body = np.asarray(body_vertices, np.float32)
         if body.shape != (n, self._body_vertex_count, 3):
             raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
@@ -261,6 +264,9 @@ class QualityMeter:
     def self_intersection_counts(self, garment_vertices: np.ndarray) -> np.ndarray:
         """(edge, triangle) piercings among non-adjacent garment elements per frame: (n, V, 3) -> (n,)."""
         points, n = self._garment_points(garment_vertices)
+        return self._self_intersection_counts(points, n)
+
+    def _self_intersection_counts(self, points: wp.array, n: int) -> np.ndarray:
         ids = self._garments.load(points, n)
         hits = self._buffer("hits", n, int)
         hits.zero_()
@@ -272,6 +278,9 @@ class QualityMeter:
     def area_ratios(self, garment_vertices: np.ndarray, rest_areas: np.ndarray | None = None) -> np.ndarray:
         """Triangle area ratios against the rest areas (F,) or per frame (n, F): (n, V, 3) -> (n, F)."""
         points, n = self._garment_points(garment_vertices)
+        return self._area_ratios(points, n, rest_areas)
+
+    def _area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> np.ndarray:
         f = len(self.faces)
         rest = np.broadcast_to(np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64), (n, f))
         rest_d = self._upload("rest_areas", rest.reshape(-1), wp.float64)
@@ -342,10 +351,11 @@ class QualityMeter:
         good = np.nonzero(finite)[0]
         if len(good) == 0:
             return out
-        xg = x[good]
-        ratio = self.area_ratios(xg, rest[good])
-        d = self.signed_distances(xg, body[good])
-        hits = self.self_intersection_counts(xg) if self_intersection else np.full(len(good), -1)
+        # the garment points go to the device once for all three metrics
+        points, m = self._garment_points(x[good])
+        ratio = self._area_ratios(points, m, rest[good])
+        d = self._signed_distances(points, m, body[good])
+        hits = self._self_intersection_counts(points, m) if self_intersection else np.full(m, -1)
         distorted = ((ratio < area_bounds[0]) | (ratio > area_bounds[1])).mean(axis=1)
         deep = (d < -collision_depth).mean(axis=1)
         deepest = np.maximum(0.0, -d.min(axis=1).astype(np.float64))
