@@ -147,6 +147,9 @@ def main() -> None:
         "phases": sim.get("phases"),
         # busy world-frames per target (transition + hold + each task's start-up, no idle worlds)
         "world_frames_per_target": round(world_frames_per_target, 1),
+        # of which: moving toward the next body (shape blend, slerp'ed poses, routes home), holding
+        # target poses, settling after the shape blend
+        "world_frames_per_target_split": frame_split(phases, targets),
         "ms_per_world_frame": round(ms_per_world_frame, 3),
         # the full spec's stepping time if its worlds were kept busy (poses_per_task) at this
         # slice's cost per world-frame and frames per target (sparser slices overestimate it)
@@ -171,6 +174,12 @@ def work_rates(phases: dict, targets: int, width: int) -> tuple[float, float]:
     return per_target, ms
 
 
+def frame_split(phases: dict, targets: int) -> dict[str, float]:
+    """Busy world-frames per target by what the worlds were doing (run_sequences' statistics)."""
+    return {k: round(float(phases.get(f"{k}_world_frames", 0)) / max(targets, 1), 2)
+            for k in ("transition", "hold", "settle")}
+
+
 def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_targets: int, wall: float) -> dict:
     """The bench's JSON for a run stopped before the end, from its last heartbeat (``beat``: see
     ``generate(on_heartbeat=...)``); rates are over the simulation so far, start-up excluded."""
@@ -184,7 +193,8 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
-        "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "sim_s", "body_s", "record_s",
+        "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "transition_world_frames",
+                                                         "hold_world_frames", "settle_world_frames", "sim_s", "body_s", "record_s",
                                                          "recover_s", "loop_s", "recoveries", "body_calls", "exploded_non_finite",
                                                          "exploded_speed", "exploded_stretch") if k in beat},
         "world_frames_per_target": round(per_target, 1) if done else None,

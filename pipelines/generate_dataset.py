@@ -106,7 +106,7 @@ def sequence_settings(spec: dict):
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
-                            restart_after_rejects=int(s["restart_after_rejects"]))
+                            restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"])
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:
@@ -427,7 +427,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                     f"({beat['done'] / max(elapsed, 1e-9):.1f}/s), {len(manifest.shards)}/{len(ctx.plan.tasks)} shards")
             if ph.get("frames"):
                 line += (f", {int(ph['frames'])} simulator frames ({int(ph['world_frames'])} world-frames, "
-                         f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target); stepping / bodies / recording / "
+                         f"{ph['world_frames'] / max(beat['done'], 1):.1f} per target: moving / holding / settling "
+                         + " / ".join(f"{ph.get(k + '_world_frames', 0) / max(beat['done'], 1):.1f}"
+                                      for k in ("transition", "hold", "settle"))
+                         + "); stepping / bodies / recording / "
                          f"recoveries / other {_phase_split(ph)} s, {int(ph.get('recoveries', 0))} recoveries "
                          f"({int(ph.get('restarts', 0))} restarts; explosions "
                          f"non-finite / speed / stretch {int(ph.get('exploded_non_finite', 0))} / "

@@ -60,6 +60,9 @@ records and hashes. Schema (every key optional unless marked required)::
                                         the world goes back to its settled canonical drape and heads
                                         for its next target from there (a tangle is not carried along
                                         the rest of the sequence; 0 = never)
+      restart_to: home|last_kept = home where it restarts: its settled canonical drape (home), or the
+                                        garment and body of its last kept frame (last_kept; home
+                                        until it has one): a shorter way to the next target
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
@@ -108,7 +111,7 @@ DEFAULTS: dict[str, Any] = {
         "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
-        "restart_after_rejects": 0,
+        "restart_after_rejects": 0, "restart_to": "home",
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1,
                     "canonical_self_contact": True},
     },
@@ -228,6 +231,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     c.integer(f"{sim}.min_hold_frames", 1)
     c.integer(f"{sim}.restart_after_rejects", 0)
+    c.choice(f"{sim}.restart_to", ("home", "last_kept"))
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)
