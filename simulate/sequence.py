@@ -65,10 +65,6 @@ class SequenceTask:
 class SequenceSettings:
     """Stepping of the sequence (see the module docstring)."""
 
-    def __post_init__(self) -> None:
-        if self.restart_to not in RESTART_TO:
-            raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
-
     sim: SimSettings = field(default_factory=SimSettings)
     solver: str = "xpbd"
     shape_transition_frames: int = 10
@@ -110,6 +106,10 @@ class SequenceSettings:
     entries is topped up in the same batched body-model call (an H200 run of 240 worlds made 555
     calls in 876 frames instead of one per frame). Memory: world_count x lookahead posed bodies
     (~0.34 MB each for anny)."""
+
+    def __post_init__(self) -> None:
+        if self.restart_to not in RESTART_TO:
+            raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
 
 
 @dataclass
@@ -354,7 +354,8 @@ def run_sequences(
 
     ahead = _PosedAhead(pose_bodies, start, w_count, settings.body_lookahead)
     stats = {} if stats is None else stats
-    for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames", "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls"):
+    for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
+              "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls"):
         stats.setdefault(k, 0)
     causes_before = {f"exploded_{k}": stats.get(f"exploded_{k}", 0) for k in sim.explosion_causes}
     last_good: list[dict | None] = [None] * w_count
@@ -377,32 +378,27 @@ def run_sequences(
     last_kept: list[dict | None] = [None] * w_count  # state at the last accepted target frame
     stats.setdefault("restarts_to_last_kept", 0)
 
-    def go_back(w: int, next_key: int) -> None:
-        """Puts world ``w`` back at its last accepted target frame, heading for target ``next_key``
-        from that pose."""
-        state = last_kept[w]
+    restart_to_kept = settings.restart_to == "last_kept"
+
+    def restart_from(w: int, state: dict, next_key: int, route: np.ndarray | None = None) -> None:
+        """Puts world ``w`` back at a saved ``state``, heading for target ``next_key`` from its pose
+        (the caller knows that target exists); ``route``: the slerp'ed poses there, when known."""
         put_back(w, state)
         last_good[w] = state
-        schedules[w] = _reroute(tasks[w], schedules[w], next_key, state["pose"], settings.interpolation_threshold)
+        schedules[w] = _reroute(tasks[w], schedules[w], next_key, state["pose"], settings.interpolation_threshold,
+                                route=route)
         ptr[w] = 0
         changed[w] = True
-
-    restart_to_kept = settings.restart_to == "last_kept"
 
     def go_home(w: int, next_key: int) -> None:
         """Puts world ``w`` back at its home state, heading for target ``next_key`` from the
-        canonical pose (the caller knows that target exists). The routes from home to every
-        target are planned together at the first trip home (worlds go home thousands of times)."""
+        canonical pose. The routes from home to every target are planned together at the first
+        trip home (worlds go home thousands of times)."""
         h = home[w]
-        put_back(w, h)
-        last_good[w] = h
         pose_key = np.asarray(h["pose"], np.float32).tobytes()
         if home_routes[w] is None or home_routes[w][0] != pose_key:
             home_routes[w] = (pose_key, _routes_from(tasks[w], h["pose"], settings.interpolation_threshold))
-        schedules[w] = _reroute(tasks[w], schedules[w], next_key, h["pose"], settings.interpolation_threshold,
-                                route=home_routes[w][1][next_key])
-        ptr[w] = 0
-        changed[w] = True
+        restart_from(w, h, next_key, route=home_routes[w][1][next_key])
 
     def handle_explosion(w: int, st: int) -> int:
         """Hands the failed target pose(s) of exploded world ``w`` to ``on_frame`` and, when it
@@ -534,7 +530,7 @@ def run_sequences(
                         stats["restarts_after_rejects"] += 1
                         if restart_to_kept and last_kept[w] is not None:
                             stats["restarts_to_last_kept"] += 1
-                            go_back(w, next_key)
+                            restart_from(w, last_kept[w], next_key)
                         else:
                             go_home(w, next_key)
                     else:

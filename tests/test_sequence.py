@@ -124,13 +124,34 @@ def test_a_world_that_keeps_exploding_starts_over_from_the_canonical_drape(scene
     assert never["restarts"] == 0 and never["recoveries"] == 2, never
 
 
+def _run_rejecting(scene, keys, reject_keys=(), **sequence_settings):
+    """One world through the poses ``keys`` whose frames with a key in ``reject_keys`` are rejected;
+    returns (frames, stats)."""
+    body, template, start, *_ = scene
+    task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                        shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
+    settings = SequenceSettings(
+        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                        explosion_stretch=50.0),
+        shape_transition_frames=1, interpolation_threshold=0.1, **sequence_settings)
+    frames = []
+
+    def on_frame(frame):
+        frames.append(frame)
+        return frame.key not in reject_keys
+
+    stats = run_sequences(body, template.faces, [task], body_faces=body.part_faces(("torso", "arms")),
+                          settings=settings, device="cpu", on_frame=on_frame)
+    return frames, stats
+
+
 def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_target_from_there(scene, monkeypatch):
     """restart_after_rejects: after a frame the caller rejects (on_frame returns False) the world is
     put back at its settled canonical drape (the state it had when the settle hold ended) and
     reaches its next target from the canonical pose, as a world whose task starts at that target."""
     from simulate.cloth import quasi_static
 
-    body, template, start, canonical, small, _ = scene
+    body, _, _, canonical, small, _ = scene
     bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
     revived = []
     revive = quasi_static.QuasiStaticSimulator.revive
@@ -142,21 +163,8 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     monkeypatch.setattr(quasi_static.QuasiStaticSimulator, "revive", spy)
 
     def run(keys, restart_after, reject_keys=()):
-        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
-                            shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
-        settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
-                            explosion_stretch=50.0),
-            shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=restart_after)
-        frames = []
-
-        def on_frame(frame):
-            frames.append(frame)
-            return frame.key not in reject_keys
-
         revived.clear()
-        stats = run_sequences(body, template.faces, [task], body_faces=body.part_faces(("torso", "arms")),
-                              settings=settings, device="cpu", on_frame=on_frame)
+        frames, stats = _run_rejecting(scene, keys, reject_keys, restart_after_rejects=restart_after)
         return frames, stats, list(revived)
 
     frames, stats, calls = run([bent, small], 1, reject_keys=(0,))
@@ -186,26 +194,12 @@ def test_restart_to_last_kept_goes_back_to_the_last_accepted_frame_and_heads_on_
     never visited the rejected target; the counted transition frames are exactly those routes."""
     from simulate.poses import interpolate_sequence
 
-    body, template, start, canonical, small, _ = scene
+    body, _, _, canonical, small, _ = scene
     bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
     further = canonical + body.pose_from_dict({"spine1": [0.0, 0.25, 0.0]})
 
     def run(keys, restart_to, reject_keys=()):
-        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
-                            shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
-        settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
-                            explosion_stretch=50.0),
-            shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1, restart_to=restart_to)
-        frames = []
-
-        def on_frame(frame):
-            frames.append(frame)
-            return frame.key not in reject_keys
-
-        stats = run_sequences(body, template.faces, [task], body_faces=body.part_faces(("torso", "arms")),
-                              settings=settings, device="cpu", on_frame=on_frame)
-        return frames, stats
+        return _run_rejecting(scene, keys, reject_keys, restart_after_rejects=1, restart_to=restart_to)
 
     def slerps(a, b):  # poses inserted between a and b
         return len(interpolate_sequence(b[None], a, 0.1)[0]) - 1
