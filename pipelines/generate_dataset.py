@@ -101,7 +101,8 @@ def sequence_settings(spec: dict):
                       outlier_fraction=float(s["outlier_fraction"]),
                       damping=float(s["damping"]), explosion_stretch=float(s["explosion_stretch"]),
                       max_frames=int(s["max_relax_frames"]), limit_cycle_window=int(s["limit_cycle_window"]),
-                      self_contact_detect_every=int(s["contact"]["self_contact_detect_every"]))
+                      self_contact_detect_every=int(s["contact"]["self_contact_detect_every"]),
+                      body_contact_detect_every=int(s["contact"]["body_contact_detect_every"]))
     return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),

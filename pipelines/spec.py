@@ -68,6 +68,9 @@ records and hashes. Schema (every key optional unless marked required)::
                                         canonical drape), so long pose lists fill the GPU's worlds
       contact: {thickness [m], friction, self_contact: bool,
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
+                body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
+                                        (0, N, 2N, ... of a frame) and move the planes with the body
+                                        in between (SimSettings.body_contact_detect_every)
                 canonical_self_contact: bool = true} the canonical style drapes (where every
                                         sequence starts and restarts) with self-contact, whatever
                                         self_contact says (without it 7 of the TailorNet spec's
@@ -113,7 +116,7 @@ DEFAULTS: dict[str, Any] = {
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "restart_after_rejects": 0, "restart_to": "home",
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1,
-                    "canonical_self_contact": True},
+                    "body_contact_detect_every": 1, "canonical_self_contact": True},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
@@ -240,6 +243,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
+    c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)
     c.number("filters.max_distorted_fraction", 0.0, 1.0)

@@ -208,13 +208,14 @@ def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str
     """One launch per iteration with a block per world (a barrier between colours), positions in
     shared memory or in global memory, sweeps the colours exactly as one launch per colour does:
     worlds of different sizes and fabrics (the last world's tile reaches past the array), a
-    frozen world, contact with the sphere."""
+    frozen world, contact with the sphere, an attached vertex.  In shared memory with Gauss-Seidel
+    bending the whole substep (every iteration's sweep and particle pass) is one launch."""
     out = {}
     for sweep in ("colour_launches", "world_blocks"):
         builder = ClothBuilder()
         for n, fab in ((9, "cotton"), (12, "silk"), (7, "denim")):
             verts, faces = grid_cloth(n, n, 0.6, 0.6, plane="xz", origin=(-0.3, 0.28, -0.3))
-            builder.add_garment(verts, faces, fabric=fab)
+            builder.add_garment(verts, faces, fabric=fab, attached=[n + 1] if n == 12 else None)
         model = builder.finalize(device)
         sv, sf = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(sv, sf, device=device, world_count=3)
@@ -223,6 +224,8 @@ def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str
             solver_options={"gs_shared": shared})
         if sweep == "world_blocks":
             assert (sim.solver._shared_kernel is not None) == shared
+            assert sim.solver._fused == (shared and bending_mode == "gauss_seidel")
+            assert sim.solver.attachments
         sim.status[2] = WorldStatus.CONVERGED  # frozen: its block returns at once
         for _ in range(12):
             sim.step_frame()

@@ -105,6 +105,31 @@ def detect_body_contacts(
 
 
 @wp.kernel
+def advance_body_contacts(
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    contact_active: wp.array(dtype=wp.int32),
+    contact_normal: wp.array(dtype=wp.vec3),
+    contact_motion: wp.array(dtype=wp.vec3),
+    # In/out:
+    contact_offset: wp.array(dtype=float),
+    contact_depth: wp.array(dtype=float),
+):
+    """Carry the planes found on an earlier substep of this frame to the next substep.
+
+    Within a frame the body moves linearly, so each contact point moves by the same
+    ``contact_motion`` every substep: the plane shifts by its normal component, and the friction
+    budget restarts from zero.  Used between the substeps that query the body
+    (``SolverBase.contact_detect_every``)."""
+    i = wp.tid()
+    if world_active[particle_world[i]] == 0:
+        return
+    contact_depth[i] = 0.0
+    if contact_active[i] != 0:
+        contact_offset[i] = contact_offset[i] + wp.dot(contact_normal[i], contact_motion[i])
+
+
+@wp.kernel
 def query_signed_distance(
     mesh: wp.uint64,
     world_offset: wp.array(dtype=wp.vec3),

@@ -14,15 +14,22 @@ __all__ = ["SolverBase"]
 class SolverBase:
     """Allocates per-particle contact buffers once; subclasses implement ``step``."""
 
-    def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0) -> None:
+    def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0,
+                 contact_detect_every: int = 1) -> None:
         """
         Args:
             model: the cloth model.
             body_contact: contact with ``control.collider``; default ``model.features.body_contact``.
             extra_damping: velocity damping rate added to every fabric's damping [1/s].
+            contact_detect_every: query the body for contact planes on substeps ``0, N, 2N, ...`` of
+                each frame and carry the planes along with the body's motion in between (1 = every
+                substep).  The collider then needs to be at a substep's pose only on those substeps.
         """
         if not (np.isfinite(extra_damping) and extra_damping >= 0.0):
             raise ValueError(f"extra_damping must be a finite number >= 0 [1/s] (got {extra_damping!r})")
+        if int(contact_detect_every) != contact_detect_every or contact_detect_every < 1:
+            raise ValueError(f"contact_detect_every must be an integer >= 1 (got {contact_detect_every!r})")
+        self.contact_detect_every = int(contact_detect_every)
         self.model = model
         self.device = model.device
         feats = model.features
@@ -55,14 +62,23 @@ class SolverBase:
         if state_in is state_out:
             raise ValueError("state_in and state_out must be different ClothState buffers (double buffering)")
 
-    def detect_contacts(self, x: wp.array, control: ClothControl) -> None:
-        """Find one contact plane per particle at positions ``x`` (skipped without body contact)."""
+    def detect_contacts(self, x: wp.array, control: ClothControl, substep: int = 0) -> None:
+        """Find one contact plane per particle at positions ``x`` (skipped without body contact).
+
+        On a ``substep`` of the frame that is not a multiple of ``contact_detect_every`` the planes
+        of the last query move with the body instead (no query)."""
         if not self.body_contact:
             return
         from simulate.contact import kernels as contact_kernels
 
         col = control.collider
         m = self.model
+        if substep % self.contact_detect_every != 0:
+            wp.launch(contact_kernels.advance_body_contacts, dim=m.particle_count,
+                      inputs=[m.particle_world, control.world_active, self.contact_active, self.contact_normal,
+                              self.contact_motion],
+                      outputs=[self.contact_offset, self.contact_depth], device=self.device)
+            return
         wp.launch(contact_kernels.detect_body_contacts, dim=m.particle_count,
                   inputs=[col.mesh.id, col.mesh_indices, col.pose_start, col.pose_end, col.world_offset,
                           float(col.motion_scale), float(col.thickness), float(col.margin),

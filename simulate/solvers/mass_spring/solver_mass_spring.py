@@ -33,15 +33,17 @@ class SolverMassSpring(SolverBase):
     """Explicit mass-spring cloth solver (second opinion for XPBD)."""
 
     def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0,
-                 safety: float = 0.5) -> None:
+                 safety: float = 0.5, contact_detect_every: int = 1) -> None:
         """
         Args:
             model: cloth model.
             body_contact: contact with ``control.collider`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             safety: fraction of the stable step used by ``substeps_for`` (0, 1].
+            contact_detect_every: body queries on every N-th substep (see ``SolverBase``).
         """
-        super().__init__(model, body_contact=body_contact, extra_damping=extra_damping)
+        super().__init__(model, body_contact=body_contact, extra_damping=extra_damping,
+                         contact_detect_every=contact_detect_every)
         if model.features.self_contact:
             raise ValueError("Features.self_contact is implemented by SolverXPBD only; use solver='xpbd' or "
                              "build the model with Features(self_contact=False)")
@@ -110,7 +112,7 @@ class SolverMassSpring(SolverBase):
                           x, state_in.particle_qd],
                   outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
         if self.body_contact:
-            self.detect_contacts(state_out.particle_q, control)
+            self.detect_contacts(state_out.particle_q, control, substep)
             wp.launch(kernels.resolve_body_contacts, dim=m.particle_count,
                       inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_friction, float(dt),
                               self.contact_active, self.contact_normal, self.contact_offset, self.contact_motion],

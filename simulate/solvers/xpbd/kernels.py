@@ -152,17 +152,36 @@ def solve_elements_gs_world_blocks(
         block_sync()
 
 
-def make_elements_gs_shared_kernel(tile_particles: int):
-    """The world-block Gauss-Seidel iteration with the world's positions in shared memory.
+def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = False, body_contact: bool = False,
+                                   attachments: bool = False):
+    """World-block Gauss-Seidel iterations with the world's positions in shared memory.
 
-    Same sweep and result as ``solve_elements_gs_world_blocks``; the block loads its world's
-    positions (at most ``tile_particles``, 12 bytes each) into a shared-memory tile, sweeps every
-    colour there (each element's corners written with ``tile_scatter_masked``, which ends with a
-    block barrier) and stores them back.  Global positions written by one lane and read by another
-    go through L2 on every colour; in shared memory they stay on the SM.  One kernel per tile size
-    (a compile-time shape)."""
+    The block loads its world's positions (at most ``tile_particles``, 12 bytes each) into a
+    shared-memory tile, sweeps every colour there and stores them back.  Within a colour no two
+    elements share a particle, so each lane writes its elements' corners straight into the tile
+    and the block meets at one barrier per colour.  Global positions written by one lane and read
+    by another would go through L2 on every colour; in shared memory they stay on the SM.
 
-    @wp.kernel
+    Without ``particle_pass`` a launch is one iteration of the element sweep, the same sweep and
+    result as ``solve_elements_gs_world_blocks`` (``iterations`` must be 1); the solver's particle
+    kernel runs after it.  With ``particle_pass`` a launch is a whole substep's ``iterations``:
+    after each sweep every lane applies the particle constraints of
+    ``common_kernels.make_particle_constraints_kernel`` (attachments, then the body contact plane)
+    to its own particles in the tile, with the same arithmetic, so the result is bit-identical to
+    alternating the two launches while the tile is loaded and stored once per substep.  One
+    kernel per (tile size, flags): the tile's shape is a compile-time constant."""
+
+    def tile_write(t, i, v):
+        """``t[i] = v`` without the block barrier Warp's tile item assignment ends with: lanes write
+        their own elements' corners and meet at ``block_sync`` once per colour (a barrier inside a
+        lane's own element loop would deadlock the block)."""
+        ...
+
+    # The tile's shape is this factory's argument; string annotations could not see it.
+    tile_write.__annotations__ = {"t": wp.tile[wp.vec3, tile_particles], "i": int, "v": wp.vec3}
+    tile_write = wp.func_native("t.data(wp::tile_coord(i)) = v;")(tile_write)
+
+    @wp.kernel(module="unique", enable_backward=False)
     def solve_elements_gs_shared(
         # Model:
         world_particle_start: wp.array(dtype=wp.int32),
@@ -179,6 +198,17 @@ def make_elements_gs_shared_kernel(tile_particles: int):
         world_active: wp.array(dtype=wp.int32),
         inv_dt2: float,
         relaxation: float,
+        iterations: int,
+        # Particle pass (read only with particle_pass):
+        particle_attachment: wp.array(dtype=wp.int32),
+        attachment_target: wp.array(dtype=wp.vec3),
+        world_attachment_stiffness: wp.array(dtype=float),
+        world_attachment_enabled: wp.array(dtype=wp.int32),
+        attachment_lambda: wp.array(dtype=wp.vec3),
+        contact_active: wp.array(dtype=wp.int32),
+        contact_normal: wp.array(dtype=wp.vec3),
+        contact_offset: wp.array(dtype=float),
+        contact_depth: wp.array(dtype=float),
         # In/out:
         tri_lambda: wp.array(dtype=wp.vec3),
         bend_lambda: wp.array(dtype=float),
@@ -189,21 +219,11 @@ def make_elements_gs_shared_kernel(tile_particles: int):
             return
         stride = wp.block_dim()
         base = world_particle_start[w]
+        count_w = world_particle_count[w]
         xs = wp.tile_load(x, shape=tile_particles, offset=base, storage="shared")
-        zero = wp.vec3(0.0)
-        for c in range(tri_world_offsets.shape[0]):
-            first = tri_world_offsets[c, w]
-            count = tri_world_offsets[c, w + 1] - first
-            for r in range((count + stride - 1) // stride):  # the same round count on every lane
-                t = first + r * stride + lane
-                has = r * stride + lane < count
-                j0 = int(0)
-                j1 = int(0)
-                j2 = int(0)
-                n0 = zero
-                n1 = zero
-                n2 = zero
-                if has:
+        for _it in range(iterations):
+            for c in range(tri_world_offsets.shape[0]):
+                for t in range(tri_world_offsets[c, w] + lane, tri_world_offsets[c, w + 1], stride):
                     i0 = tri_indices[t, 0]
                     i1 = tri_indices[t, 1]
                     i2 = tri_indices[t, 2]
@@ -216,28 +236,13 @@ def make_elements_gs_shared_kernel(tile_particles: int):
                     d0, d1, d2, tlam = triangle_constraint_deltas(p0, p1, p2, inv_mass[i0], inv_mass[i1],
                                                                   inv_mass[i2], tri_dm_inv[t], tri_compliance[t],
                                                                   tri_lambda[t], inv_dt2, relaxation)
-                    n0 = p0 + d0
-                    n1 = p1 + d1
-                    n2 = p2 + d2
+                    tile_write(xs, j0, p0 + d0)
+                    tile_write(xs, j1, p1 + d1)
+                    tile_write(xs, j2, p2 + d2)
                     tri_lambda[t] = tlam
-                wp.tile_scatter_masked(xs, j0, n0, has)
-                wp.tile_scatter_masked(xs, j1, n1, has)
-                wp.tile_scatter_masked(xs, j2, n2, has)
-        for c in range(bend_world_offsets.shape[0]):
-            first = bend_world_offsets[c, w]
-            count = bend_world_offsets[c, w + 1] - first
-            for r in range((count + stride - 1) // stride):
-                b = first + r * stride + lane
-                has = r * stride + lane < count
-                k1 = int(0)
-                k2 = int(0)
-                k3 = int(0)
-                k4 = int(0)
-                m1 = zero
-                m2 = zero
-                m3 = zero
-                m4 = zero
-                if has:
+                block_sync()
+            for c in range(bend_world_offsets.shape[0]):
+                for b in range(bend_world_offsets[c, w] + lane, bend_world_offsets[c, w + 1], stride):
                     i1 = bend_indices[b, 0]
                     i2 = bend_indices[b, 1]
                     i3 = bend_indices[b, 2]
@@ -253,17 +258,39 @@ def make_elements_gs_shared_kernel(tile_particles: int):
                     e1, e2, e3, e4, blam = bending_deltas(q1, q2, q3, q4, inv_mass[i1], inv_mass[i2],
                                                          inv_mass[i3], inv_mass[i4], bend_rest_angle[b],
                                                          bend_compliance[b], bend_lambda[b], inv_dt2, relaxation)
-                    m1 = q1 + e1
-                    m2 = q2 + e2
-                    m3 = q3 + e3
-                    m4 = q4 + e4
+                    tile_write(xs, k1, q1 + e1)
+                    tile_write(xs, k2, q2 + e2)
+                    tile_write(xs, k3, q3 + e3)
+                    tile_write(xs, k4, q4 + e4)
                     bend_lambda[b] = blam
-                wp.tile_scatter_masked(xs, k1, m1, has)
-                wp.tile_scatter_masked(xs, k2, m2, has)
-                wp.tile_scatter_masked(xs, k3, m3, has)
-                wp.tile_scatter_masked(xs, k4, m4, has)
-        for i in range(lane, world_particle_count[w], stride):
-            x[base + i] = xs[i]
+                block_sync()
+            if wp.static(particle_pass):
+                for j in range(lane, count_w, stride):
+                    i = base + j
+                    im = inv_mass[i]
+                    if im != 0.0:
+                        p = xs[j]
+                        if wp.static(attachments):
+                            a = particle_attachment[i]
+                            if a >= 0:
+                                if world_attachment_enabled[w] != 0:
+                                    alpha = inv_dt2 / world_attachment_stiffness[w]
+                                    lam = attachment_lambda[a]
+                                    cv = p - attachment_target[a]
+                                    dl = (-cv - lam * alpha) / (im + alpha)
+                                    p = p + dl * im
+                                    attachment_lambda[a] = lam + dl
+                        if wp.static(body_contact):
+                            if contact_active[i] != 0:
+                                n = contact_normal[i]
+                                gap = wp.dot(n, p) - contact_offset[i]
+                                if gap < 0.0:
+                                    p = p - n * gap
+                                    contact_depth[i] = contact_depth[i] - gap
+                        tile_write(xs, j, p)
+                block_sync()
+        for j in range(lane, count_w, stride):
+            x[base + j] = xs[j]
 
     return solve_elements_gs_shared
 

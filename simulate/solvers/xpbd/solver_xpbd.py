@@ -79,6 +79,7 @@ class SolverXPBD(SolverBase):
         gs_sweep: str = "world_blocks",
         gs_block_dim: int = 256,
         gs_shared: bool | None = None,
+        contact_detect_every: int = 1,
     ) -> None:
         """
         Args:
@@ -103,8 +104,11 @@ class SolverXPBD(SolverBase):
                 memory (False); None = on CUDA when the tile fits ``SHARED_TILE_MAX_BYTES``.  On
                 CPU both give the same result at the same speed, and each tile size is a kernel
                 of its own to compile.
+            contact_detect_every: body queries on every N-th substep of a frame, the planes moved
+                with the body in between (see ``SolverBase``).
         """
-        super().__init__(model, body_contact=body_contact, extra_damping=extra_damping)
+        super().__init__(model, body_contact=body_contact, extra_damping=extra_damping,
+                         contact_detect_every=contact_detect_every)
         if int(iterations) != iterations or iterations < 1:
             raise ValueError(f"iterations must be an integer >= 1 (got {iterations!r})")
         if mode not in MODES:
@@ -147,6 +151,7 @@ class SolverXPBD(SolverBase):
         self._bend_ranges = [(a, b - a) for a, b in
                              zip(model.bend_colour_offsets[:-1], model.bend_colour_offsets[1:]) if b > a]
         self._world_blocks = mode == "gauss_seidel" and gs_sweep == "world_blocks"
+        self._fused = False
         if self._world_blocks:
             w = model.world_count
             self._tri_world_offsets = wp.array(
@@ -159,17 +164,35 @@ class SolverXPBD(SolverBase):
             tile = 64 * -(-int(np.max(model.world_particle_count)) // 64)
             if gs_shared is None:
                 gs_shared = dev.is_cuda and 12 * tile <= SHARED_TILE_MAX_BYTES
-            self._shared_kernel = _shared_kernel(tile) if gs_shared else None
+            # The whole substep in one launch when the particle pass has nothing but attachments and
+            # body contact (no Jacobi gather, no self-contact between the sweeps).
+            self._fused = bool(gs_shared and not self._gather and self.self_contact is None)
+            self._shared_kernel = (_shared_kernel(tile, self._fused, self.body_contact and self._fused,
+                                                  self.attachments and self._fused) if gs_shared else None)
             if gs_shared:  # where each world's tile starts and how much of it is the world's
                 self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
                 self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
+
+    def _block_args(self, control: ClothControl, inv_dt2: float) -> list:
+        """The world-block kernels' model arguments, up to the relaxation."""
+        m = self.model
+        return [self._tri_world_offsets, m.tri_indices, m.tri_dm_inv, m.tri_compliance, self._bend_world_offsets,
+                m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.particle_inv_mass, control.world_active,
+                inv_dt2, self.gs_relaxation]
+
+    def _particle_pass_args(self, control: ClothControl) -> list:
+        """The shared-memory kernel's particle-pass arguments (attachments, then body contact)."""
+        return [self.model.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
+                control.world_attachment_enabled, self.attachment_lambda, self.contact_active, self.contact_normal,
+                self.contact_offset, self.contact_depth]
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
         """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation).
 
-        ``substep`` is the substep's index in its frame: self-contact candidates are found again
-        on substeps that are multiples of its ``detect_every`` (always with the default 0)."""
+        ``substep`` is the substep's index in its frame: body contact planes and self-contact
+        candidates are found again on substeps that are multiples of ``contact_detect_every`` and
+        of the self-contact's ``detect_every`` (always with the default 0)."""
         self._check(state_in, state_out, control, dt)
         m = self.model
         dev = self.device
@@ -178,7 +201,7 @@ class SolverXPBD(SolverBase):
         wp.launch(ck.integrate_particles, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, self.gravity, float(dt),
                           state_in.particle_q, state_in.particle_qd], outputs=[x], device=dev)
-        self.detect_contacts(x, control)
+        self.detect_contacts(x, control, substep)
         if self.self_contact is not None and substep % self.self_contact.detect_every == 0:
             self.self_contact.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt)
         self.tri_lambda.zero_()
@@ -187,6 +210,15 @@ class SolverXPBD(SolverBase):
             self.attachment_lambda.zero_()
         jacobi = self.mode == "jacobi"
         bend_jacobi = self.bending_mode == "jacobi" and m.bend_count > 0
+        if self._fused:
+            # Every iteration's sweep and particle pass in one launch, positions in shared memory.
+            wp.launch_tiled(self._shared_kernel, dim=[m.world_count],
+                            inputs=[self._world_start, self._world_count, *self._block_args(control, inv_dt2),
+                                    self.iterations, *self._particle_pass_args(control), self.tri_lambda,
+                                    self.bend_lambda, x],
+                            block_dim=self.gs_block_dim, device=dev)
+            self.finalize_substep(state_in, state_out, control, dt)
+            return
         particle_inputs = None
         for _ in range(self.iterations):
             if jacobi:
@@ -197,16 +229,15 @@ class SolverXPBD(SolverBase):
                           outputs=[self.slot_delta], device=dev)
             elif self._world_blocks:
                 # Triangles, then bending unless it is swept by Jacobi (its offsets are empty then).
-                args = [self._tri_world_offsets, m.tri_indices, m.tri_dm_inv, m.tri_compliance,
-                        self._bend_world_offsets, m.bend_indices, m.bend_rest_angle, m.bend_compliance,
-                        m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation, self.tri_lambda,
-                        self.bend_lambda, x]
-                if self._shared_kernel is not None:
+                args = self._block_args(control, inv_dt2)
+                if self._shared_kernel is not None:  # one iteration; the particle kernel follows
                     wp.launch_tiled(self._shared_kernel, dim=[m.world_count],
-                                    inputs=[self._world_start, self._world_count, *args],
+                                    inputs=[self._world_start, self._world_count, *args, 1,
+                                            *self._particle_pass_args(control), self.tri_lambda, self.bend_lambda, x],
                                     block_dim=self.gs_block_dim, device=dev)
                 else:
-                    wp.launch_tiled(kernels.solve_elements_gs_world_blocks, dim=[m.world_count], inputs=args,
+                    wp.launch_tiled(kernels.solve_elements_gs_world_blocks, dim=[m.world_count],
+                                    inputs=[*args, self.tri_lambda, self.bend_lambda, x],
                                     block_dim=self.gs_block_dim, device=dev)
             else:
                 for offset, count in self._tri_ranges:
