@@ -66,7 +66,7 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     from learn.data import DrapeDataset
     from learn.tailornet.evaluate import PosingContext, evaluate_models, predict_vertices
     from learn.tailornet.plots import plot_error_vs_runtime, render_prediction
-    from learn.tailornet.train import check_fingerprint, dataset_fingerprint, frame_arrays_from_dataset
+    from learn.tailornet.train import dataset_fingerprint, frame_arrays_from_dataset
     from simulate.body import load_body_model
 
     run_dir, data = Path(run_dir), Path(data)

@@ -172,7 +172,6 @@ def run_style_space(args: argparse.Namespace) -> int:
     gammas = np.concatenate([np.zeros((1, space.size)),
                              rng.normal(size=(max(args.prototype_styles - 1, 0), space.size)) * np.sqrt(space.variances)])
     pairs, pair_shapes, pair_gamma = [], [], []
-    neutral_v = body.pose(body.shape_default, body.canonical_pose).vertices[0]
     for shape in shapes:
         shape_v = body.pose(shape, body.canonical_pose).vertices[0]
         for g in gammas:

@@ -107,7 +107,8 @@ def sequence_settings(spec: dict):
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
-                            restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"])
+                            restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"],
+                            body_lookahead=int(s["body_lookahead"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:
@@ -232,6 +233,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 # the status filters first: a frame they drop needs no geometric metrics
                 reasons[i] = status_drop_reason(bool(np.isfinite(frame.positions).all()), frame.status, filters)
         measured = [i for i, r in reasons.items() if r is None]
+        t_meter = time.perf_counter()
         if measured:
             batch = meter.measure_batch(
                 np.stack([frames[i].positions for i in measured]), np.stack([frames[i].body_vertices for i in measured]),
@@ -242,9 +244,11 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 metrics[i] = m
                 reasons[i] = drop_reason(m, frames[i].status, filters)
         keep = [i for i in measured if reasons[i] is None]
+        t_unskin = time.perf_counter()
         unposed = unskin(np.stack([frames[i].positions for i in keep]),
                          np.stack([frames[i].skinning_transforms for i in keep])) if keep else None
         unposed_row = {i: r for r, i in enumerate(keep)}
+        t_submit = time.perf_counter()
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
@@ -262,6 +266,10 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             if remaining[frame.task] == 0:
                 background.submit_collect(close_shard, writer)
         list_finished(background.completed())
+        phases = ctx.phases
+        for key, seconds in (("record_meter_s", t_unskin - t_meter), ("record_unskin_s", t_submit - t_unskin),
+                             ("record_submit_s", time.perf_counter() - t_submit)):
+            phases[key] = phases.get(key, 0.0) + seconds
         return [reasons.get(i) is None for i in range(len(frames))]
 
     def close_shard(writer):
@@ -317,6 +325,9 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     if phases and seconds > 0:
         lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
                      f"{int(phases.get('frames', 0))} simulator frames")
+        lines.append("  set-up: orders and routes / cloth model / bodies and simulator  "
+                     + " / ".join(f"{float(phases.get(k, 0.0)):.1f}" for k in
+                                  ("setup_schedules_s", "setup_model_s", "setup_simulator_s")) + " s")
         lines.append(f"  {'  explosions recovered':<26}{int(phases.get('recoveries', 0)):>6}")
         lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
         lines.append(f"  {'  restarts after rejects':<26}{int(phases.get('restarts_after_rejects', 0)):>6}  "

@@ -66,6 +66,8 @@ records and hashes. Schema (every key optional unless marked required)::
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
+      body_lookahead: int = 8          target and route poses posed ahead per world in batched
+                                        body-model calls (SequenceSettings.body_lookahead)
       contact: {thickness [m], friction, self_contact: bool,
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
@@ -114,7 +116,7 @@ DEFAULTS: dict[str, Any] = {
         "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
-        "restart_after_rejects": 0, "restart_to": "home",
+        "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1,
                     "body_contact_detect_every": 1, "canonical_self_contact": True},
     },
@@ -235,6 +237,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.min_hold_frames", 1)
     c.integer(f"{sim}.restart_after_rejects", 0)
     c.choice(f"{sim}.restart_to", ("home", "last_kept"))
+    c.integer(f"{sim}.body_lookahead", 1)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)

@@ -21,6 +21,7 @@ reproducible frames keep each task's batch the same (generate-dataset does).
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -207,6 +208,8 @@ class _PosedAhead:
         self.count = np.zeros(world_count, dtype=np.int64)
         self.owner: list[object] = [None] * world_count  # the schedule the slots were posed for
         self.calls = 0
+        self.bodies = 0  # bodies posed
+        self.model_s = 0.0  # wall seconds in the body model
 
     def get(self, idx: np.ndarray, schedules: list, ptr: np.ndarray, active: np.ndarray) -> dict[str, torch.Tensor]:
         """Posed bodies of entry ``ptr[w]`` of ``schedules[w]`` for each world in ``idx``:
@@ -231,8 +234,11 @@ class _PosedAhead:
         spans = [(w, int(ptr[w]), min(int(ptr[w]) + self.depth, len(schedules[w][0]))) for w in worlds]
         shapes = np.concatenate([schedules[w][0][a:b] for w, a, b in spans])
         poses = np.concatenate([schedules[w][1][a:b] for w, a, b in spans])
+        t0 = time.perf_counter()
         posed = self.pose_fn(shapes, poses)
+        self.model_s += time.perf_counter() - t0
         self.calls += 1
+        self.bodies += len(shapes)
         w_idx = np.concatenate([np.full(b - a, w) for w, a, b in spans])
         slot = np.concatenate([np.arange(b - a) for _, a, b in spans])
         device = self.buffers["vertices"].device
@@ -282,18 +288,23 @@ def run_sequences(
             transition_world_frames (shape blends, slerp'ed poses, routes home), hold_world_frames
             (holding target poses) and settle_world_frames (settling after the shape blend), wall seconds in the simulation /
             body / record / explosion-recovery phases and in the whole loop (loop_s; the rest is
-            bookkeeping and ``on_progress``), explosion recoveries, batched body-model calls
-            (body_calls), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
+            bookkeeping and ``on_progress``), before the loop (setup_s: visiting orders and routes
+            setup_schedules_s, the batched cloth model setup_model_s, start bodies, collider and
+            simulator setup_simulator_s), explosion recoveries, batched body-model calls
+            (body_calls) with the bodies they posed (bodies_posed) and their wall time (body_model_s),
+            parts of the record phase (record_copy_s: positions off the device, record_frames_s: the
+            frames' bodies off the device, record_deliver_s: ``on_frames``/``on_frame``; the rest
+            routes worlds on or home), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
             itself when given).
     """
-    import time
-
     if (on_frame is None) == (on_frames is None):
         raise ValueError("run_sequences needs exactly one of on_frame and on_frames")
+    t_setup = time.perf_counter()
     w_count = len(tasks)
     neutral = np.asarray(body.shape_default, np.float32)
     canonical = np.asarray(body.canonical_pose, np.float32)
     schedules = [_schedule(t, canonical, neutral, settings) for t in tasks]
+    t_schedules = time.perf_counter()
     torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
 
     poser = body.on_device(torch_device)  # posing on the CPU would cost ~4 ms per body in a GPU run
@@ -309,6 +320,7 @@ def run_sequences(
         builder.add_garment(t.rest_vertices, faces, fabric=t.fabric)
     features = Features(self_contact=settings.self_contact, friction=settings.friction != 0.0)
     model = builder.finalize(device, features=features)
+    t_model = time.perf_counter()
     start = pose_bodies(np.tile(neutral, (w_count, 1)), np.tile(canonical, (w_count, 1)))
     collider = BodyCollider(start.vertices.cpu().numpy(), body_faces, device=device, thickness=settings.contact_thickness)
     sim_settings = SimSettings(**{**settings.sim.__dict__})
@@ -355,8 +367,15 @@ def run_sequences(
     ahead = _PosedAhead(pose_bodies, start, w_count, settings.body_lookahead)
     stats = {} if stats is None else stats
     for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
-              "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls"):
+              "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
+              "record_copy_s", "record_frames_s", "record_deliver_s", "setup_s",
+              "setup_schedules_s", "setup_model_s", "setup_simulator_s"):
         stats.setdefault(k, 0)
+    t_ready = time.perf_counter()
+    stats["setup_schedules_s"] += t_schedules - t_setup
+    stats["setup_model_s"] += t_model - t_schedules
+    stats["setup_simulator_s"] += t_ready - t_model
+    stats["setup_s"] += t_ready - t_setup
     causes_before = {f"exploded_{k}": stats.get(f"exploded_{k}", 0) for k in sim.explosion_causes}
     last_good: list[dict | None] = [None] * w_count
     streak = np.zeros(w_count, dtype=np.int64)  # explosions in a row per world
@@ -453,9 +472,11 @@ def run_sequences(
         t0 = time.perf_counter()
         if changed.any():
             idx = np.nonzero(changed)[0]
-            calls = ahead.calls
+            calls, bodies, model_s = ahead.calls, ahead.bodies, ahead.model_s
             posed = ahead.get(idx, schedules, ptr, ~done)
             stats["body_calls"] += ahead.calls - calls
+            stats["bodies_posed"] += ahead.bodies - bodies
+            stats["body_model_s"] += ahead.model_s - model_s
             idx_t = torch.as_tensor(idx, device=torch_device)
             for name in ("vertices", "skin", "rest"):
                 body_now[name][idx_t] = posed[name]
@@ -497,6 +518,7 @@ def run_sequences(
             # the worlds that finished together leave the device together and are handed over in one call
             r0 = time.perf_counter()
             positions = sim.worlds_positions(ready)
+            stats["record_copy_s"] += time.perf_counter() - r0
             keyed = []
             for j, w in enumerate(ready):
                 _, poses_w, kinds_w, _ = schedules[w]
@@ -515,9 +537,14 @@ def run_sequences(
                     advance(w)
             if keyed:
                 worlds = [ready[j] for j in keyed]
+                f0 = time.perf_counter()
                 frames = frames_of(worlds, [schedules[w][3][ptr[w]] for w in worlds], positions[keyed],
                                    [int(status[w]) for w in worlds])
-                for w, accepted in zip(worlds, deliver(frames)):
+                f1 = time.perf_counter()
+                verdicts = deliver(frames)
+                stats["record_frames_s"] += f1 - f0
+                stats["record_deliver_s"] += time.perf_counter() - f1
+                for w, accepted in zip(worlds, verdicts):
                     finished_keys += 1
                     streak[w] = 0
                     rejects[w] = 0 if accepted else rejects[w] + 1
