@@ -386,11 +386,15 @@ def run_sequences(
     rejects = np.zeros(w_count, dtype=np.int64)  # rejected target frames in a row per world
 
     def put_back(w: int, state: dict) -> None:
-        """Puts world ``w``'s body and garment back at a saved state (held from frame 0 again)."""
+        """Puts world ``w``'s body and garment back at a saved state (held from frame 0 again).
+        The state's body and garment go to the device once, at its first trip back, and stay
+        there: a home state serves thousands of trips, each then only device-side copies."""
         for name in ("vertices", "skin", "rest"):
             body_now[name][w] = state[name]
-        collider.place_world(w, state["vertices"])
-        sim.revive(w, state["positions"])
+        if "placed" not in state:
+            state["placed"] = (collider.compact_world(state["vertices"]), sim.device_positions(state["positions"]))
+        collider.place_world(w, state["placed"][0])
+        sim.revive(w, state["placed"][1])
         held[w] = 0
 
     home_routes: list[tuple[bytes, list[np.ndarray]] | None] = [None] * w_count  # (home pose, routes from it)

@@ -112,3 +112,9 @@ def test_place_world_moves_only_that_world():
         col.place_world(3, new)
     with pytest.raises(ValueError, match="shape"):
         col.place_world(0, new[:4])
+    # a body put back many times goes to the device once: the same placement from its array
+    placed = col.compact_world(new + 1.0)
+    col.place_world(2, placed)
+    np.testing.assert_array_equal(col.pose_end.numpy().reshape(3, -1, 3)[2], (new + 1.0)[col.vertex_map])
+    with pytest.raises(ValueError, match=rf"vec3f \({col.vertex_count},\) on cpu \(got vec3f \(4,\)"):
+        col.place_world(0, placed[:4])

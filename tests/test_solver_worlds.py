@@ -328,6 +328,20 @@ def test_setting_one_worlds_positions_leaves_the_others_alone(device: str) -> No
         sim.set_positions(new[:-1], world=1)
     with pytest.raises(ValueError, match="finite"):
         sim.set_positions(np.full_like(new, np.nan), world=1)
+    # positions sent to the device once (a home state) set the world the same way
+    for _ in range(2):
+        sim.step_frame()
+    q2, qd2 = sim.positions(), sim.velocities()
+    sim.set_positions(sim.device_positions(new), world=1)
+    q3, qd3 = sim.positions(), sim.velocities()
+    np.testing.assert_array_equal(q3[sl], new)
+    assert not qd3[sl].any() and np.abs(qd2[sl]).max() > 0.0
+    np.testing.assert_array_equal(q3[others], q2[others])
+    np.testing.assert_array_equal(qd3[others], qd2[others])
+    with pytest.raises(ValueError, match=r"vec3f \(81,\) on .* \(got vec3f \(80,\)"):
+        sim.set_positions(sim.device_positions(new[:-1]), world=1)
+    with pytest.raises(ValueError, match="finite"):
+        sim.device_positions(np.full_like(new, np.nan))
 
 
 @pytest.mark.parametrize("device", DEVICES)

@@ -403,8 +403,9 @@ class QuasiStaticSimulator:
             qd[mask[self.model.particle_world_np]] = 0.0
             self.state_0.particle_qd.assign(qd)
 
-    def revive(self, world: int, positions: np.ndarray) -> None:
-        """Restart one world (exploded or not) from ``positions`` [m], (V_w, 3), at rest.
+    def revive(self, world: int, positions: np.ndarray | wp.array) -> None:
+        """Restart one world (exploded or not) from ``positions`` [m], (V_w, 3) or a
+        ``device_positions`` array, at rest.
 
         Used to recover a world that exploded: put back its last good state and go on.
         """
@@ -441,21 +442,37 @@ class QuasiStaticSimulator:
             wp.copy(gathered, self.state_0.particle_q, dest_offset=i * v, src_offset=sl.start, count=v)
         return gathered.numpy().reshape(len(slices), v, 3)
 
-    def set_positions(self, positions: np.ndarray, *, world: int | None = None) -> None:
-        """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3)); zeroes their velocities.
+    def device_positions(self, positions: np.ndarray) -> wp.array:
+        """Positions [m], (N, 3), checked (finite) and copied once to the model's device as a
+        (N,) vec3 array that ``set_positions``/``revive`` take without a host round trip."""
+        pos = np.asarray(positions, dtype=np.float32)
+        if pos.ndim != 2 or pos.shape[1] != 3:
+            raise ValueError(f"positions must have shape (N, 3) (got {pos.shape})")
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("positions must be finite (got NaN or inf)")
+        return wp.array(pos, dtype=wp.vec3, device=self.model.device)
+
+    def set_positions(self, positions: np.ndarray | wp.array, *, world: int | None = None) -> None:
+        """Set positions [m] (all worlds (particle_count, 3), or one world's (V_w, 3), or a
+        ``device_positions`` array of that length); zeroes their velocities.
 
         The positions are copied into place on the device: for one world, the other worlds'
         particles do not leave it (a 256-world t-shirt batch holds 1.8 M particles)."""
         sl = slice(0, self.model.particle_count) if world is None else self.model.world_slice(world)
         start, n = sl.start, sl.stop - sl.start
-        pos = np.asarray(positions, dtype=np.float32)
-        if pos.shape != (n, 3):
-            raise ValueError(f"positions must have shape {(n, 3)} (got {pos.shape})")
-        if not np.all(np.isfinite(pos)):
-            raise ValueError("positions must be finite (got NaN or inf)")
         dev = self.model.device
-        wp.copy(self.state_0.particle_q, wp.array(pos, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
-        wp.copy(self.state_0.particle_qd, wp.zeros(n, dtype=wp.vec3, device=dev), dest_offset=start, count=n)
+        if isinstance(positions, wp.array):
+            if positions.dtype != wp.vec3 or positions.shape != (n,) or positions.device != dev:
+                raise ValueError(f"a positions array must be device_positions': {wp.vec3.__name__} ({n},) on {dev} "
+                                 f"(got {positions.dtype.__name__} {positions.shape} on {positions.device})")
+            src = positions
+        else:
+            pos = np.asarray(positions, dtype=np.float32)
+            if pos.shape != (n, 3):
+                raise ValueError(f"positions must have shape {(n, 3)} (got {pos.shape})")
+            src = self.device_positions(pos)
+        wp.copy(self.state_0.particle_q, src, dest_offset=start, count=n)
+        self.state_0.particle_qd[start:start + n].zero_()
         if self._window:  # the old history is not this state's: forget it
             self._position_history[:, start:start + n].fill_(_FAR)
 

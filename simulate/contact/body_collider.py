@@ -177,19 +177,32 @@ class BodyCollider:
         self.pose_end.assign(flat)
         self.update(1.0)
 
-    def place_world(self, world: int, vertices: np.ndarray) -> None:
-        """Place one world's body at ``vertices`` [m] now, shape (Vb, 3) (source or culled count).
+    def compact_world(self, vertices) -> wp.array:
+        """One world's body vertices [m], (Vb, 3) (source or culled count; numpy or torch), checked
+        and culled once into a (Vk,) vec3 array on the collider's device: ``place_world`` then
+        copies it without a host round trip (a body put back thousands of times)."""
+        verts = np.asarray(_host(vertices), dtype=np.float32)
+        if verts.ndim != 2:
+            raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
+                             f"(got {verts.shape})")
+        return wp.array(self._compact(verts, worlds=1), dtype=wp.vec3, device=self.device)
+
+    def place_world(self, world: int, vertices) -> None:
+        """Place one world's body at ``vertices`` [m] now, shape (Vb, 3) (source or culled count),
+        or a ``compact_world`` array.
 
         The other worlds keep their start and target poses; call ``update`` (the driver does at
         the next substep) to move the mesh.
         """
         if not 0 <= int(world) < self.world_count:
             raise ValueError(f"world must be in [0, {self.world_count}) (got {world!r})")
-        verts = np.asarray(_host(vertices), dtype=np.float32)
-        if verts.ndim != 2:
-            raise ValueError(f"body vertices must have shape ({self.source_vertex_count} or {self.vertex_count}, 3) "
-                             f"(got {verts.shape})")
-        src = wp.array(self._compact(verts, worlds=1), dtype=wp.vec3, device=self.device)
+        if isinstance(vertices, wp.array):
+            if vertices.dtype != wp.vec3 or vertices.shape != (self.vertex_count,) or vertices.device != self.device:
+                raise ValueError(f"a placed body array must be compact_world's: {wp.vec3.__name__} ({self.vertex_count},) on "
+                                 f"{self.device} (got {vertices.dtype.__name__} {vertices.shape} on {vertices.device})")
+            src = vertices
+        else:
+            src = self.compact_world(vertices)
         offset = int(world) * self.vertex_count
         for dst in (self.pose_start, self.pose_end):
             wp.copy(dst, src, dest_offset=offset, src_offset=0, count=self.vertex_count)
