@@ -166,6 +166,40 @@ def integrate_particles(
     x_out[i] = p + (v[i] + gravity * dt) * dt
 
 
+@wp.func
+def project_attachment(p: wp.vec3, im: float, i: int, w: int, inv_dt2: float,
+                       particle_attachment: wp.array(dtype=wp.int32), attachment_target: wp.array(dtype=wp.vec3),
+                       world_attachment_stiffness: wp.array(dtype=float),
+                       world_attachment_enabled: wp.array(dtype=wp.int32), attachment_lambda: wp.array(dtype=wp.vec3)):
+    """XPBD step of particle ``i``'s soft attachment (if it has one and its world enables them);
+    returns the new position and updates the multiplier."""
+    a = particle_attachment[i]
+    if a >= 0:
+        if world_attachment_enabled[w] != 0:
+            alpha = inv_dt2 / world_attachment_stiffness[w]
+            lam = attachment_lambda[a]
+            c = p - attachment_target[a]
+            dl = (-c - lam * alpha) / (im + alpha)
+            attachment_lambda[a] = lam + dl
+            return p + dl * im
+    return p
+
+
+@wp.func
+def project_body_contact(p: wp.vec3, i: int, contact_active: wp.array(dtype=wp.int32),
+                         contact_normal: wp.array(dtype=wp.vec3), contact_offset: wp.array(dtype=float),
+                         contact_depth: wp.array(dtype=float)):
+    """Particle ``i`` pushed out to its contact plane (if it has one and is behind it); the push
+    adds to its friction budget ``contact_depth``.  Returns the new position."""
+    if contact_active[i] != 0:
+        n = contact_normal[i]
+        gap = wp.dot(n, p) - contact_offset[i]
+        if gap < 0.0:
+            contact_depth[i] = contact_depth[i] - gap
+            return p - n * gap
+    return p
+
+
 def make_particle_constraints_kernel(jacobi: bool, body_contact: bool, attachments: bool, self_contact: bool):
     """Per-particle XPBD pass: Jacobi gather (optional), self-contact, attachments, body contact."""
     key = (jacobi, body_contact, attachments, self_contact)
@@ -215,22 +249,10 @@ def make_particle_constraints_kernel(jacobi: bool, body_contact: bool, attachmen
         if wp.static(self_contact):
             p = p + self_delta[i]
         if wp.static(attachments):
-            a = particle_attachment[i]
-            if a >= 0:
-                if world_attachment_enabled[w] != 0:
-                    alpha = inv_dt2 / world_attachment_stiffness[w]
-                    lam = attachment_lambda[a]
-                    c = p - attachment_target[a]
-                    dl = (-c - lam * alpha) / (im + alpha)
-                    p = p + dl * im
-                    attachment_lambda[a] = lam + dl
+            p = project_attachment(p, im, i, w, inv_dt2, particle_attachment, attachment_target,
+                                   world_attachment_stiffness, world_attachment_enabled, attachment_lambda)
         if wp.static(body_contact):
-            if contact_active[i] != 0:
-                n = contact_normal[i]
-                gap = wp.dot(n, p) - contact_offset[i]
-                if gap < 0.0:
-                    p = p - n * gap
-                    contact_depth[i] = contact_depth[i] - gap
+            p = project_body_contact(p, i, contact_active, contact_normal, contact_offset, contact_depth)
         x[i] = p
 
     _PARTICLE_KERNELS[key] = solve_particle_constraints

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from simulate.solvers.common_kernels import bending_angle_grad, triangle_constraint_deltas
+from simulate.solvers.common_kernels import (bending_angle_grad, project_attachment, project_body_contact,
+                                             triangle_constraint_deltas)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -166,8 +167,8 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
     result as ``solve_elements_gs_world_blocks`` (``iterations`` must be 1); the solver's particle
     kernel runs after it.  With ``particle_pass`` a launch is a whole substep's ``iterations``:
     after each sweep every lane applies the particle constraints of
-    ``common_kernels.make_particle_constraints_kernel`` (attachments, then the body contact plane)
-    to its own particles in the tile, with the same arithmetic, so the result is bit-identical to
+    ``common_kernels.make_particle_constraints_kernel`` (``project_attachment``, then
+    ``project_body_contact``) to its own particles in the tile, so the result is bit-identical to
     alternating the two launches while the tile is loaded and stored once per substep.  One
     kernel per (tile size, flags): the tile's shape is a compile-time constant."""
 
@@ -271,22 +272,12 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
                     if im != 0.0:
                         p = xs[j]
                         if wp.static(attachments):
-                            a = particle_attachment[i]
-                            if a >= 0:
-                                if world_attachment_enabled[w] != 0:
-                                    alpha = inv_dt2 / world_attachment_stiffness[w]
-                                    lam = attachment_lambda[a]
-                                    cv = p - attachment_target[a]
-                                    dl = (-cv - lam * alpha) / (im + alpha)
-                                    p = p + dl * im
-                                    attachment_lambda[a] = lam + dl
+                            p = project_attachment(p, im, i, w, inv_dt2, particle_attachment, attachment_target,
+                                                   world_attachment_stiffness, world_attachment_enabled,
+                                                   attachment_lambda)
                         if wp.static(body_contact):
-                            if contact_active[i] != 0:
-                                n = contact_normal[i]
-                                gap = wp.dot(n, p) - contact_offset[i]
-                                if gap < 0.0:
-                                    p = p - n * gap
-                                    contact_depth[i] = contact_depth[i] - gap
+                            p = project_body_contact(p, i, contact_active, contact_normal, contact_offset,
+                                                     contact_depth)
                         tile_write(xs, j, p)
                 block_sync()
         for j in range(lane, count_w, stride):
