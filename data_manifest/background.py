@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from typing import Any, Callable
 
 #: Calls queued at most before ``submit`` waits (bounds the frames held in memory: a 7.7k-vertex
@@ -35,6 +36,9 @@ class BackgroundWriter:
         self._results: queue.SimpleQueue = queue.SimpleQueue()
         self._error: BaseException | None = None
         self._closed = False
+        self.busy_s = 0.0
+        """Wall seconds the thread spent running calls (the shard work taken off the caller's loop;
+        with the GIL held by h5py, partly taken from it too)."""
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
         self._thread.start()
 
@@ -46,11 +50,14 @@ class BackgroundWriter:
             if self._error is not None:
                 continue  # after a failure nothing more is written; the caller gets the error
             fn, args, kwargs, collect = item
+            t0 = time.perf_counter()
             try:
                 result = fn(*args, **kwargs)
             except BaseException as error:  # handed to the caller's thread
                 self._error = error
                 continue
+            finally:
+                self.busy_s += time.perf_counter() - t0
             if collect:
                 self._results.put(result)
 

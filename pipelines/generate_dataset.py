@@ -294,6 +294,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases)
         list_finished(background.close())
+        ctx.phases["writer_busy_s"] = ctx.phases.get("writer_busy_s", 0.0) + background.busy_s
     except BaseException:
         background.close(raise_error=False)
         for w in writers:

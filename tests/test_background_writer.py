@@ -46,3 +46,13 @@ def test_a_failed_call_stops_later_calls_and_is_raised_in_the_callers_thread():
     quiet = BackgroundWriter()
     quiet.submit(fail)
     assert quiet.close(raise_error=False) == []
+
+
+def test_busy_seconds_count_the_time_spent_in_calls():
+    import time
+
+    writer = BackgroundWriter()
+    for _ in range(3):
+        writer.submit(time.sleep, 0.02)
+    writer.close()
+    assert 0.06 <= writer.busy_s < 5.0, writer.busy_s

@@ -249,7 +249,7 @@ def test_summary_table_reports_drops_and_where_the_time_went(reference):
 
     manifest = Manifest.load(reference)
     phases = manifest.audit["simulation"]["phases"]
-    assert phases["frames"] > 0 and phases["sim_s"] > 0, phases
+    assert phases["frames"] > 0 and phases["sim_s"] > 0 and phases["writer_busy_s"] > 0, phases
     table = _summary_table(manifest, 10.0, 20)
     kept = int(manifest.totals["frames_kept"])
     assert f"frames kept{kept:>6}".replace(" ", "") in table.replace(" ", ""), table
