@@ -183,7 +183,6 @@ def cape_scene(resolution: int = 100, *, width: float = 0.5, length: float = 0.9
     scene = shawl_scene(2, body=body, parts=parts)
     body_v, body_f = scene["body_vertices"], scene["body_faces"]
     used = body_v[np.unique(body_f)]
-    lo, hi = used.min(axis=0), used.max(axis=0)
     centre_x = float(used[np.argmax(used[:, 1]), 0])  # the top of the head marks the mid-plane
     # Shoulder height: the highest body point 10-18 cm to the side of the mid-plane (x), i.e.
     # beside the neck and inside the arms.
