@@ -237,9 +237,8 @@ class QuasiStaticSimulator:
         With ``cpu_graphs`` = (substep 0->1, substep 1->0, metrics) the solver launches are
         replayed from CPU graphs and only the body update runs eagerly.
         """
-        every = self.solver.contact_detect_every
         for sub in range(self.substeps):
-            if self.collider is not None and sub % every == 0:  # only the substeps that query the body
+            if self.collider is not None and self.solver.queries_body(sub):  # the body is needed only there
                 self.collider.update((sub + 1) / self.substeps)
             if cpu_graphs is None:
                 self.solver.step(self.state_0, self.state_1, self.control, self.dt, substep=sub)
@@ -251,7 +250,7 @@ class QuasiStaticSimulator:
             self.state_1.assign(self.state_0)
             self.state_0, self.state_1 = self.state_1, self.state_0
         if self.collider is not None:
-            if (self.substeps - 1) % every != 0:  # the body ends the frame at its target pose
+            if not self.solver.queries_body(self.substeps - 1):  # the body ends the frame at its target pose
                 self.collider.update(1.0)
             self.collider.finish_frame()
         if cpu_graphs is None:

@@ -62,6 +62,11 @@ class SolverBase:
         if state_in is state_out:
             raise ValueError("state_in and state_out must be different ClothState buffers (double buffering)")
 
+    def queries_body(self, substep: int) -> bool:
+        """Whether ``substep`` of a frame queries the body for contact planes (the others move the
+        last query's planes with the body); the driver moves and refits the body only for these."""
+        return substep % self.contact_detect_every == 0
+
     def detect_contacts(self, x: wp.array, control: ClothControl, substep: int = 0) -> None:
         """Find one contact plane per particle at positions ``x`` (skipped without body contact).
 
@@ -73,7 +78,7 @@ class SolverBase:
 
         col = control.collider
         m = self.model
-        if substep % self.contact_detect_every != 0:
+        if not self.queries_body(substep):
             wp.launch(contact_kernels.advance_body_contacts, dim=m.particle_count,
                       inputs=[m.particle_world, control.world_active, self.contact_active, self.contact_normal,
                               self.contact_motion],
