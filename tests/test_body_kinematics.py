@@ -75,3 +75,20 @@ def test_lbs_is_differentiable_in_torch():
     out = kin.lbs(torch.ones(1, 5, 3, dtype=torch.float64), torch.full((5, 6), 1 / 6, dtype=torch.float64), skin)
     out.sum().backward()
     assert aa.grad is not None and torch.isfinite(aa.grad).all() and aa.grad.abs().sum() > 0
+
+
+def test_forward_kinematics_takes_device_index_tensors():
+    """Parents and levels given as tensors (what body models cache per device) give the same
+    transforms as numpy indices, and a wrong level order changes them (the levels are used)."""
+    rng = np.random.default_rng(5)
+    parents, rest_joints = _random_chain(rng, joint_count=8)
+    rot = kin.axis_angle_to_matrix(torch.as_tensor(rng.normal(0, 0.7, (2, 8, 3))))
+    world, skin = kin.forward_kinematics(rot, rest_joints, parents)
+    levels = kin.kinematic_levels(parents)
+    assert len(levels) >= 2, "the random chain should have several levels"
+    as_t = [torch.as_tensor(i) for i in levels]
+    world_t, skin_t = kin.forward_kinematics(rot, rest_joints, torch.as_tensor(parents), levels=as_t)
+    np.testing.assert_array_equal(world_t.numpy(), world.numpy())
+    np.testing.assert_array_equal(skin_t.numpy(), skin.numpy())
+    world_r, _ = kin.forward_kinematics(rot, rest_joints, torch.as_tensor(parents), levels=as_t[::-1])
+    assert not torch.allclose(world_r, world), "children composed before their parents must differ"

@@ -204,7 +204,7 @@ class BodyModel(abc.ABC):
         pose_t = self.check_pose(pose)
         batch = pose_t.shape[0]
         rot = torch.eye(3, dtype=pose_t.dtype, device=pose_t.device).repeat(batch, self.joint_count, 1, 1)
-        rot[:, torch.as_tensor(self.pose_joint_indices, device=pose_t.device)] = kin.axis_angle_to_matrix(pose_t)
+        rot[:, self._indices_on(pose_t.device)["pose_joints"]] = kin.axis_angle_to_matrix(pose_t)
         return rot
 
     def on_device(self, device: str | torch.device) -> "BodyModel":
@@ -269,7 +269,8 @@ class BodyModel(abc.ABC):
             if trans.shape[-1] != 3:
                 raise ValueError(f"translation must have 3 values [m] per body, got shape {tuple(trans.shape)}")
             trans = trans.expand(batch, 3)
-        world, skin = kin.forward_kinematics(rot, rest_joints, self.joint_parents, translation=trans, levels=self._levels)
+        ix = self._indices_on(rot.device)
+        world, skin = kin.forward_kinematics(rot, rest_joints, ix["parents"], translation=trans, levels=ix["levels"])
         correctives = self._pose_correctives(rot)
         shaped = rest_vertices if correctives is None else rest_vertices + correctives
         if self._weights_on is None or self._weights_on.device != shaped.device:
@@ -288,8 +289,9 @@ class BodyModel(abc.ABC):
             rot = self.local_rotations_torch(pose)
             _, rest_joints = self._rest_torch(shape_t)
             trans = None if translation is None else kin.as_torch(translation, device=rot.device).reshape(-1, 3).expand(rot.shape[0], 3)
-            world, _ = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), self.joint_parents,
-                                              translation=trans, levels=self._levels)
+            ix = self._indices_on(rot.device)
+            world, _ = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), ix["parents"],
+                                              translation=trans, levels=ix["levels"])
         return world[..., :3, 3].cpu().numpy()
 
     # ------------------------------------------------------------ numpy API
@@ -311,6 +313,21 @@ class BodyModel(abc.ABC):
         if getattr(self, "_levels_cache", None) is None:
             self._levels_cache = kin.kinematic_levels(self.joint_parents)
         return self._levels_cache
+
+    def _indices_on(self, device: torch.device) -> dict:
+        """The skeleton's index arrays as int64 tensors on ``device``, made once per device:
+        {"parents": (J,), "levels": kinematic levels, "pose_joints": (20,)}. Copying them from
+        numpy at every call synchronised host and GPU once per array (18 times per posing call
+        for anny)."""
+        cache = self.__dict__.setdefault("_indices_cache", {})
+        key = str(device)
+        if key not in cache:
+            def on(a):
+                return torch.as_tensor(np.asarray(a, np.int64), device=device)
+
+            cache[key] = {"parents": on(self.joint_parents), "levels": [on(i) for i in self._levels],
+                          "pose_joints": on(self.pose_joint_indices)}
+        return cache[key]
 
     def part_vertex_mask(self, parts) -> np.ndarray:
         """Boolean (V,) mask of the vertices in the named parts (see :data:`PARTS`)."""
