@@ -237,8 +237,14 @@ def test_rerouting_a_schedule_equals_planning_it_afresh():
                         poses=rng.normal(0.0, 0.4, (12, 60)).astype(np.float32))
     schedule = _schedule(task, np.zeros(60, np.float32), np.zeros(6, np.float32), SequenceSettings())
     start = rng.normal(0.0, 0.3, 60).astype(np.float32)
-    routes = _routes_from(task, start, 0.1)  # planned together, as going home does
+    other = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
+                         poses=rng.normal(0.0, 0.6, (7, 60)).astype(np.float32))
+    # planned together, as going home does: every target of every world with a home in one call
+    routes = _routes_from([other, task], [np.zeros(60, np.float32), start], 0.1)[1]
     assert len(routes) == len(task.poses)
+    alone = _routes_from([task], [start], 0.1)[0]
+    for a, b in zip(routes, alone):  # a task's routes do not depend on the others planned with them
+        np.testing.assert_array_equal(a, b)
     for next_key in (0, 5, 11):
         rerouted = _reroute(task, schedule, next_key, start, 0.1)
         fresh = _visit_entries(task, next_key, start, 0.1)
