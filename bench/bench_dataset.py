@@ -44,7 +44,21 @@ def main() -> None:
     parser.add_argument("--out", default="/tmp/bench_dataset")
     parser.add_argument("--keep", action="store_true", help="keep the output directory")
     parser.add_argument("--heartbeat", type=float, default=20.0, help="seconds between progress lines on stderr")
+    parser.add_argument("--stub-frame-writes", action="store_true",
+                        help="diagnostic: kept frames' vertex arrays are checked but not written to HDF5 (shards hold "
+                             "zeros there); what the shard writes cost the simulation loop")
+    parser.add_argument("--switch-interval", type=float, default=None,
+                        help="diagnostic: sys.setswitchinterval [s] for the run (Python's default 0.005)")
+    parser.add_argument("--sample-stacks", default=None, metavar="JSON",
+                        help="diagnostic: sample the main thread's Python stack every 2 ms and write where the wall "
+                             "time went (inclusive and leaf counts per function) to this file")
     args = parser.parse_args()
+    if args.sample_stacks:
+        StackSampler(args.sample_stacks).start()
+    if args.stub_frame_writes:
+        stub_frame_writes()
+    if args.switch_interval is not None:
+        sys.setswitchinterval(args.switch_interval)
 
     from pipelines.generate_dataset import generate
     from pipelines.spec import load_spec
@@ -136,6 +150,7 @@ def main() -> None:
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
         "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim, "filter_overrides": args.filter,
+        "stub_frame_writes": args.stub_frame_writes, "switch_interval": sys.getswitchinterval(),
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
         "target_frames_per_s": round(fps, 2), "keep_rate": round(keep_rate, 3),
@@ -161,6 +176,80 @@ def main() -> None:
     if not args.keep:
         shutil.rmtree(out, ignore_errors=True)
 
+
+
+class StackSampler:
+    """Diagnostic wall-clock profiler: a daemon thread samples the main thread's Python stack every
+    ``interval_s`` and, at exit, writes how many samples each function was on the stack
+    (inclusive) and on top of it (leaf) to ``path`` as JSON. Unlike cProfile it charges waits
+    inside C calls (device syncs, copies, the GIL) to the Python function that made them."""
+
+    def __init__(self, path: str, interval_s: float = 0.002) -> None:
+        import collections
+        import threading
+
+        self.path, self.interval_s = path, interval_s
+        self.inclusive: collections.Counter = collections.Counter()
+        self.leaf: collections.Counter = collections.Counter()
+        self.samples = 0
+        self._main = threading.main_thread().ident
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="stack-sampler", daemon=True)
+
+    def start(self) -> None:
+        import atexit
+
+        sys.setswitchinterval(min(sys.getswitchinterval(), 0.0005))  # the sampler gets the GIL promptly
+        atexit.register(self.write)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop:
+            time.sleep(self.interval_s)
+            frame = sys._current_frames().get(self._main)
+            names = []
+            while frame is not None:
+                code = frame.f_code
+                names.append(f"{Path(code.co_filename).name}:{code.co_name}:{code.co_firstlineno}")
+                frame = frame.f_back
+            if names:
+                self.samples += 1
+                self.leaf[names[0]] += 1
+                for name in set(names):
+                    self.inclusive[name] += 1
+
+    def write(self) -> None:
+        self._stop = True
+        self._thread.join()
+        result = {"interval_s": self.interval_s, "samples": self.samples,
+                  "inclusive": self.inclusive.most_common(120), "leaf": self.leaf.most_common(80)}
+        Path(self.path).write_text(json.dumps(result, indent=1))
+
+
+def stub_frame_writes() -> None:
+    """Diagnostic: ``ShardWriter.write_frame`` runs its checks and conversions but its per-frame
+    arrays go nowhere (the shards keep zeros in those rows; never use them)."""
+    from data_manifest.shard import ShardWriter
+
+    class Sink:
+        def __setitem__(self, key, value) -> None:
+            pass
+
+        def resize(self, *args, **kwargs) -> None:
+            pass
+
+    write = ShardWriter.write_frame
+
+    def write_frame(self, *args, **kwargs):
+        real = self._frame_datasets
+        self._frame_datasets = {name: Sink() for name in real}
+        try:
+            return write(self, *args, **kwargs)
+        finally:
+            created = {name: d for name, d in self._frame_datasets.items() if not isinstance(d, Sink)}
+            self._frame_datasets = {**real, **created}
+
+    ShardWriter.write_frame = write_frame
 
 
 #: Frames of TailorNet's released t-shirt dataset (seed 000: "55800 frames"), the benchmark's goal,
@@ -202,7 +291,8 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
     return {
         "bench": "dataset", "complete": False, "spec": args.spec, "device": spec["simulation"]["device"],
         "worlds": spec["simulation"]["worlds"], "resolution": spec["garment"]["resolution"],
-        "sim_overrides": args.sim, "filter_overrides": args.filter, "wall_s": round(wall, 2),
+        "sim_overrides": args.sim, "filter_overrides": args.filter,
+        "stub_frame_writes": args.stub_frame_writes, "switch_interval": sys.getswitchinterval(), "wall_s": round(wall, 2),
         "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
