@@ -204,18 +204,23 @@ def test_cpu_graph_replay_matches_eager(mode: str, substeps: int) -> None:
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("bending_mode", ["gauss_seidel", "jacobi"])
 @pytest.mark.parametrize("shared", [True, False])
-def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str, shared: bool) -> None:
+@pytest.mark.parametrize("one_topology", [False, True])
+def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str, shared: bool, one_topology: bool) -> None:
     """One launch per iteration with a block per world (a barrier between colours), positions in
     shared memory or in global memory, sweeps the colours exactly as one launch per colour does:
-    worlds of different sizes and fabrics (the last world's tile reaches past the array), a
-    frozen world, contact with the sphere, an attached vertex.  In shared memory with Gauss-Seidel
-    bending the whole substep (every iteration's sweep and particle pass) is one launch."""
+    worlds of different sizes and fabrics (the last world's tile reaches past the array), or of
+    one topology with different rest shapes and fabrics (their shared-memory sweep reads one
+    shared table of world-local corners), a frozen world, contact with the sphere, an attached
+    vertex.  In shared memory with Gauss-Seidel bending the whole substep (every iteration's
+    sweep and particle pass) is one launch."""
     out = {}
+    grids = ((12, 0.6, "cotton"), (12, 0.5, "silk"), (12, 0.7, "denim")) if one_topology else (
+        (9, 0.6, "cotton"), (12, 0.6, "silk"), (7, 0.6, "denim"))
     for sweep in ("colour_launches", "world_blocks"):
         builder = ClothBuilder()
-        for n, fab in ((9, "cotton"), (12, "silk"), (7, "denim")):
-            verts, faces = grid_cloth(n, n, 0.6, 0.6, plane="xz", origin=(-0.3, 0.28, -0.3))
-            builder.add_garment(verts, faces, fabric=fab, attached=[n + 1] if n == 12 else None)
+        for k, (n, size, fab) in enumerate(grids):
+            verts, faces = grid_cloth(n, n, size, 0.6, plane="xz", origin=(-0.3, 0.28, -0.3))
+            builder.add_garment(verts, faces, fabric=fab, attached=[n + 1] if k == 1 else None)
         model = builder.finalize(device)
         sv, sf = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(sv, sf, device=device, world_count=3)
@@ -226,15 +231,42 @@ def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str
             assert (sim.solver._shared_kernel is not None) == shared
             assert sim.solver._fused == (shared and bending_mode == "gauss_seidel")
             assert sim.solver.attachments
+            if shared:
+                assert sim.solver.shared_topology == one_topology
         sim.status[2] = WorldStatus.CONVERGED  # frozen: its block returns at once
         for _ in range(12):
             sim.step_frame()
         out[sweep] = sim.positions()
     rest = np.asarray(model.particle_q_rest_np)
-    assert np.abs(out["world_blocks"] - rest)[: 81 + 144].max() > 0.1, "the cloth did not fall"
-    assert np.array_equal(out["world_blocks"][81 + 144:], rest[81 + 144:]), "the frozen world moved"
+    frozen = int(model.world_particle_start[2])
+    assert np.abs(out["world_blocks"] - rest)[:frozen].max() > 0.1, "the cloth did not fall"
+    assert np.array_equal(out["world_blocks"][frozen:], rest[frozen:]), "the frozen world moved"
     assert np.array_equal(out["world_blocks"], out["colour_launches"]), (
         f"sweeps differ by {np.abs(out['world_blocks'] - out['colour_launches']).max():.3g} m")
+
+
+def test_local_topology_is_shared_only_when_every_world_has_the_same_corners() -> None:
+    from simulate.solvers.xpbd.solver_xpbd import local_topology, world_colour_offsets
+
+    # two worlds of 4 particles; colour 0: two triangles per world, colour 1: one per world
+    tri = np.array([[0, 1, 2], [1, 2, 3], [4, 5, 6], [5, 6, 7], [0, 2, 3], [4, 6, 7]])
+    world = np.array([0, 0, 1, 1, 0, 1])
+    offsets = world_colour_offsets([0, 4, 6], world, 2)
+    shift, local, shared = local_topology(offsets, tri, world, np.array([0, 4]))
+    assert shared and local.tolist() == [[0, 1, 2], [1, 2, 3], [0, 2, 3]]
+    for t in range(len(tri)):  # every element finds its own corners
+        c = 0 if t < 4 else 1
+        assert (local[t - shift[c, world[t]]] + 4 * world[t]).tolist() == tri[t].tolist()
+    other = tri.copy()
+    other[3] = [5, 7, 6]  # same counts, another corner order in world 1
+    shift, local, shared = local_topology(offsets, other, world, np.array([0, 4]))
+    assert not shared and not shift.any() and (local == other - 4 * world[:, None]).all()
+    fewer = world_colour_offsets([0, 3, 5], np.array([0, 0, 1, 0, 1]), 2)  # colour 0: 2 and 1 elements
+    assert not local_topology(fewer, tri[[0, 1, 2, 4, 5]], np.array([0, 0, 1, 0, 1]), np.array([0, 4]))[2]
+    # no elements (a strip without bending, particles without triangles): an empty shared table
+    shift, local, shared = local_topology(world_colour_offsets([0], np.zeros(0), 1), np.zeros((0, 4), np.int32),
+                                          np.zeros(0, np.int32), np.array([0]))
+    assert shared and local.shape == (0, 4) and shift.shape == (1, 1)
 
 
 def test_world_colour_offsets_locate_each_worlds_elements() -> None:

@@ -47,6 +47,45 @@ def world_colour_offsets(colour_offsets: list[int], element_world: np.ndarray, w
     return np.asarray(rows, dtype=np.int32)
 
 
+def local_topology(world_offsets: np.ndarray, indices: np.ndarray, element_world: np.ndarray,
+                   world_start: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Element corners as indices local to their world, one table for all worlds when they can share it.
+
+    Args:
+        world_offsets: ``world_colour_offsets`` of the elements, int (C, W + 1).
+        indices: element corners, global particle indices, (E, K).
+        element_world: world of each element, (E,).
+        world_start: first particle of each world, (W,).
+    Returns:
+        (shift (C, W) int32, local (R, K) int32, shared): element ``t`` of colour ``c`` in world ``w``
+        has the world-local corners ``local[t - shift[c, w]]``. ``shared``: every world has the same
+        local corners in the same order within each colour (one garment topology, coloured alike),
+        and ``local`` holds them once (R = E / W); otherwise ``local`` has a row per element and
+        ``shift`` is 0.
+    """
+    world_offsets = np.asarray(world_offsets, np.int64)
+    colours, worlds = world_offsets.shape[0], world_offsets.shape[1] - 1
+    indices = np.asarray(indices, np.int64)
+    if indices.ndim != 2 or len(indices) != len(element_world):
+        raise ValueError(f"indices must have shape ({len(element_world)}, K), one row per element (got {indices.shape})")
+    local = indices - np.asarray(world_start, np.int64)[np.asarray(element_world, np.int64)][:, None]
+    counts = np.diff(world_offsets, axis=1)
+    shared = worlds > 0 and bool((counts == counts[:, :1]).all())
+    rows = []
+    for c in range(colours if shared else 0):
+        n = int(counts[c, 0])
+        block = local[world_offsets[c, 0]:world_offsets[c, worlds]].reshape(worlds, n, indices.shape[1])
+        if not (block == block[:1]).all():
+            shared = False
+            break
+        rows.append(block[0])
+    if not shared:
+        return np.zeros((colours, max(worlds, 1)), np.int32), local.astype(np.int32), False
+    starts = np.concatenate([[0], np.cumsum(counts[:, 0])[:-1]])
+    shift = world_offsets[:, :worlds] - starts[:, None]
+    return shift.astype(np.int32), np.concatenate(rows).astype(np.int32).reshape(-1, indices.shape[1]), True
+
+
 class SolverXPBD(SolverBase):
     """XPBD with per-substep iterations (Macklin, Mueller, Chentanez 2016).
 
@@ -172,6 +211,19 @@ class SolverXPBD(SolverBase):
             if gs_shared:  # where each world's tile starts and how much of it is the world's
                 self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
                 self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
+                self._local_topology = []  # (shift, local) of triangles, then of bending elements
+                self.shared_topology = True
+                """Whether every world reads the one shared table of world-local element corners."""
+                for offsets, indices, world, count in (
+                        (self._tri_world_offsets, model.tri_indices_np, model.tri_world, model.tri_count),
+                        (self._bend_world_offsets, model.bend_indices_np, model.bend_world, model.bend_count)):
+                    shift, local, shared = local_topology(offsets.numpy(), indices, world.numpy()[:count],
+                                                          model.world_particle_start)
+                    if len(local) == 0:  # Warp kernels need a non-empty array argument
+                        local = np.zeros((1, indices.shape[1]), np.int32)
+                    self._local_topology += [wp.array(shift, dtype=wp.int32, device=dev),
+                                             wp.array(local, dtype=wp.int32, device=dev)]
+                    self.shared_topology &= shared
 
     def _block_args(self, control: ClothControl, inv_dt2: float) -> list:
         """The world-block kernels' model arguments, up to the relaxation."""
@@ -179,6 +231,14 @@ class SolverXPBD(SolverBase):
         return [self._tri_world_offsets, m.tri_indices, m.tri_dm_inv, m.tri_compliance, self._bend_world_offsets,
                 m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.particle_inv_mass, control.world_active,
                 inv_dt2, self.gs_relaxation]
+
+    def _shared_args(self, control: ClothControl, inv_dt2: float) -> list:
+        """The shared-memory kernel's model arguments, up to the relaxation."""
+        m = self.model
+        tri_shift, tri_local, bend_shift, bend_local = self._local_topology
+        return [self._world_start, self._world_count, self._tri_world_offsets, tri_shift, tri_local, m.tri_dm_inv,
+                m.tri_compliance, self._bend_world_offsets, bend_shift, bend_local, m.bend_rest_angle,
+                m.bend_compliance, m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation]
 
     def _particle_pass_args(self, control: ClothControl) -> list:
         """The shared-memory kernel's particle-pass arguments (attachments, then body contact)."""
@@ -213,7 +273,7 @@ class SolverXPBD(SolverBase):
         if self._fused:
             # Every iteration's sweep and particle pass in one launch, positions in shared memory.
             wp.launch_tiled(self._shared_kernel, dim=[m.world_count],
-                            inputs=[self._world_start, self._world_count, *self._block_args(control, inv_dt2),
+                            inputs=[*self._shared_args(control, inv_dt2),
                                     self.iterations, *self._particle_pass_args(control), self.tri_lambda,
                                     self.bend_lambda, x],
                             block_dim=self.gs_block_dim, device=dev)
@@ -229,15 +289,14 @@ class SolverXPBD(SolverBase):
                           outputs=[self.slot_delta], device=dev)
             elif self._world_blocks:
                 # Triangles, then bending unless it is swept by Jacobi (its offsets are empty then).
-                args = self._block_args(control, inv_dt2)
                 if self._shared_kernel is not None:  # one iteration; the particle kernel follows
                     wp.launch_tiled(self._shared_kernel, dim=[m.world_count],
-                                    inputs=[self._world_start, self._world_count, *args, 1,
+                                    inputs=[*self._shared_args(control, inv_dt2), 1,
                                             *self._particle_pass_args(control), self.tri_lambda, self.bend_lambda, x],
                                     block_dim=self.gs_block_dim, device=dev)
                 else:
                     wp.launch_tiled(kernels.solve_elements_gs_world_blocks, dim=[m.world_count],
-                                    inputs=[*args, self.tri_lambda, self.bend_lambda, x],
+                                    inputs=[*self._block_args(control, inv_dt2), self.tri_lambda, self.bend_lambda, x],
                                     block_dim=self.gs_block_dim, device=dev)
             else:
                 for offset, count in self._tri_ranges:
