@@ -79,7 +79,7 @@ def kinematic_levels(parents: np.ndarray) -> list[np.ndarray]:
 def forward_kinematics(
     local_rotations: torch.Tensor,
     rest_joints: torch.Tensor,
-    parents: np.ndarray,
+    parents: np.ndarray | torch.Tensor,
     *,
     translation: torch.Tensor | None = None,
     levels: list[np.ndarray] | list[torch.Tensor] | None = None,

@@ -191,15 +191,19 @@ class SolverXPBD(SolverBase):
                              zip(model.bend_colour_offsets[:-1], model.bend_colour_offsets[1:]) if b > a]
         self._world_blocks = mode == "gauss_seidel" and gs_sweep == "world_blocks"
         self._fused = False
+        self.shared_topology = False
+        """Whether the shared-memory sweep reads one table of world-local element corners that
+        every world shares (``local_topology``)."""
         if self._world_blocks:
             w = model.world_count
-            self._tri_world_offsets = wp.array(
-                world_colour_offsets(model.tri_colour_offsets, model.tri_world.numpy(), w), dtype=wp.int32, device=dev)
+            tri_world = model.tri_world.numpy()[:model.tri_count]
+            bend_world = model.bend_world.numpy()[:model.bend_count]
+            tri_offsets = world_colour_offsets(model.tri_colour_offsets, tri_world, w)
             bend_gs = self.bending_mode == "gauss_seidel" and model.bend_count > 0
-            self._bend_world_offsets = wp.array(
-                world_colour_offsets(model.bend_colour_offsets if bend_gs else [0],
-                                     model.bend_world.numpy() if bend_gs else np.zeros(0), w),
-                dtype=wp.int32, device=dev)
+            bend_offsets = world_colour_offsets(model.bend_colour_offsets if bend_gs else [0],
+                                                bend_world if bend_gs else np.zeros(0), w)
+            self._tri_world_offsets = wp.array(tri_offsets, dtype=wp.int32, device=dev)
+            self._bend_world_offsets = wp.array(bend_offsets, dtype=wp.int32, device=dev)
             tile = 64 * -(-int(np.max(model.world_particle_count)) // 64)
             if gs_shared is None:
                 gs_shared = dev.is_cuda and 12 * tile <= SHARED_TILE_MAX_BYTES
@@ -212,18 +216,16 @@ class SolverXPBD(SolverBase):
                 self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
                 self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
                 self._local_topology = []  # (shift, local) of triangles, then of bending elements
-                self.shared_topology = True
-                """Whether every world reads the one shared table of world-local element corners."""
-                for offsets, indices, world, count in (
-                        (self._tri_world_offsets, model.tri_indices_np, model.tri_world, model.tri_count),
-                        (self._bend_world_offsets, model.bend_indices_np, model.bend_world, model.bend_count)):
-                    shift, local, shared = local_topology(offsets.numpy(), indices, world.numpy()[:count],
-                                                          model.world_particle_start)
+                shared_both = True
+                for offsets, indices, world in ((tri_offsets, model.tri_indices_np, tri_world),
+                                                (bend_offsets, model.bend_indices_np, bend_world)):
+                    shift, local, shared = local_topology(offsets, indices, world, model.world_particle_start)
                     if len(local) == 0:  # Warp kernels need a non-empty array argument
                         local = np.zeros((1, indices.shape[1]), np.int32)
                     self._local_topology += [wp.array(shift, dtype=wp.int32, device=dev),
                                              wp.array(local, dtype=wp.int32, device=dev)]
-                    self.shared_topology &= shared
+                    shared_both &= shared
+                self.shared_topology = shared_both
 
     def _block_args(self, control: ClothControl, inv_dt2: float) -> list:
         """The world-block kernels' model arguments, up to the relaxation."""
