@@ -136,3 +136,26 @@ def test_a_batch_that_repeats_shapes_poses_each_body_as_if_alone(anny_body, monk
         assert blends == [1, 1, 1], "kept shapes are not blended again"
     # the shapes differ by centimetres somewhere, so a mix-up could not pass the checks above
     assert np.abs(batch.rest_vertices[0].numpy() - batch.rest_vertices[1].numpy()).max() > 5e-3
+
+
+def test_shaped_bodies_do_not_depend_on_torch_threads(anny_body):
+    """A body is the same whatever torch's intra-op thread count (Ray workers run with 1, a default
+    process with one per core): unpinned, anny's shape blend rounded differently with 1 and 2
+    threads, and a Ray-made dataset differed from a local one."""
+    import torch
+
+    shapes = np.tile(anny_body.shape_default, (3, 1))
+    shapes[:, anny_body.shape_names.index("weight")] = [0.2, 0.6, 0.9]
+    pose = np.random.default_rng(1).normal(0, 0.2, (3, 60)).astype(np.float32)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            anny_body.__dict__.pop("_rest_cache", None)  # blend afresh, not from the kept bodies
+            out.append((anny_body.rest(shapes)[0], anny_body.pose(shapes, pose).vertices))
+            assert torch.get_num_threads() == threads, "posing must give the caller's thread count back"
+    finally:
+        torch.set_num_threads(before)
+    assert np.array_equal(out[0][0], out[1][0]), "rest bodies differ between 1 and 2 torch threads"
+    assert np.array_equal(out[0][1], out[1][1]), "posed bodies differ between 1 and 2 torch threads"

@@ -10,12 +10,31 @@ samplers carry over between anny and SMPL.
 from __future__ import annotations
 
 import abc
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from simulate.body import kinematics as kin
+
+
+@contextlib.contextmanager
+def one_thread_on_cpu(device: torch.device | str):
+    """Torch's intra-op threads pinned to 1 while the block runs on the CPU (nothing changes on
+    CUDA). A shape blend is a long reduction over blend shapes whose rounding depends on how torch
+    splits it over threads: anny's rest body differed by ulps between 1 and 2 threads, so a dataset
+    made by a Ray worker (1 thread) or a test process that had set 1 thread differed from one made
+    by a default process. Pinned, a body depends only on its inputs."""
+    if torch.device(device).type != "cpu" or torch.get_num_threads() == 1:
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 #: Posable joints, in SMPL's order (SMPL's feet and hands are fixed here).
 POSE_JOINTS: tuple[str, ...] = (
@@ -197,7 +216,9 @@ class BodyModel(abc.ABC):
 
     def rest_torch(self, shape) -> tuple[torch.Tensor, torch.Tensor]:
         """Differentiable shaped rest mesh: vertices (B, V, 3) and joints (B, J, 3) [m]."""
-        return self._rest_torch(self.check_shape(shape))
+        shape_t = self.check_shape(shape)
+        with one_thread_on_cpu(getattr(self, "device", "cpu")):
+            return self._rest_torch(shape_t)
 
     def local_rotations_torch(self, pose) -> torch.Tensor:
         """All-joint local rotations (B, J, 3, 3) from a posable-joint pose (identity elsewhere)."""
@@ -237,7 +258,8 @@ class BodyModel(abc.ABC):
             if hit is None:
                 if len(cache) >= REST_CACHE_SIZE:
                     cache.clear()
-                v, j = self._rest_torch(shapes.new_tensor(row[None]))
+                with one_thread_on_cpu(getattr(self, "device", "cpu")):
+                    v, j = self._rest_torch(shapes.new_tensor(row[None]))
                 hit = cache[key] = (v[0], j[0])
             kept_v.append(hit[0])
             kept_j.append(hit[1])
@@ -257,7 +279,8 @@ class BodyModel(abc.ABC):
             rest_vertices, rest_joints = self._rest_kept(distinct)
             rest_vertices, rest_joints = rest_vertices[inverse], rest_joints[inverse]
         else:
-            rest_vertices, rest_joints = self._rest_torch(shape_t)
+            with one_thread_on_cpu(getattr(self, "device", "cpu")):
+                rest_vertices, rest_joints = self._rest_torch(shape_t)
         rest_vertices = rest_vertices.expand(batch, -1, -1)
         rest_joints = rest_joints.expand(batch, -1, -1)
         rot = self.local_rotations_torch(pose_t.expand(batch, -1, -1))
@@ -287,7 +310,8 @@ class BodyModel(abc.ABC):
         with torch.no_grad():
             shape_t = self.check_shape(shape)
             rot = self.local_rotations_torch(pose)
-            _, rest_joints = self._rest_torch(shape_t)
+            with one_thread_on_cpu(getattr(self, "device", "cpu")):
+                _, rest_joints = self._rest_torch(shape_t)
             trans = None if translation is None else kin.as_torch(translation, device=rot.device).reshape(-1, 3).expand(rot.shape[0], 3)
             ix = self._indices_on(rot.device)
             world, _ = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), ix["parents"],
