@@ -97,7 +97,7 @@ def sequence_settings(spec: dict):
 
     s = spec["simulation"]
     sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
-                      xpbd_mode=s["xpbd_mode"], tolerance=float(s["tolerance"]), patience=int(s["patience"]),
+                      xpbd_mode=s["xpbd_mode"], gs_relaxation=float(s["gs_relaxation"]), tolerance=float(s["tolerance"]), patience=int(s["patience"]),
                       outlier_fraction=float(s["outlier_fraction"]),
                       damping=float(s["damping"]), explosion_stretch=float(s["explosion_stretch"]),
                       max_frames=int(s["max_relax_frames"]), limit_cycle_window=int(s["limit_cycle_window"]),

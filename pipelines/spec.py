@@ -42,6 +42,7 @@ records and hashes. Schema (every key optional unless marked required)::
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
       frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
+      gs_relaxation: float in (0, 2) = 1.0  over-relaxation of XPBD's Gauss-Seidel multiplier steps
       outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
                                         tolerance when it counts as converged (vertices caught where
                                         the arm and torso skins interpenetrate jitter forever)
@@ -113,7 +114,7 @@ DEFAULTS: dict[str, Any] = {
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
+        "xpbd_mode": "gauss_seidel", "gs_relaxation": 1.0, "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
@@ -161,11 +162,14 @@ class _Checker:
         if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
             self.fail(path, f"an integer >= {minimum}" + (f" or one of {allow}" if allow else ""))
 
-    def number(self, path: str, lo: float, hi: float | None = None, *, lo_open: bool = False) -> None:
+    def number(self, path: str, lo: float, hi: float | None = None, *, lo_open: bool = False,
+               hi_open: bool = False) -> None:
         v = self.get(path)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and (v > lo if lo_open else v >= lo) and (hi is None or v <= hi)
+        ok = (isinstance(v, (int, float)) and not isinstance(v, bool) and (v > lo if lo_open else v >= lo)
+              and (hi is None or (v < hi if hi_open else v <= hi)))
         if not ok:
-            self.fail(path, f"a number {'>' if lo_open else '>='} {lo}" + (f" and <= {hi}" if hi is not None else ""))
+            self.fail(path, f"a number {'>' if lo_open else '>='} {lo}"
+                      + (f" and {'<' if hi_open else '<='} {hi}" if hi is not None else ""))
 
     def choice(self, path: str, options: tuple) -> None:
         if self.get(path) not in options:
@@ -221,6 +225,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
         c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")
     c.choice(f"{sim}.xpbd_mode", ("gauss_seidel", "jacobi"))
+    c.number(f"{sim}.gs_relaxation", 0.0, 2.0, lo_open=True, hi_open=True)
     c.integer(f"{sim}.worlds", 1)
     c.number(f"{sim}.frame_dt", 0.0, 1.0, lo_open=True)
     c.integer(f"{sim}.substeps", 1)

@@ -34,6 +34,7 @@ def test_shipped_specs_validate():
     ({"simulation": {"contact": {"body_contact_detect_every": 0}}},
      "spec.simulation.contact.body_contact_detect_every must be an integer >= 1"),
     ({"simulation": {"outlier_fraction": 0.9}}, "spec.simulation.outlier_fraction must be a number >= 0.0 and <= 0.5"),
+    ({"simulation": {"gs_relaxation": 2.0}}, "spec.simulation.gs_relaxation must be a number > 0.0 and < 2.0 (got 2.0)"),
     ({"splits": {"test_test": "some"}}, "spec.splits.test_test must be an integer >= 0 or one of ('all',)"),
 ])
 def test_malformed_fields_name_their_path(patch, path):
