@@ -181,6 +181,23 @@ class _Unskinner:
         return inverse_lbs_torch(x, self.weights, t).cpu().numpy()
 
 
+def plan_batches(tasks: list, worlds: int) -> list[list[str]]:
+    """Task ids of each batch: whole style-shape pairs, at most ``worlds`` pairs per batch, tasks
+    longest first. A batch's worlds are shared out among its pairs in proportion to their target
+    poses, and a world that finishes a task takes its pair's next one (``run_sequences``), so the
+    worlds of a batch stay busy until its end instead of waiting for its longest task.
+
+    Batches are a function of the spec alone: a resumed or distributed run simulates every task in
+    the same company as an uninterrupted one, so its frames are bitwise identical. A batch with any
+    unfinished task runs again whole; finished shards are not rewritten."""
+    ordered = sorted(tasks, key=lambda t: (-len(t.poses), t.task_id))
+    pairs: dict[tuple, list] = {}
+    for t in ordered:  # a pair: one style on one shape (the tasks that can share a world)
+        pairs.setdefault((int(t.style_index), np.asarray(t.shape, np.float32).tobytes()), []).append(t)
+    groups = list(pairs.values())
+    return [[t.task_id for g in groups[i:i + worlds] for t in g] for i in range(0, len(groups), worlds)]
+
+
 def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard: Callable[[Any], None] | None = None,
                    on_progress: Callable[[int], None] | None = None, skip: set[str] | frozenset = frozenset()) -> list[dict]:
     """Simulates a batch of tasks as parallel worlds and writes their shards.
@@ -202,19 +219,22 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     meter = QualityMeter(tmpl.faces, tmpl.vertices, ctx.body.faces, ctx.body.vertex_count, device=ctx.device)
     index = tmpl.body_vertex_index
     on_body = index >= 0
-    writers, remaining, records = [], [], []
+    records = []
+    remaining = [len(t.poses) for t in tasks]
     t_start = time.perf_counter()
-    for t in tasks:
-        if t.task_id in skip:
-            writers.append(None)
-            remaining.append(len(t.poses))
-            continue
-        task_dict = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
-                     "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
-                     "fabric": spec["garment"]["fabric"]}
-        writers.append(ShardWriter(shard_path(out_dir, t.task_id), template=ctx.template_dict, task=task_dict,
-                                   precision=spec["output"]["precision"], compression=spec["output"]["compression"]))
-        remaining.append(len(t.poses))
+    writers: dict[int, Any] = {}  # task index -> its shard's writer, made at the task's first frame
+
+    def writer_of(i: int):
+        """The shard writer of task ``i`` (None when it finished in an earlier run)."""
+        if i not in writers:
+            t = tasks[i]
+            task_dict = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split],
+                         "seed": int(spec["seed"]), "shape": t.shape, "style": t.style_vector, "pair": int(t.pair),
+                         "style_index": int(t.style_index), "fabric": spec["garment"]["fabric"]}
+            writers[i] = None if t.task_id in skip else ShardWriter(
+                shard_path(out_dir, t.task_id), template=ctx.template_dict, task=task_dict,
+                precision=spec["output"]["precision"], compression=spec["output"]["compression"])
+        return writers[i]
     filters = spec["filters"]
     weights = tmpl.skinning_weights
     from simulate.quality import triangle_areas
@@ -229,7 +249,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         reasons: dict[int, str | None] = {}
         metrics: dict[int, dict] = {}
         for i, frame in enumerate(frames):
-            if writers[frame.task] is not None:  # else finished in an earlier run
+            if writer_of(frame.task) is not None:  # else finished in an earlier run
                 # the status filters first: a frame they drop needs no geometric metrics
                 reasons[i] = status_drop_reason(bool(np.isfinite(frame.positions).all()), frame.status, filters)
         measured = [i for i, r in reasons.items() if r is None]
@@ -252,7 +272,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
-            writer = writers[frame.task]
+            writer = writer_of(frame.task)
             if reason is None:
                 x = np.asarray(frame.positions, np.float64)
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
@@ -292,12 +312,13 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 ctx.phases = {}
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
-                          device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases)
+                          device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases,
+                          worlds=int(spec["simulation"]["worlds"]))
         list_finished(background.close())
         ctx.phases["writer_busy_s"] = ctx.phases.get("writer_busy_s", 0.0) + background.busy_s
     except BaseException:
         background.close(raise_error=False)
-        for w in writers:
+        for w in writers.values():
             if w is not None and w.record is None:
                 w.abort()
         raise
@@ -369,13 +390,8 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
     manifest = Manifest.load_or_create(out_dir, name=spec["name"], spec=spec, template_sha256=template_sha256(ctx.template_dict),
                                        precision=spec["output"]["precision"], provenance=provenance, splits=splits)
     remove_orphan_temporaries(out_dir)
-    # Batches are a function of the spec alone (tasks sorted by sequence length, so worlds
-    # of a batch finish together): a resumed or distributed run simulates every task in the
-    # same company as an uninterrupted one, so its frames are bitwise identical. A batch with
-    # any unfinished task runs again whole; finished shards are not rewritten.
-    ordered = sorted(ctx.plan.tasks, key=lambda t: (-len(t.poses), t.task_id))
     worlds = int(spec["simulation"]["worlds"])
-    all_batches = [[t.task_id for t in ordered[i:i + worlds]] for i in range(0, len(ordered), worlds)]
+    all_batches = plan_batches(ctx.plan.tasks, worlds)
     done = {t.task_id for t in ctx.plan.tasks if manifest.is_complete(t.task_id)}
     batches = [b for b in all_batches if not set(b) <= done]
     pending = [ctx.tasks[t] for b in batches for t in b if t not in done]

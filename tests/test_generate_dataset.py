@@ -24,7 +24,7 @@ TINY_SPEC = {
     "pairs": {"train": 1, "test": 1},
     "poses": {"range_scale": 0.25, "train_count": 2, "test_count": 1},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 1, "test_test": 1},
-    "simulation": {"device": "cpu", "worlds": 2, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
+    "simulation": {"device": "cpu", "worlds": 1, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
                    "shape_transition_frames": 3, "interpolation_threshold": 0.25},
     "filters": {"require_converged": False},
     "audit": {"samples": 1},
@@ -319,6 +319,7 @@ def test_the_manifest_is_saved_after_each_batch_not_after_each_shard(tmp_path, m
 
     monkeypatch.setattr(Manifest, "save", spy)
     manifest = generate(_with(), tmp_path, progress=False, log=lambda m: None, save_every_s=1e9)
-    # 4 tasks in batches of 2 worlds: one save per batch, then the finished manifest
+    # 4 tasks of 2 pairs in one world: a batch per pair (its train and test tasks one after the other),
+    # one save per batch, then the finished manifest
     assert listed == [2, 4, 4], listed
     assert len(manifest.shards) == 4 and validate_dataset(tmp_path).ok
