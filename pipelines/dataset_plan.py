@@ -112,6 +112,7 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     pose_sets = {"train": all_poses[: spec["poses"]["train_count"]], "test": all_poses[spec["poses"]["train_count"]:]}
 
     plan = Plan(all_styles, style_vectors, all_shapes, pairs, pose_sets, pruned)
+    orders: dict[tuple, np.ndarray] = {}  # pairs given the same poses ("all") share one visiting order
     for split, (group, pose_group) in SPLIT_SOURCES.items():
         count = spec["splits"][split]
         available = len(pose_sets[pose_group])
@@ -125,7 +126,10 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
             if g != group:
                 continue
             ids = np.sort(_rng(seed, 51, p, list(SPLIT_SOURCES).index(split)).permutation(available)[:count])
-            order = greedy_order(pose_sets[pose_group][ids], body.canonical_pose)
+            key = (pose_group, ids.tobytes())
+            if key not in orders:
+                orders[key] = greedy_order(pose_sets[pose_group][ids], body.canonical_pose)
+            order = orders[key]
             ids = ids[order]
             chunk = spec["simulation"]["poses_per_task"]
             if chunk is None or len(ids) <= chunk:

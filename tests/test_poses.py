@@ -43,6 +43,20 @@ def test_greedy_order_visits_each_pose_once_nearest_first():
     assert order[0] == np.argmin(first)
 
 
+def test_greedy_order_matches_the_step_by_step_reference():
+    """Each pose is the one nearest to the previous among those left, by joint_angle_change."""
+    rng = np.random.default_rng(3)
+    poses = rng.normal(0, 0.5, (40, 60)).astype(np.float32)
+    start = rng.normal(0, 0.2, 60).astype(np.float32)
+    order = greedy_order(poses, start)
+    left, current = list(range(40)), start
+    for k in range(40):
+        d = joint_angle_change(np.broadcast_to(current, (len(left), 60)), poses[left]).max(1)
+        assert left[int(np.argmin(d))] == order[k], f"step {k}"
+        current = poses[left.pop(int(np.argmin(d)))]
+    assert greedy_order(poses[:0], start).shape == (0,)
+
+
 def test_interpolation_respects_threshold_and_keeps_keys():
     rng = np.random.default_rng(2)
     keys = rng.normal(0, 0.4, (4, 60)).astype(np.float32)
