@@ -31,6 +31,7 @@ import h5py
 import numpy as np
 
 from .schema import (
+    CanonicalTemplate,
     BODY_TRANSLATION,
     COMPRESSIONS,
     DROPPED_FRAME_INDEX,
@@ -213,7 +214,7 @@ class ShardWriter:
         self,
         path: str | os.PathLike[str],
         *,
-        template: Mapping[str, Any],
+        template: Mapping[str, Any] | CanonicalTemplate,
         task: Mapping[str, Any],
         precision: str = "float32",
         compression: str = "gzip",
@@ -243,8 +244,11 @@ class ShardWriter:
             raise ValueError(f"task {self.task_id!r}: the task dict is {len(self._task_json)} bytes as JSON, more "
                              f"than {_MAX_TASK_JSON_BYTES} (HDF5 attributes are small); keep per-frame arrays such "
                              f"as pose lists out of it and write them with write_frame")
-        self.template = canonical_template(template)
-        self.template_sha256 = template_sha256(self.template)
+        if isinstance(template, CanonicalTemplate):  # checked and hashed once by the caller
+            self.template, self.template_sha256 = dict(template.arrays), template.sha256
+        else:
+            self.template = canonical_template(template)
+            self.template_sha256 = template_sha256(self.template)
         self.vertex_count = int(self.template["rest_vertices"].shape[0])
         self.tmp_path = self.path.with_name(f"{self.path.name}.{os.getpid()}-{secrets.token_hex(4)}{TMP_SUFFIX}")
         self.filter_stats: dict[str, int] = {}

@@ -209,6 +209,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     import torch
 
     from data_manifest.background import BackgroundWriter
+    from data_manifest.schema import CanonicalTemplate
     from data_manifest.shard import ShardWriter, shard_path
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
@@ -223,6 +224,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     remaining = [len(t.poses) for t in tasks]
     t_start = time.perf_counter()
     writers: dict[int, Any] = {}  # task index -> its shard's writer, made at the task's first frame
+    template = CanonicalTemplate.of(ctx.template_dict)  # checked and hashed once, not per shard
 
     def writer_of(i: int):
         """The shard writer of task ``i`` (None when it finished in an earlier run)."""
@@ -232,7 +234,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                          "seed": int(spec["seed"]), "shape": t.shape, "style": t.style_vector, "pair": int(t.pair),
                          "style_index": int(t.style_index), "fabric": spec["garment"]["fabric"]}
             writers[i] = None if t.task_id in skip else ShardWriter(
-                shard_path(out_dir, t.task_id), template=ctx.template_dict, task=task_dict,
+                shard_path(out_dir, t.task_id), template=template, task=task_dict,
                 precision=spec["output"]["precision"], compression=spec["output"]["compression"])
         return writers[i]
     filters = spec["filters"]

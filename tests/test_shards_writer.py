@@ -151,6 +151,25 @@ def test_identical_content_gives_identical_bytes(tmp_path):
     assert first.sha256 == second.sha256, "same frames written twice gave different files (not resumable bit-exactly)"
 
 
+def test_a_template_checked_once_writes_the_bytes_of_the_dict(tmp_path):
+    """generate-dataset hands its shard writers the template checked and hashed once
+    (CanonicalTemplate): the shard is byte for byte the one written from the plain dict."""
+    from data_manifest.schema import CanonicalTemplate, template_sha256
+
+    frames = frames_for(3)
+    plain = write_frames(tmp_path / "a" / "s.h5", frames).record
+    prepared = CanonicalTemplate.of(tube_template())
+    assert prepared.sha256 == template_sha256(tube_template())
+    with ShardWriter(tmp_path / "b" / "s.h5", template=prepared, task=make_task()) as writer:
+        for k, frame in enumerate(frames):
+            writer.write_frame(**frame, frame_index=3 * k)
+        writer.record_dropped("penetration", 2)
+    assert writer.record.sha256 == plain.sha256
+    # a changed template is a different template
+    other = dict(tube_template(), rest_vertices=tube_template()["rest_vertices"] + 1e-3)
+    assert CanonicalTemplate.of(other).sha256 != prepared.sha256
+
+
 @pytest.mark.parametrize("case, match", [
     ("shape", r"posed_vertices of task 'task-0' frame 1 must have shape \(50, 3\)"),
     ("nan", "contains NaN"),
