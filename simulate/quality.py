@@ -248,6 +248,10 @@ class QualityMeter:
         return self._signed_distances(points, n, body_vertices)
 
     def _signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> np.ndarray:
+        return self._launch_signed_distances(points, n, body_vertices).numpy().reshape(n, self.vertex_count)
+
+    def _launch_signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> wp.array:
+        """Queues the signed-distance queries; returns the (n * V,) device array they fill."""
         body = np.asarray(body_vertices, np.float32)
         if body.shape != (n, self._body_vertex_count, 3):
             raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
@@ -259,7 +263,7 @@ class QualityMeter:
         normal = self._buffer("normal", n * v, wp.vec3)
         wp.launch(query_body_signed_distance, dim=n * v, device=self.device,
                   inputs=[ids, points, v, self.max_distance], outputs=[distance, closest, normal])
-        return distance.numpy().reshape(n, v)
+        return distance
 
     def self_intersection_counts(self, garment_vertices: np.ndarray) -> np.ndarray:
         """(edge, triangle) piercings among non-adjacent garment elements per frame: (n, V, 3) -> (n,)."""
@@ -267,13 +271,17 @@ class QualityMeter:
         return self._self_intersection_counts(points, n)
 
     def _self_intersection_counts(self, points: wp.array, n: int) -> np.ndarray:
+        return self._launch_self_intersection_counts(points, n).numpy().astype(np.int64)
+
+    def _launch_self_intersection_counts(self, points: wp.array, n: int) -> wp.array:
+        """Queues the edge-triangle tests; returns the (n,) device array of counts they fill."""
         ids = self._garments.load(points, n)
         hits = self._buffer("hits", n, int)
         hits.zero_()
         e = self._edges.shape[0]
         wp.launch(count_edge_triangle_intersections, dim=n * e, device=self.device,
                   inputs=[ids, self._edges, e], outputs=[hits])
-        return hits.numpy().astype(np.int64)
+        return hits
 
     def area_ratios(self, garment_vertices: np.ndarray, rest_areas: np.ndarray | None = None) -> np.ndarray:
         """Triangle area ratios against the rest areas (F,) or per frame (n, F): (n, V, 3) -> (n, F)."""
@@ -281,13 +289,17 @@ class QualityMeter:
         return self._area_ratios(points, n, rest_areas)
 
     def _area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> np.ndarray:
+        return self._launch_area_ratios(points, n, rest_areas).numpy().reshape(n, len(self.faces))
+
+    def _launch_area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> wp.array:
+        """Queues the area ratios; returns the (n * F,) device array they fill."""
         f = len(self.faces)
         rest = np.broadcast_to(np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64), (n, f))
         rest_d = self._upload("rest_areas", rest.reshape(-1), wp.float64)
         ratio = self._buffer("ratio", n * f, wp.float64)
         wp.launch(triangle_area_ratios, dim=n * f, device=self.device,
                   inputs=[points, self.vertex_count, self._faces, f, rest_d], outputs=[ratio])
-        return ratio.numpy().reshape(n, f)
+        return ratio
 
     def signed_distance(self, garment_vertices: np.ndarray, body_vertices: np.ndarray) -> np.ndarray:
         """Per-vertex signed distance [m] of one frame, (V, 3) against (Vb, 3) -> (V,)."""
@@ -351,11 +363,16 @@ class QualityMeter:
         good = np.nonzero(finite)[0]
         if len(good) == 0:
             return out
-        # the garment points go to the device once for all three metrics
+        # the garment points go to the device once for all three metrics, and the three results
+        # come back after all of them are queued (one wait for the device, not three: the
+        # dataset driver measures while a simulator frame runs, which the waits queue behind)
         points, m = self._garment_points(x[good])
-        ratio = self._area_ratios(points, m, rest[good])
-        d = self._signed_distances(points, m, body[good])
-        hits = self._self_intersection_counts(points, m) if self_intersection else np.full(m, -1)
+        ratio_d = self._launch_area_ratios(points, m, rest[good])
+        d_d = self._launch_signed_distances(points, m, body[good])
+        hits_d = self._launch_self_intersection_counts(points, m) if self_intersection else None
+        ratio = ratio_d.numpy().reshape(m, len(self.faces))
+        d = d_d.numpy().reshape(m, self.vertex_count)
+        hits = hits_d.numpy().astype(np.int64) if hits_d is not None else np.full(m, -1)
         distorted = ((ratio < area_bounds[0]) | (ratio > area_bounds[1])).mean(axis=1)
         deep = (d < -collision_depth).mean(axis=1)
         deepest = np.maximum(0.0, -d.min(axis=1).astype(np.float64))
