@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections import deque
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -110,6 +111,12 @@ class SequenceSettings:
     calls in 876 frames instead of one per frame). Memory: world_count x lookahead posed bodies
     (~0.34 MB each for anny)."""
 
+    concurrent_streams: bool = True
+    """On CUDA, frames step on a stream of their own while the host hands the previous frame's
+    target frames over (``on_frames``) and poses the next bodies beside them (see ``run_sequences``).
+    Off: every launch goes to the device's stream, in the same order, so the results are the same
+    bit for bit (a check for the streams' synchronisation); only slower."""
+
     def __post_init__(self) -> None:
         if self.restart_to not in RESTART_TO:
             raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
@@ -185,18 +192,45 @@ def _routes_from(tasks: list[SequenceTask], start_poses: list[np.ndarray], thres
     with it (what ``_reroute`` inserts), all tasks in one batched call (one call per task cost
     ~26 ms each on the device machine, 6 s of a 240-world run; each segment is interpolated on its
     own, so a task's routes do not depend on the others in the call)."""
+    return [routes for _, routes in _plans_from(tasks, start_poses, threshold, visits=False)]
+
+
+def _plans_from(tasks: list[SequenceTask], start_poses: list[np.ndarray], threshold: float, *,
+                visits: bool = True) -> list[tuple[tuple | None, list[np.ndarray]]]:
+    """Per task, from its start pose: the schedule visiting all its targets (``_visit_entries``
+    from the first; None without ``visits``) and the route to each target (``_routes_from``), all
+    segments of all tasks interpolated in one batched call (each segment on its own, so a task's
+    plan does not depend on the others in the call)."""
     if not tasks:
         return []
-    ends = np.concatenate([t.poses for t in tasks])
-    starts = np.concatenate([np.broadcast_to(np.asarray(p, np.float32), t.poses.shape) for t, p in zip(tasks, start_poses)])
+    starts, ends = [], []
+    for t, p in zip(tasks, start_poses):
+        start = np.asarray(p, np.float32).reshape(1, -1)
+        keys = np.asarray(t.poses, np.float32)
+        if visits:  # start -> key 0 -> key 1 ...
+            starts.append(np.concatenate([start, keys[:-1]]))
+            ends.append(keys)
+        starts.append(np.broadcast_to(start, keys.shape))  # start -> each key
+        ends.append(keys)
+    starts, ends = np.concatenate(starts), np.concatenate(ends)
     poses, segment = interpolate_segments(starts, ends, threshold)
     bounds = np.searchsorted(segment, np.arange(len(ends) + 1))
-    routes, first = [], 0
+    out, first = [], 0
     for t in tasks:
         n = len(t.poses)
-        routes.append([poses[a:b] for a, b in zip(bounds[first:first + n], bounds[first + 1:first + n + 1])])
+        visit = None
+        if visits:
+            a, b = bounds[first], bounds[first + n]
+            seq, seg = poses[a:b], segment[a:b] - first
+            is_key = np.ones(len(seg), dtype=bool)
+            is_key[:-1] = seg[1:] != seg[:-1]  # a segment's last row is its key
+            key_index = np.where(is_key, seg, -1)
+            visit = (np.tile(t.shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
+                     np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index, -1))
+            first += n
+        out.append((visit, [poses[a:b] for a, b in zip(bounds[first:first + n], bounds[first + 1:first + n + 1])]))
         first += n
-    return routes
+    return out
 
 
 def world_groups(tasks: list[SequenceTask]) -> list[int]:
@@ -280,6 +314,21 @@ class _PosedAhead:
         slot_t = torch.as_tensor(ptr[idx] - self.first[idx], device=device)
         return {name: buf[w_t, slot_t] for name, buf in self.buffers.items()}
 
+    def prefetch(self, schedules: list, ptr: np.ndarray, active: np.ndarray) -> None:
+        """Fills, in one body-model call, the buffer of every ``active`` world that holds none of
+        its current entries (a new schedule, or run past) or less than half a buffer ahead, so the
+        next ``get`` finds them posed (the frame loop calls this while a frame is in flight)."""
+        worlds = []
+        for w in np.nonzero(active)[0]:
+            w = int(w)
+            if self.owner[w] is not schedules[w] or not self.first[w] <= ptr[w] < self.first[w] + self.count[w]:
+                worlds.append(w)
+            elif (self.first[w] + self.count[w] - ptr[w] < (self.depth + 1) // 2
+                  and self.first[w] + self.count[w] < len(schedules[w][0])):
+                worlds.append(w)
+        if worlds:
+            self._fill(worlds, schedules, ptr)
+
     def _fill(self, worlds: list[int], schedules: list, ptr: np.ndarray) -> None:
         spans = [(w, int(ptr[w]), min(int(ptr[w]) + self.depth, len(schedules[w][0]))) for w in worlds]
         shapes = np.concatenate([schedules[w][0][a:b] for w, a, b in spans])
@@ -297,6 +346,52 @@ class _PosedAhead:
             self.buffers[name][w_t, slot_t] = value
         for w, a, b in spans:
             self.first[w], self.count[w], self.owner[w] = a, b - a, schedules[w]
+
+
+class _FrameStreams:
+    """Where the frame loop's device work goes. On CUDA the simulator's frames run on a stream of
+    their own that does not synchronize with the CUDA default stream, which torch uses (body
+    posing, inverse skinning): host work between frames then runs beside a frame in flight
+    instead of waiting behind it, and ``delivering`` puts the frame callback's Warp work (the
+    quality filters) on the stream that was current when the loop began, which does not wait for
+    the frame either. Everything that touches the simulator's or the collider's state stays on the
+    stepping stream, so it is ordered after the frame in flight. On the CPU both contexts do nothing
+    (Warp's CPU launches run to completion)."""
+
+    def __init__(self, device: str, *, enabled: bool = True) -> None:
+        import warp as wp
+
+        self._wp = wp
+        dev = wp.get_device(device)
+        self.enabled = bool(enabled and dev.is_cuda and torch.cuda.is_available())
+        if self.enabled:
+            self._torch_stream = torch.cuda.Stream(device=torch.device("cuda", dev.ordinal))  # non-blocking
+            self.step_stream = wp.stream_from_torch(self._torch_stream)
+            self.deliver_stream = dev.stream
+
+    @contextmanager
+    def stepping(self):
+        """The frame loop: the stepping stream is current (it first waits for the work queued
+        before on the device's stream) and, on leaving, the host waits for it."""
+        if not self.enabled:
+            yield
+            return
+        wp = self._wp
+        with wp.ScopedStream(self.step_stream):
+            try:
+                yield
+            finally:
+                wp.synchronize_stream(self.step_stream)
+
+    @contextmanager
+    def delivering(self):
+        """Frame callbacks: Warp work goes to the delivery stream, not behind the frame in flight
+        (the callback gets host arrays; nothing of it depends on the stepping stream)."""
+        if not self.enabled:
+            yield
+            return
+        with self._wp.ScopedStream(self.deliver_stream, sync_enter=False):
+            yield
 
 
 def run_sequences(
@@ -324,6 +419,14 @@ def run_sequences(
     costs most of a full one (7.7k t-shirts on an H100: 23 ms per frame for 30 worlds, 38 ms for
     240). Which world takes which task depends only on the batch, so the result is reproducible.
 
+    Target frames are handed over one simulator frame after their hold ended: while the device steps
+    the next frame, ``on_frames`` measures and writes them and the host routes their worlds on (home
+    after a rejection, next target, next task) and poses the bodies coming up. Their worlds sit that
+    frame out, frozen, so each world passes through the same states as if frames were handed over
+    between simulator frames. On CUDA the frames step on a non-blocking stream of their own
+    (``SequenceSettings.concurrent_streams``): the full TailorNet spec went from 90 to 129 target
+    poses/s on an H100, where the host work between frames had been half of the loop.
+
     Args:
         body: body model (its canonical pose and neutral shape start every world).
         faces: garment triangles shared by all tasks, (F, 3).
@@ -349,13 +452,17 @@ def run_sequences(
             transition_world_frames (shape blends, slerp'ed poses, routes home), hold_world_frames
             (holding target poses) and settle_world_frames (settling after the shape blend), wall seconds in the simulation /
             body / record / explosion-recovery phases and in the whole loop (loop_s; the rest is
-            bookkeeping and ``on_progress``), before the loop (setup_s: visiting orders and routes
+            bookkeeping and ``on_progress``; on CUDA the device steps a frame while the host delivers
+            the last one's target frames and poses bodies, so sim_s is only the launch and the wait
+            left after that work, and body_s / record_s include work done beside a frame in flight), before the loop (setup_s: visiting orders and routes
             setup_schedules_s, the batched cloth model setup_model_s, start bodies, collider and
             simulator setup_simulator_s), explosion recoveries, batched body-model calls
             (body_calls) with the bodies they posed (bodies_posed) and their wall time (body_model_s),
             parts of the record phase (record_copy_s: positions off the device, record_frames_s: the
-            frames' bodies off the device, record_deliver_s: ``on_frames``/``on_frame``; the rest
-            routes worlds on or home), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
+            frames' bodies off the device, record_deliver_s: ``on_frames``/``on_frame``,
+            record_route_s: routing the delivered frames' worlds on or home; the rest keeps the
+            states of holds that ended), parts of the body phase (body_target_s: the collider's
+            targets, body_prefetch_s: posing ahead beside a frame in flight), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
             itself when given).
     """
     if (on_frame is None) == (on_frames is None):
@@ -428,9 +535,10 @@ def run_sequences(
 
     def deliver(frames: list[RecordedFrame]) -> list[bool]:
         """Hands frames over (one ``on_frames`` call, or ``on_frame`` per frame); True where accepted."""
-        if on_frames is None:
-            return [on_frame(f) is not False for f in frames]
-        answers = list(on_frames(frames))
+        with streams.delivering():  # the callback's device work does not wait for a frame in flight
+            if on_frames is None:
+                return [on_frame(f) is not False for f in frames]
+            answers = list(on_frames(frames))
         if len(answers) != len(frames):
             raise ValueError(f"on_frames must return one answer per frame ({len(frames)}), got {len(answers)}")
         return [a is not False for a in answers]
@@ -449,15 +557,16 @@ def run_sequences(
         if not queues[group[w]]:
             done[w] = True
             return
+        cur_before = cur[w]
         t = cur[w] = queues[group[w]].popleft()
         stats["task_switches"] += 1
         streak[w] = rejects[w] = 0
         last_kept[w] = None
-        home_routes[w] = None  # routes home lead to the old task's targets
+        drop_plans(int(cur_before))
         if home[w] is not None:  # from the settled drape: a slerp from the canonical pose to the first target
             put_back(w, home[w])
             last_good[w] = home[w]
-            schedules[w] = _visit_entries(tasks[t], 0, home[w]["pose"], settings.interpolation_threshold)
+            schedules[w] = plan_of(w, t)[0]
         else:  # never settled (exploded on the way): from the canonical drape, as at the start
             put_back(w, {"positions": np.asarray(tasks[t].start_vertices, np.float32), "vertices": start.vertices[w],
                          "skin": start.skinning_transforms[w], "rest": start.rest_vertices[w]})
@@ -467,10 +576,12 @@ def run_sequences(
         changed[w] = True
 
     ahead = _PosedAhead(pose_bodies, start, w_count, settings.body_lookahead)
+    streams = _FrameStreams(device, enabled=settings.concurrent_streams)
     stats = {} if stats is None else stats
     for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
               "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
-              "record_copy_s", "record_frames_s", "record_deliver_s", "setup_s",
+              "record_copy_s", "record_frames_s", "record_deliver_s", "record_route_s", "body_target_s",
+              "body_prefetch_s", "plan_calls", "setup_s",
               "setup_schedules_s", "setup_model_s", "setup_simulator_s", "task_switches"):
         stats.setdefault(k, 0)
     t_ready = time.perf_counter()
@@ -499,7 +610,28 @@ def run_sequences(
         sim.revive(w, state["placed"][1])
         held[w] = 0
 
-    home_routes: list[tuple[bytes, list[np.ndarray]] | None] = [None] * w_count  # (home pose, routes from it)
+    # (task, home pose) -> (schedule visiting the task's targets, routes to each target), both from
+    # the home pose: planned in batches, dropped when the task is done
+    plans: dict[tuple[int, bytes], tuple] = {}
+
+    def plan_of(w: int, t: int) -> tuple:
+        """Task ``t``'s plan from world ``w``'s home pose. A missing plan is made in one batched call
+        with those of every busy world's task and every group's next task that lack one (worlds
+        change tasks and go home thousands of times; one call per task cost ~10-80 ms)."""
+        pose = np.asarray(home[w]["pose"], np.float32)
+        key = (int(t), pose.tobytes())
+        if key not in plans:
+            wanted = [int(t)] + [int(cur[v]) for v in range(w_count) if not done[v]] + [int(q[0]) for q in queues if q]
+            batch = [u for u in dict.fromkeys(wanted) if (u, key[1]) not in plans]
+            for u, plan in zip(batch, _plans_from([tasks[u] for u in batch], [pose] * len(batch),
+                                                   settings.interpolation_threshold)):
+                plans[(u, key[1])] = plan
+            stats["plan_calls"] += 1
+        return plans[key]
+
+    def drop_plans(t: int) -> None:
+        for key in [k for k in plans if k[0] == t]:
+            del plans[key]
     last_kept: list[dict | None] = [None] * w_count  # state at the last accepted target frame
     stats.setdefault("restarts_to_last_kept", 0)
 
@@ -515,22 +647,10 @@ def run_sequences(
         ptr[w] = 0
         changed[w] = True
 
-    def home_key(v: int) -> bytes:
-        return np.asarray(home[v]["pose"], np.float32).tobytes()
-
     def go_home(w: int, next_key: int) -> None:
         """Puts world ``w`` back at its home state, heading for target ``next_key`` from the
-        canonical pose. The routes from home to every target are planned together at the first
-        trip home (worlds go home thousands of times), for every world that has a home by then
-        in the same batched call."""
-        if home_routes[w] is None or home_routes[w][0] != home_key(w):
-            plan = [v for v in range(w_count) if home[v] is not None
-                    and (home_routes[v] is None or home_routes[v][0] != home_key(v))]
-            routes = _routes_from([tasks[cur[v]] for v in plan], [home[v]["pose"] for v in plan],
-                                  settings.interpolation_threshold)
-            for v, r in zip(plan, routes):
-                home_routes[v] = (home_key(v), r)
-        restart_from(w, home[w], next_key, route=home_routes[w][1][next_key])
+        canonical pose along the route planned with its task's plan (``plan_of``)."""
+        restart_from(w, home[w], next_key, route=plan_of(w, cur[w])[1][next_key])
 
     def handle_explosion(w: int, st: int) -> int:
         """Hands the failed target pose(s) of exploded world ``w`` to ``on_frame`` and, when it
@@ -582,106 +702,152 @@ def run_sequences(
         finish(w)
         return handed
 
-    while not done.all():
-        t0 = time.perf_counter()
-        if changed.any():
-            idx = np.nonzero(changed)[0]
-            calls, bodies, model_s = ahead.calls, ahead.bodies, ahead.model_s
-            posed = ahead.get(idx, schedules, ptr, ~done)
-            stats["body_calls"] += ahead.calls - calls
-            stats["bodies_posed"] += ahead.bodies - bodies
-            stats["body_model_s"] += ahead.model_s - model_s
-            idx_t = torch.as_tensor(idx, device=torch_device)
-            for name in ("vertices", "skin", "rest"):
-                body_now[name][idx_t] = posed[name]
-            collider.set_target(body_now["vertices"])
-            sim.restart(changed & ~done)
-        t1 = time.perf_counter()
-        status = sim.step_frame()
-        t2 = time.perf_counter()
-        stats["frames"] += 1
-        stats["world_frames"] += int((~done).sum())
-        stats["sim_s"] += t2 - t1
-        stats["body_s"] += t1 - t0
-        held[~done] += 1
-        busy = np.nonzero(~done)[0]
-        kinds_now = np.fromiter((schedules[w][2][ptr[w]] for w in busy), dtype=np.int64, count=len(busy))
-        for name, kind in (("transition_world_frames", TRANSITION), ("hold_world_frames", KEY),
-                           ("settle_world_frames", SETTLE)):
-            stats[name] += int((kinds_now == kind).sum())
-        changed[:] = False
-        finished_keys = 0
-        ready = []  # worlds whose hold (settle or target pose) ended this frame
-        for w in np.nonzero(~done)[0]:
-            kind = schedules[w][2][ptr[w]]
-            st = int(status[w])
-            if st == WorldStatus.EXPLODED:
-                q0 = time.perf_counter()
-                finished_keys += handle_explosion(w, st)
-                stats["recover_s"] += time.perf_counter() - q0
-                continue
-            if kind == TRANSITION:
+    # Two frames' work at once: while the device steps frame k+1, the host hands over the target
+    # frames whose holds ended in frame k (``on_frames``: filters, inverse skinning, shard writes),
+    # acts on the answers (route home, next target, next task) and poses the bodies the worlds need
+    # next. A world whose frame is being handed over sits that frame out, frozen (its state does not
+    # change), so every world goes through the same states as when frames were handed over between
+    # frames; only the simulator frame each state is reached in differs.
+    pending: list[tuple[int, RecordedFrame]] = []  # (world, frame) of target holds that ended
+
+    def deliver_pending() -> int:
+        """Hands the pending frames over (one ``on_frames`` call) and routes their worlds on by
+        the answers; returns the number of target poses finished."""
+        worlds = [w for w, _ in pending]
+        f1 = time.perf_counter()
+        verdicts = deliver([f for _, f in pending])
+        f2 = time.perf_counter()
+        stats["record_deliver_s"] += f2 - f1
+        pending.clear()
+        for w, accepted in zip(worlds, verdicts):
+            streak[w] = 0
+            rejects[w] = 0 if accepted else rejects[w] + 1
+            if accepted and restart_to_kept:
+                last_kept[w] = last_good[w]  # the state saved for this hold
+            next_key = int(schedules[w][3][ptr[w]]) + 1
+            if (settings.restart_after_rejects > 0 and rejects[w] >= settings.restart_after_rejects
+                    and home[w] is not None and next_key < len(tasks[cur[w]].poses)):
+                rejects[w] = 0
+                stats["restarts_after_rejects"] += 1
+                if restart_to_kept and last_kept[w] is not None:
+                    stats["restarts_to_last_kept"] += 1
+                    restart_from(w, last_kept[w], next_key)
+                else:
+                    go_home(w, next_key)
+            else:
                 advance(w)
-                continue
-            if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS):
-                if held[w] >= settings.min_hold_frames:
-                    ready.append(w)
-                else:
-                    sim.restart([w])  # keep holding the pose
-        if ready:
-            # the worlds that finished together leave the device together and are handed over in one call
-            r0 = time.perf_counter()
-            positions = sim.worlds_positions(ready)
-            stats["record_copy_s"] += time.perf_counter() - r0
-            keyed = []
-            for j, w in enumerate(ready):
-                _, poses_w, kinds_w, _ = schedules[w]
-                kind = kinds_w[ptr[w]]
-                if settings.recover_explosions or kind == SETTLE or restart_to_kept:
-                    state = {"positions": positions[j].copy(), "pose": poses_w[ptr[w]],
-                             "vertices": body_now["vertices"][w].clone(), "skin": body_now["skin"][w].clone(),
-                             "rest": body_now["rest"][w].clone()}
-                    if settings.recover_explosions or restart_to_kept:
-                        last_good[w] = state
-                    if kind == SETTLE:
-                        home[w] = state
-                if kind == KEY:
-                    keyed.append(j)
-                else:
-                    advance(w)
-            if keyed:
-                worlds = [ready[j] for j in keyed]
-                f0 = time.perf_counter()
-                frames = frames_of(worlds, [schedules[w][3][ptr[w]] for w in worlds], positions[keyed],
-                                   [int(status[w]) for w in worlds])
-                f1 = time.perf_counter()
-                verdicts = deliver(frames)
-                stats["record_frames_s"] += f1 - f0
-                stats["record_deliver_s"] += time.perf_counter() - f1
-                for w, accepted in zip(worlds, verdicts):
-                    finished_keys += 1
-                    streak[w] = 0
-                    rejects[w] = 0 if accepted else rejects[w] + 1
-                    if accepted and restart_to_kept:
-                        last_kept[w] = last_good[w]  # the state saved above for this hold
-                    next_key = int(schedules[w][3][ptr[w]]) + 1
-                    if (settings.restart_after_rejects > 0 and rejects[w] >= settings.restart_after_rejects
-                            and home[w] is not None and next_key < len(tasks[cur[w]].poses)):
-                        rejects[w] = 0
-                        stats["restarts_after_rejects"] += 1
-                        if restart_to_kept and last_kept[w] is not None:
-                            stats["restarts_to_last_kept"] += 1
-                            restart_from(w, last_kept[w], next_key)
-                        else:
-                            go_home(w, next_key)
-                    else:
+        stats["record_route_s"] += time.perf_counter() - f2
+        return len(worlds)
+
+    def pose_ahead(idx: np.ndarray | None) -> dict[str, torch.Tensor] | None:
+        """Bodies of the worlds in ``idx`` at their current entries (None: only tops up the
+        buffers of every world that needs it, ahead of the next frame)."""
+        calls, bodies, model_s = ahead.calls, ahead.bodies, ahead.model_s
+        if idx is None:
+            ahead.prefetch(schedules, ptr, ~done)
+            posed = None
+        else:
+            posed = ahead.get(idx, schedules, ptr, ~done)
+        stats["body_calls"] += ahead.calls - calls
+        stats["bodies_posed"] += ahead.bodies - bodies
+        stats["body_model_s"] += ahead.model_s - model_s
+        return posed
+
+    with streams.stepping():
+        while not done.all() or pending:
+            t0 = time.perf_counter()
+            if changed.any():
+                idx = np.nonzero(changed)[0]
+                posed = pose_ahead(idx)
+                idx_t = torch.as_tensor(idx, device=torch_device)
+                for name in ("vertices", "skin", "rest"):
+                    body_now[name][idx_t] = posed[name]
+                b0 = time.perf_counter()
+                collider.set_target(body_now["vertices"])
+                stats["body_target_s"] += time.perf_counter() - b0
+                sim.restart(changed & ~done)
+                changed[:] = False
+            ran = sim.status == WorldStatus.RUNNING  # the worlds this frame advances
+            if not ran.any() and not pending:
+                raise RuntimeError("run_sequences stalled: no world is running and no frame is pending "
+                                   f"({int((~done).sum())} worlds not done)")
+            t1 = time.perf_counter()
+            stats["body_s"] += t1 - t0
+            if ran.any():
+                sim.launch_frame()
+            t2 = time.perf_counter()
+            finished_keys = 0
+            if pending:  # beside the frame in flight
+                finished_keys += deliver_pending()
+                t3 = time.perf_counter()
+                stats["record_s"] += t3 - t2
+                pose_ahead(None)  # the worlds routed on need their next bodies: posed now, not before the next launch
+                stats["body_prefetch_s"] += time.perf_counter() - t3
+                stats["body_s"] += time.perf_counter() - t3
+            if ran.any():
+                t4 = time.perf_counter()
+                status = sim.finish_frame()
+                stats["sim_s"] += time.perf_counter() - t4 + (t2 - t1)
+                stats["frames"] += 1
+                stats["world_frames"] += int(ran.sum())
+                held[ran] += 1
+                busy = np.nonzero(ran)[0]
+                kinds_now = np.fromiter((schedules[w][2][ptr[w]] for w in busy), dtype=np.int64, count=len(busy))
+                for name, kind in (("transition_world_frames", TRANSITION), ("hold_world_frames", KEY),
+                                   ("settle_world_frames", SETTLE)):
+                    stats[name] += int((kinds_now == kind).sum())
+                ready = []  # worlds whose hold (settle or target pose) ended this frame
+                for w in busy:
+                    kind = schedules[w][2][ptr[w]]
+                    st = int(status[w])
+                    if st == WorldStatus.EXPLODED:
+                        q0 = time.perf_counter()
+                        finished_keys += handle_explosion(w, st)
+                        stats["recover_s"] += time.perf_counter() - q0
+                        continue
+                    if kind == TRANSITION:
                         advance(w)
-            stats["record_s"] += time.perf_counter() - r0
-        if on_progress is not None:  # every frame (also with 0), so heartbeats can fire during long holds
-            on_progress(finished_keys)
-        stats["loop_s"] += time.perf_counter() - t0
-        for k, n in sim.explosion_causes.items():
-            stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
+                        continue
+                    if st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS):
+                        if held[w] >= settings.min_hold_frames:
+                            ready.append(w)
+                        else:
+                            sim.restart([w])  # keep holding the pose
+                if ready:
+                    # the worlds that finished together leave the device together and are handed over
+                    # in one call, beside the next frame
+                    r0 = time.perf_counter()
+                    positions = sim.worlds_positions(ready)
+                    stats["record_copy_s"] += time.perf_counter() - r0
+                    keyed = []
+                    for j, w in enumerate(ready):
+                        _, poses_w, kinds_w, _ = schedules[w]
+                        kind = kinds_w[ptr[w]]
+                        if settings.recover_explosions or kind == SETTLE or restart_to_kept:
+                            state = {"positions": positions[j].copy(), "pose": poses_w[ptr[w]],
+                                     "vertices": body_now["vertices"][w].clone(), "skin": body_now["skin"][w].clone(),
+                                     "rest": body_now["rest"][w].clone()}
+                            if settings.recover_explosions or restart_to_kept:
+                                last_good[w] = state
+                            if kind == SETTLE:
+                                home[w] = state
+                        if kind == KEY:
+                            keyed.append(j)
+                        else:
+                            advance(w)
+                    if keyed:
+                        worlds_k = [ready[j] for j in keyed]
+                        f0 = time.perf_counter()
+                        frames = frames_of(worlds_k, [schedules[w][3][ptr[w]] for w in worlds_k], positions[keyed],
+                                           [int(status[w]) for w in worlds_k])
+                        stats["record_frames_s"] += time.perf_counter() - f0
+                        pending.extend(zip(worlds_k, frames))  # frozen (converged) until handed over
+                    stats["record_s"] += time.perf_counter() - r0
+            if on_progress is not None:  # every frame (also with 0), so heartbeats can fire during long holds
+                on_progress(finished_keys)
+            stats["loop_s"] += time.perf_counter() - t0
+            for k, n in sim.explosion_causes.items():
+                stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
     return stats
 
 

@@ -254,6 +254,38 @@ def test_rerouting_a_schedule_equals_planning_it_afresh():
             np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}, route planned with the others")
 
 
+def test_a_task_planned_with_others_visits_and_routes_as_planned_alone():
+    """run_sequences plans the schedule of a world's next task and its routes home in one batched
+    call with other tasks' (``_plans_from``): each task's visiting schedule equals
+    ``_visit_entries`` from the same start and its routes equal ``_routes_from`` alone."""
+    from simulate.sequence import KEY, _plans_from, _routes_from, _visit_entries
+
+    rng = np.random.default_rng(2)
+
+    def make(n, scale):
+        return SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)),
+                            shape=rng.normal(0.5, 0.1, 6).astype(np.float32),
+                            poses=rng.normal(0.0, scale, (n, 60)).astype(np.float32))
+
+    tasks = [make(7, 0.6), make(12, 0.4), make(1, 0.3)]
+    starts = [rng.normal(0.0, 0.3, 60).astype(np.float32) for _ in tasks]
+    plans = _plans_from(tasks, starts, 0.1)
+    for task, start, (visit, routes) in zip(tasks, starts, plans):
+        fresh = _visit_entries(task, 0, start, 0.1)
+        assert len(visit) == len(fresh)
+        for a, b in zip(visit, fresh):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+        alone = _routes_from([task], [start], 0.1)[0]
+        assert len(routes) == len(alone) == len(task.poses)
+        for a, b in zip(routes, alone):
+            np.testing.assert_array_equal(a, b)
+    # a route ends at its target, a visit holds every target once, in order
+    visit, routes = plans[1]
+    np.testing.assert_array_equal(np.stack([r[-1] for r in routes]), tasks[1].poses)
+    assert visit[3][visit[2] == KEY].tolist() == list(range(len(tasks[1].poses)))
+
+
 def test_frames_handed_over_together_are_the_frames_handed_over_one_by_one(scene):
     """on_frames gets the frames that finished in the same simulator frame in one list (positions and
     bodies gathered in one copy each); the frames, and what each answer does, are on_frame's."""
@@ -358,3 +390,49 @@ def test_worlds_take_their_groups_next_task_when_one_is_done(scene):
     assert errors[0] < 1e-4 and max(errors) < 5e-3, errors
     with pytest.raises(ValueError, match="must be at least the number of task groups"):
         run(tasks, 1)
+
+
+def _cuda_available() -> bool:
+    import warp as wp
+
+    wp.init()
+    return wp.get_cuda_device_count() > 0
+
+
+@pytest.mark.skipif(not _cuda_available(), reason="needs a CUDA device")
+def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream(scene):
+    """On CUDA the frame loop steps on a stream of its own while the previous frame's target frames
+    are handed over, rejected worlds sent home (device copies queued behind the frame in flight) and
+    the next bodies posed in torch. Every frame, through trips home and recovered explosions, is bit
+    for bit the frame of a run with every launch on the device's one stream."""
+    body, template, start, canonical, small, _ = scene
+    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
+    keys = [[bent, small, bent, canonical], [small, canonical, bent, small], [small, bent, small, bent]]
+    tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                          shape=np.asarray(body.shape_default, np.float32), poses=np.stack(k)) for k in keys]
+
+    def run(concurrent: bool):
+        settings = SequenceSettings(
+            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                            explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
+            shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1,
+            concurrent_streams=concurrent)
+        frames = []
+
+        def on_frames(batch):
+            frames.extend(batch)
+            return [f.key % 2 == 1 for f in batch]  # even keys rejected: their worlds go home
+
+        stats = run_sequences(body, template.faces, tasks, body_faces=body.part_faces(("torso", "arms")),
+                              settings=settings, device="cuda:0", on_frames=on_frames)
+        return sorted(frames, key=lambda f: (f.task, f.key)), stats
+
+    frames, stats = run(True)
+    reference, ref_stats = run(False)
+    # on the CPU this scenario sends worlds home 3 times and recovers 5 explosions (the bend at 3 m/s)
+    assert stats["restarts_after_rejects"] >= 2 and stats["recoveries"] >= 1, stats
+    assert [(f.task, f.key, f.status, f.frames) for f in frames] == [(f.task, f.key, f.status, f.frames) for f in reference]
+    for a, b in zip(frames, reference):
+        np.testing.assert_array_equal(a.positions, b.positions, err_msg=f"task {a.task} key {a.key}")
+        np.testing.assert_array_equal(a.body_vertices, b.body_vertices, err_msg=f"task {a.task} key {a.key}")
+    assert stats["frames"] == ref_stats["frames"]

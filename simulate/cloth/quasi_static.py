@@ -229,6 +229,7 @@ class QuasiStaticSimulator:
                                    and getattr(self.solver, "self_contact", None) is None
                                    and self.solver.contact_detect_every == 1)
         self._cpu_graphs: tuple | None = None
+        self._launched_running: np.ndarray | None = None
 
     # ----------------------------------------------------------------- stepping
     def _simulate_frame(self, *, cpu_graphs: tuple | None = None) -> None:
@@ -298,8 +299,19 @@ class QuasiStaticSimulator:
 
     def step_frame(self) -> np.ndarray:
         """Advance every RUNNING world by one frame; returns the per-world status array."""
+        self.launch_frame()
+        return self.finish_frame()
+
+    def launch_frame(self) -> None:
+        """Queues one frame of every RUNNING world on the device's current stream and returns
+        without waiting for it (on CUDA; on the CPU the frame runs here). ``finish_frame`` waits
+        for it and updates the statuses. In between, host work goes on beside the device: the
+        worlds that did not run (``launched_running`` False) may be revived or restarted, and
+        device work queued on the same stream runs after the frame."""
+        if self._launched_running is not None:
+            raise RuntimeError("launch_frame called twice without finish_frame")
         self._sync_active()
-        running = self.status == WorldStatus.RUNNING
+        self._launched_running = self.status == WorldStatus.RUNNING
         if self._use_graph:
             if self._graph is None:
                 # The first frame runs eagerly so every kernel is compiled and loaded before capture.
@@ -325,6 +337,20 @@ class QuasiStaticSimulator:
                 self._simulate_frame(cpu_graphs=self._cpu_graphs)
         else:
             self._simulate_frame()
+
+    @property
+    def launched_running(self) -> np.ndarray | None:
+        """Worlds the frame in flight advances, (world_count,) bool; None when no frame is in flight."""
+        return self._launched_running
+
+    def finish_frame(self) -> np.ndarray:
+        """Waits for the frame queued by ``launch_frame`` and returns the per-world status array.
+        Only the worlds that ran in it change status; a world revived or restarted meanwhile keeps
+        what that gave it."""
+        running = self._launched_running
+        if running is None:
+            raise RuntimeError("finish_frame called without launch_frame")
+        self._launched_running = None
         self.frame_count += 1
         speed = self.world_max_speed.numpy()
         bad = self.world_bad.numpy()
