@@ -10,6 +10,10 @@ phase timings, the projected time for the full spec's target frames at the slice
 full spec whose worlds stay busy (``projected_packed_stepping_s``), the issue's target measure
 (``kept_frames_per_s`` and ``projected_target_kept_s``: the time to keep TailorNet's 55,800
 frames at the slice's rates, against ``target_s`` = 600), plus the audit's error distribution.
+On CUDA the frame loop delivers one frame's targets while the next steps, so ``sim_s`` and
+``ms_per_world_frame`` count only the stepping the host still waited for, not all of it.
+
+    bash bench/device_suite.sh dataset-full OUT   # the whole spec in 30-pose tasks, cut by T seconds
 """
 from __future__ import annotations
 
@@ -53,8 +57,9 @@ def main() -> None:
                         help="diagnostic: sample the main thread's Python stack every 2 ms and write where the wall "
                              "time went (inclusive and leaf counts per function) to this file")
     args = parser.parse_args()
-    if args.sample_stacks:
-        StackSampler(args.sample_stacks).start()
+    sampler = StackSampler(args.sample_stacks) if args.sample_stacks else None
+    if sampler is not None:
+        sampler.start()
     if args.stub_frame_writes:
         stub_frame_writes()
     if args.switch_interval is not None:
@@ -121,6 +126,8 @@ def main() -> None:
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
     def report_partial() -> None:
         print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)), flush=True)
+        if sampler is not None:  # os._exit below skips atexit
+            sampler.write()
         if not args.keep:
             shutil.rmtree(out, ignore_errors=True)
 
@@ -219,6 +226,8 @@ class StackSampler:
                     self.inclusive[name] += 1
 
     def write(self) -> None:
+        if self._stop:  # written already (a run stopped by SIGTERM writes before it leaves)
+            return
         self._stop = True
         self._thread.join()
         result = {"interval_s": self.interval_s, "samples": self.samples,
@@ -282,6 +291,10 @@ def frame_split(phases: dict, targets: int) -> dict[str, float]:
             for k in ("transition", "hold", "settle")}
 
 
+#: Heartbeat entries that are progress, not run_sequences statistics.
+PROGRESS_KEYS = ("elapsed_s", "targets_done", "targets_total", "shards", "tasks", "kept_in_shards", "dropped_in_shards")
+
+
 def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_targets: int, wall: float) -> dict:
     """The bench's JSON for a run stopped before the end, from its last heartbeat (``beat``: see
     ``generate(on_heartbeat=...)``); rates are over the simulation so far, start-up excluded."""
@@ -296,10 +309,9 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,
-        "phases": {k: round(float(beat[k]), 3) for k in ("frames", "world_frames", "transition_world_frames",
-                                                         "hold_world_frames", "settle_world_frames", "sim_s", "body_s", "record_s",
-                                                         "recover_s", "loop_s", "recoveries", "body_calls", "exploded_non_finite",
-                                                         "exploded_speed", "exploded_stretch") if k in beat},
+        # every running count of run_sequences and generate-dataset (the record phase's parts too)
+        "phases": {k: round(float(v), 3) for k, v in beat.items()
+                   if k not in PROGRESS_KEYS and isinstance(v, (int, float)) and not isinstance(v, bool)},
         "world_frames_per_target": round(per_target, 1) if done else None,
         "ms_per_world_frame": round(ms, 3) if beat.get("frames") else None,
         # the filters' verdicts so far, over the shards already complete (``shards`` of ``tasks``)

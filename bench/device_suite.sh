@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|scale-probe|profile-dataset|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -73,6 +73,11 @@ case $stage in
     # EXTRA passes more bench flags, e.g. EXTRA="--sim contact.self_contact=true"
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-240} --test-poses 30 \
       --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ${EXTRA:-} ;;
+  dataset-full)
+    # the whole shipped spec (58,900 target poses) in 30-pose tasks that refill 256 worlds, cut by T seconds:
+    # the steady-state rate of the full job (the bench prints a partial JSON line when timeout stops it)
+    T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses 2600 --test-poses 179 \
+      --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-full ${KEEP:+--keep} ${EXTRA:-} ;;
   self-contact)
     # the same slice (20+20 pairs, POSES train poses per pair, 30-pose tasks) without and with self-contact:
     # what it does to the self-intersection drops, explosions and time; EXTRA passes more bench flags to both
