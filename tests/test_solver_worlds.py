@@ -79,6 +79,44 @@ def test_same_run_twice_gives_identical_arrays(device: str) -> None:
         assert np.array_equal(a, b, equal_nan=True), f"{name} differ between identical runs"
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_world_revived_while_a_frame_is_in_flight_keeps_its_new_state(device: str) -> None:
+    """launch_frame / finish_frame (what the sequence driver does between them): a world frozen
+    when the frame was launched and revived before it finished is not stepped by that frame, keeps
+    the RUNNING status and zero frame count revive gave it, and its positions are those put back;
+    the other worlds equal plain step_frame calls bit for bit. Misuse raises."""
+    settings = SimSettings(substeps=4, iterations=4, tolerance=0.02, max_frames=40)
+    runs = []
+    for split in (False, True):
+        model, collider = _sphere_scene(["cotton", "silk"], device)
+        sim = QuasiStaticSimulator(model, collider, settings=settings)
+        for _ in range(3):
+            sim.step_frame()
+        saved = sim.world_positions(1)
+        sim.status[1] = WorldStatus.CONVERGED  # frozen, as a world whose frame is being handed over
+        moved = saved + np.float32(0.01)
+        if split:
+            sim.launch_frame()
+            assert sim.launched_running.tolist() == [True, False]
+            sim.revive(1, moved)  # queued behind the frame in flight
+            status = sim.finish_frame()
+            assert sim.launched_running is None
+            assert status[1] == WorldStatus.RUNNING, "finish_frame overwrote the revived world's status"
+        else:
+            sim.step_frame()
+            sim.revive(1, moved)
+        assert sim.status[1] == WorldStatus.RUNNING and sim.world_frames[1] == 0
+        np.testing.assert_array_equal(sim.world_positions(1), moved, err_msg="the revived world was stepped")
+        runs.append(sim.positions()[model.world_slice(0)])
+    np.testing.assert_array_equal(runs[0], runs[1], err_msg="world 0 differs when stepped by launch/finish")
+    with pytest.raises(RuntimeError, match="finish_frame called without launch_frame"):
+        sim.finish_frame()
+    sim.launch_frame()
+    with pytest.raises(RuntimeError, match="launch_frame called twice"):
+        sim.launch_frame()
+    sim.finish_frame()
+
+
 @pytest.mark.parametrize("dt_scale", [1, 4])
 @pytest.mark.parametrize("relaxation", [1.0, 1.6])
 def test_stability_matrix_stiffness_dt_fabric(dt_scale: int, relaxation: float) -> None:
