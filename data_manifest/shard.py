@@ -31,7 +31,6 @@ import h5py
 import numpy as np
 
 from .schema import (
-    CanonicalTemplate,
     BODY_TRANSLATION,
     COMPRESSIONS,
     DROPPED_FRAME_INDEX,
@@ -56,6 +55,7 @@ from .schema import (
     TEMPLATE_GROUP,
     TMP_SUFFIX,
     UNPOSED_DISPLACEMENTS,
+    CanonicalTemplate,
     canonical_json,
     canonical_template,
     check_task_id,

@@ -241,6 +241,13 @@ def interpolate_sequence(keys: np.ndarray, start: np.ndarray, threshold: float) 
     keys = np.asarray(keys, np.float32).reshape(-1, POSE_SIZE)
     prev = np.concatenate([np.asarray(start, np.float32).reshape(1, POSE_SIZE), keys[:-1]])
     poses, segment = interpolate_segments(prev, keys, threshold)
+    return poses, segment_key_index(segment)
+
+
+def segment_key_index(segment: np.ndarray) -> np.ndarray:
+    """Key index of each row of consecutive segments (``interpolate_segments``' ``segment``, (M,)):
+    the segment's index on its last row (its key), -1 on the slerp'ed rows before it."""
+    segment = np.asarray(segment)
     is_key = np.ones(len(segment), dtype=bool)
     is_key[:-1] = segment[1:] != segment[:-1]  # a segment's last row is its key
-    return poses, np.where(is_key, segment, -1)
+    return np.where(is_key, segment, -1)

@@ -35,7 +35,7 @@ from simulate.body.base import BodyModel, PosedBody
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.contact import BodyCollider
-from simulate.poses import interpolate_segments, interpolate_sequence
+from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
 
 # Entry kinds of a world's schedule.
 TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
@@ -166,6 +166,12 @@ def _visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, t
     """Schedule entries visiting ``task.poses[first_key:stop]`` from ``start_pose``: (shapes (M,S),
     poses (M,60), kinds (M,), key index into ``task.poses`` (M,), -1 for slerp'ed poses)."""
     seq, key_index = interpolate_sequence(task.poses[first_key:stop], start_pose, threshold)
+    return _entries(task, seq, key_index, first_key)
+
+
+def _entries(task: SequenceTask, seq: np.ndarray, key_index: np.ndarray, first_key: int = 0):
+    """Schedule entries of the poses ``seq`` (M, 60) on the task's shape: target ``key_index +
+    first_key`` where ``key_index >= 0``, a slerp'ed transition pose elsewhere."""
     return (np.tile(task.shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
             np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + first_key, -1))
 
@@ -221,12 +227,7 @@ def _plans_from(tasks: list[SequenceTask], start_poses: list[np.ndarray], thresh
         visit = None
         if visits:
             a, b = bounds[first], bounds[first + n]
-            seq, seg = poses[a:b], segment[a:b] - first
-            is_key = np.ones(len(seg), dtype=bool)
-            is_key[:-1] = seg[1:] != seg[:-1]  # a segment's last row is its key
-            key_index = np.where(is_key, seg, -1)
-            visit = (np.tile(t.shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
-                     np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index, -1))
+            visit = _entries(t, poses[a:b], segment_key_index(segment[a:b] - first))
             first += n
         out.append((visit, [poses[a:b] for a, b in zip(bounds[first:first + n], bounds[first + 1:first + n + 1])]))
         first += n
@@ -302,13 +303,9 @@ class _PosedAhead:
         When a world in ``idx`` has run past its buffer, every ``active`` world with less than
         half a buffer left ahead is refilled in the same call: worlds advance at their own pace,
         so refilling only the one that ran out would call the body model almost every frame."""
-        stale = [int(w) for w in idx if self.owner[w] is not schedules[w]
-                 or not self.first[w] <= ptr[w] < self.first[w] + self.count[w]]
+        stale = self._stale(idx, schedules, ptr)
         if stale:
-            left = self.first + self.count - ptr  # buffered entries from ptr on
-            low = [int(w) for w in np.nonzero(active & (left < (self.depth + 1) // 2))[0]
-                   if self.owner[w] is schedules[w] and self.first[w] + self.count[w] < len(schedules[w][0])]
-            self._fill(sorted(set(stale) | set(low)), schedules, ptr)
+            self._fill(sorted(set(stale) | set(self._low(schedules, ptr, active))), schedules, ptr)
         device = self.buffers["vertices"].device
         w_t = torch.as_tensor(np.asarray(idx, np.int64), device=device)
         slot_t = torch.as_tensor(ptr[idx] - self.first[idx], device=device)
@@ -318,16 +315,21 @@ class _PosedAhead:
         """Fills, in one body-model call, the buffer of every ``active`` world that holds none of
         its current entries (a new schedule, or run past) or less than half a buffer ahead, so the
         next ``get`` finds them posed (the frame loop calls this while a frame is in flight)."""
-        worlds = []
-        for w in np.nonzero(active)[0]:
-            w = int(w)
-            if self.owner[w] is not schedules[w] or not self.first[w] <= ptr[w] < self.first[w] + self.count[w]:
-                worlds.append(w)
-            elif (self.first[w] + self.count[w] - ptr[w] < (self.depth + 1) // 2
-                  and self.first[w] + self.count[w] < len(schedules[w][0])):
-                worlds.append(w)
+        worlds = set(self._stale(np.nonzero(active)[0], schedules, ptr)) | set(self._low(schedules, ptr, active))
         if worlds:
-            self._fill(worlds, schedules, ptr)
+            self._fill(sorted(worlds), schedules, ptr)
+
+    def _stale(self, worlds, schedules: list, ptr: np.ndarray) -> list[int]:
+        """Worlds of ``worlds`` whose buffer holds no body for their current entry (a new schedule,
+        or run past)."""
+        return [int(w) for w in worlds if self.owner[w] is not schedules[w]
+                or not self.first[w] <= ptr[w] < self.first[w] + self.count[w]]
+
+    def _low(self, schedules: list, ptr: np.ndarray, active: np.ndarray) -> list[int]:
+        """``active`` worlds with less than half a buffer posed ahead and more of the schedule to pose."""
+        left = self.first + self.count - ptr  # buffered entries from ptr on
+        return [int(w) for w in np.nonzero(active & (left < (self.depth + 1) // 2))[0]
+                if self.owner[w] is schedules[w] and self.first[w] + self.count[w] < len(schedules[w][0])]
 
     def _fill(self, worlds: list[int], schedules: list, ptr: np.ndarray) -> None:
         spans = [(w, int(ptr[w]), min(int(ptr[w]) + self.depth, len(schedules[w][0]))) for w in worlds]
