@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from simulate.body.base import BodyModel, PosedBody
+from simulate.body.kinematics import to_device_async
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.contact import BodyCollider
@@ -307,8 +308,8 @@ class _PosedAhead:
         if stale:
             self._fill(sorted(set(stale) | set(self._low(schedules, ptr, active))), schedules, ptr)
         device = self.buffers["vertices"].device
-        w_t = torch.as_tensor(np.asarray(idx, np.int64), device=device)
-        slot_t = torch.as_tensor(ptr[idx] - self.first[idx], device=device)
+        w_t = to_device_async(np.asarray(idx, np.int64), device)
+        slot_t = to_device_async(ptr[idx] - self.first[idx], device)
         return {name: buf[w_t, slot_t] for name, buf in self.buffers.items()}
 
     def prefetch(self, schedules: list, ptr: np.ndarray, active: np.ndarray) -> None:
@@ -343,7 +344,7 @@ class _PosedAhead:
         w_idx = np.concatenate([np.full(b - a, w) for w, a, b in spans])
         slot = np.concatenate([np.arange(b - a) for _, a, b in spans])
         device = self.buffers["vertices"].device
-        w_t, slot_t = torch.as_tensor(w_idx, device=device), torch.as_tensor(slot, device=device)
+        w_t, slot_t = to_device_async(w_idx, device), to_device_async(slot, device)  # no wait for the posing just queued
         for name, value in (("vertices", posed.vertices), ("skin", posed.skinning_transforms), ("rest", posed.rest_vertices)):
             self.buffers[name][w_t, slot_t] = value
         for w, a, b in spans:
@@ -457,7 +458,8 @@ def run_sequences(
             body / record / explosion-recovery phases and in the whole loop (loop_s; the rest is
             bookkeeping and ``on_progress``; on CUDA the device steps a frame while the host delivers
             the last one's target frames and poses bodies, so sim_s is only the launch and the wait
-            left after that work, and body_s / record_s include work done beside a frame in flight), before the loop (setup_s: visiting orders and routes
+            left after that work (sim_launch_s: the launch alone), and body_s / record_s include work
+            done beside a frame in flight), before the loop (setup_s: visiting orders and routes
             setup_schedules_s, the batched cloth model setup_model_s, start bodies, collider and
             simulator setup_simulator_s), explosion recoveries, batched body-model calls
             (body_calls) with the bodies they posed (bodies_posed) and their wall time (body_model_s),
@@ -501,9 +503,11 @@ def run_sequences(
 
     def pose_bodies(shapes: np.ndarray, poses: np.ndarray) -> PosedBody:
         """Posed bodies as torch tensors on ``torch_device`` (they stay there: on CUDA the
-        collider takes them without a host round trip)."""
+        collider takes them without a host round trip). The host arrays go in as they are: the
+        body model checks them and tells the shapes apart on the host, and the posing is queued
+        on the GPU without the host waiting for it."""
         with torch.no_grad():
-            return poser.pose_torch(torch.as_tensor(shapes, device=torch_device), torch.as_tensor(poses, device=torch_device))
+            return poser.pose_torch(np.asarray(shapes, np.float32), np.asarray(poses, np.float32))
 
     builder = ClothBuilder()
     for t in cur:
@@ -528,7 +532,7 @@ def run_sequences(
     def frames_of(worlds: list[int], keys: list[int], positions: np.ndarray, statuses: list[int]) -> list[RecordedFrame]:
         """Frames of ``worlds`` at their current bodies, positions (n, V, 3) [m]: each body tensor
         leaves the device once for all of them (indexing copies, so the next frames cannot alias them)."""
-        idx_t = torch.as_tensor(np.asarray(worlds, np.int64), device=torch_device)
+        idx_t = to_device_async(np.asarray(worlds, np.int64), torch_device)
         body = {name: body_now[name][idx_t].cpu().numpy() for name in ("vertices", "skin", "rest")}
         return [RecordedFrame(int(cur[w]), int(k), positions[j], int(st), int(held[w]), body["vertices"][j], body["skin"][j],
                               body["rest"][j]) for j, (w, k, st) in enumerate(zip(worlds, keys, statuses))]
@@ -582,7 +586,7 @@ def run_sequences(
     streams = _FrameStreams(device, enabled=settings.concurrent_streams)
     stats = {} if stats is None else stats
     for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
-              "sim_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
+              "sim_s", "sim_launch_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
               "record_copy_s", "record_frames_s", "record_deliver_s", "record_route_s", "body_target_s",
               "body_prefetch_s", "plan_calls", "setup_s",
               "setup_schedules_s", "setup_model_s", "setup_simulator_s", "task_switches"):
@@ -762,7 +766,7 @@ def run_sequences(
             if changed.any():
                 idx = np.nonzero(changed)[0]
                 posed = pose_ahead(idx)
-                idx_t = torch.as_tensor(idx, device=torch_device)
+                idx_t = to_device_async(idx, torch_device)
                 for name in ("vertices", "skin", "rest"):
                     body_now[name][idx_t] = posed[name]
                 b0 = time.perf_counter()
@@ -791,6 +795,7 @@ def run_sequences(
                 t4 = time.perf_counter()
                 status = sim.finish_frame()
                 stats["sim_s"] += time.perf_counter() - t4 + (t2 - t1)
+                stats["sim_launch_s"] += t2 - t1
                 stats["frames"] += 1
                 stats["world_frames"] += int(ran.sum())
                 held[ran] += 1

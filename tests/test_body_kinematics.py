@@ -92,3 +92,22 @@ def test_forward_kinematics_takes_device_index_tensors():
     np.testing.assert_array_equal(skin_t.numpy(), skin.numpy())
     world_r, _ = kin.forward_kinematics(rot, rest_joints, torch.as_tensor(parents), levels=as_t[::-1])
     assert not torch.allclose(world_r, world), "children composed before their parents must differ"
+
+
+def _devices():
+    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def test_to_device_async_copies_values_that_later_host_writes_do_not_reach():
+    for device in _devices():
+        host = np.arange(12, dtype=np.int64).reshape(3, 4)
+        moved = kin.to_device_async(host, device)
+        assert moved.device.type == device and moved.dtype == torch.int64
+        if device == "cuda":  # the copy is queued, not done: it must have taken the values already
+            host[:] = -1
+        assert moved.cpu().tolist() == np.arange(12).reshape(3, 4).tolist()
+        as_float = kin.to_device_async(torch.arange(3), device, dtype=torch.float32)
+        assert as_float.dtype == torch.float32 and as_float.cpu().tolist() == [0.0, 1.0, 2.0]
+        grad = torch.ones(2, requires_grad=True)
+        kin.to_device_async(grad, device).sum().backward()  # stays on the autograd graph
+        assert grad.grad.tolist() == [1.0, 1.0]

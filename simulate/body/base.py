@@ -160,8 +160,10 @@ class BodyModel(abc.ABC):
         return self.skinning_weights_t.numpy()
 
     # ------------------------------------------------------------ validation
-    def check_shape(self, shape, *, field: str = "shape") -> torch.Tensor:
-        """Returns shape as a float32 tensor (B, S); raises naming the expected length."""
+    def check_shape(self, shape, *, field: str = "shape", move: bool = True) -> torch.Tensor:
+        """Returns shape as a float32 tensor (B, S) on the model's device (``move=False``: where it
+        was given, the CPU for numpy); raises naming the expected length. Host values are checked
+        on the host and reach a GPU model without a host-device synchronisation."""
         t = kin.as_torch(shape) if not isinstance(shape, torch.Tensor) else shape.float()
         given = tuple(t.shape)
         if t.dim() == 1:
@@ -173,10 +175,12 @@ class BodyModel(abc.ABC):
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")
-        return t.to(getattr(self, "device", t.device))
+        return kin.to_device_async(t, getattr(self, "device", t.device)) if move else t
 
     def check_pose(self, pose, *, field: str = "pose") -> torch.Tensor:
-        """Returns pose as a float32 tensor (B, 20, 3); accepts (60,), (20,3), (B,60), (B,20,3)."""
+        """Returns pose as a float32 tensor (B, 20, 3) on the model's device; accepts (60,), (20,3),
+        (B,60), (B,20,3). Host values are checked on the host and reach a GPU model without a
+        host-device synchronisation."""
         t = kin.as_torch(pose) if not isinstance(pose, torch.Tensor) else pose.float()
         given = tuple(t.shape)
         if t.dim() == 1 or (t.dim() == 2 and t.shape == (POSE_JOINT_COUNT, 3)):
@@ -191,7 +195,7 @@ class BodyModel(abc.ABC):
             )
         if not torch.isfinite(t).all():
             raise ValueError(f"{field} contains non-finite values")
-        return t.to(getattr(self, "device", t.device))
+        return kin.to_device_async(t, getattr(self, "device", t.device))
 
     def pose_from_dict(self, rotations: dict[str, object]) -> np.ndarray:
         """Builds a (60,) pose from {joint name: axis-angle (3,)}; unknown names raise."""
@@ -251,9 +255,10 @@ class BodyModel(abc.ABC):
         arrives in, so a body does not depend on which run or batch first asked for its shape."""
         cache = self.__dict__.setdefault("_rest_cache", {})
         rows = shapes.detach().cpu().numpy()
+        device = str(getattr(self, "device", shapes.device))
         kept_v, kept_j = [], []
         for row in rows:
-            key = (str(shapes.device), str(shapes.dtype), row.tobytes())
+            key = (device, str(shapes.dtype), row.tobytes())
             hit = cache.get(key)
             if hit is None:
                 if len(cache) >= REST_CACHE_SIZE:
@@ -267,18 +272,21 @@ class BodyModel(abc.ABC):
 
     def pose_torch(self, shape, pose, translation=None) -> PosedBody:
         """Differentiable posing in torch; shape (B,S) or (S,), pose (B,60) or (60,) broadcast."""
-        shape_t = self.check_shape(shape)
+        shape_t = self.check_shape(shape, move=False)
         pose_t = self.check_pose(pose)
         batch = max(shape_t.shape[0], pose_t.shape[0])
         if shape_t.shape[0] not in (1, batch) or pose_t.shape[0] not in (1, batch):
             raise ValueError(f"shape batch ({shape_t.shape[0]}) and pose batch ({pose_t.shape[0]}) must match or be 1")
         if not shape_t.requires_grad:
             # batches repeat shapes (a dataset world poses one shape through many poses): the shape
-            # blend runs once per distinct shape and is kept (see _rest_kept)
+            # blend runs once per distinct shape and is kept (see _rest_kept). Shapes given on the
+            # host are told apart there: on a GPU, unique() waits for the device
             distinct, inverse = torch.unique(shape_t, dim=0, return_inverse=True)
             rest_vertices, rest_joints = self._rest_kept(distinct)
+            inverse = kin.to_device_async(inverse, rest_vertices.device)
             rest_vertices, rest_joints = rest_vertices[inverse], rest_joints[inverse]
         else:
+            shape_t = kin.to_device_async(shape_t, getattr(self, "device", shape_t.device))
             with one_thread_on_cpu(getattr(self, "device", "cpu")):
                 rest_vertices, rest_joints = self._rest_torch(shape_t)
         rest_vertices = rest_vertices.expand(batch, -1, -1)

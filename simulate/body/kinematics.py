@@ -28,6 +28,24 @@ def as_torch(x: Any, *, dtype: torch.dtype = torch.float32, device: torch.device
     return torch.as_tensor(np.asarray(x), dtype=dtype, device=device)
 
 
+def to_device_async(x: Any, device: torch.device | str, *, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``x`` (numpy or a CPU tensor) on torch ``device`` without making the host wait.
+
+    A copy from ordinary (pageable) host memory to a GPU waits until the stream's earlier work is
+    done; in the dataset's frame loop that is the body posing and the filters queued a moment
+    before, which share the GPU with a frame in flight. The values go through page-locked memory
+    instead (torch's pinned-memory cache keeps the block until the copy has run) and the copy is
+    queued on the current stream. Tensors already on ``device`` are returned as they are (cast to
+    ``dtype`` when given)."""
+    t = x if isinstance(x, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(x))
+    if dtype is not None and t.dtype != dtype:
+        t = t.to(dtype)
+    device = torch.device(device)
+    if device.type != "cuda" or t.device.type != "cpu" or t.requires_grad:
+        return t.to(device)
+    return t.pin_memory().to(device, non_blocking=True)
+
+
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues' formula, safe at zero angle (first-order Taylor expansion there).
 
