@@ -616,6 +616,54 @@ class ShardWriter:
         return self.record
 
 
+class ShardWriterSet:
+    """The open shard writers of one batch of tasks, keyed by the caller (a task index), sharing
+    one canonical template and the output options.
+
+    Made on the shard-writing worker (``BackgroundWriter.create``), so a worker process gets the
+    template once per batch instead of with each of a batch's ~2,000 shards, and checks and hashes
+    it there. ``close`` hands back the shard's manifest record; ``abort`` deletes the temporary
+    files of every shard not closed (``BackgroundWriter.close(cleanup=ShardWriterSet.abort)``)."""
+
+    def __init__(self, root: str | os.PathLike[str], template: Mapping[str, Any] | CanonicalTemplate, *,
+                 precision: str = "float32", compression: str = "gzip") -> None:
+        self.root = Path(root)
+        self.template = template if isinstance(template, CanonicalTemplate) else CanonicalTemplate.of(template)
+        self.precision, self.compression = precision, compression
+        self.writers: dict[Any, ShardWriter] = {}
+
+    def open(self, key: Any, task: Mapping[str, Any]) -> None:
+        """Starts the shard of ``task`` (see ``ShardWriter``: ``task_id`` names the file) under ``key``."""
+        if key in self.writers:
+            raise ValueError(f"shard key {key!r} is already open (task {self.writers[key].task_id!r})")
+        self.writers[key] = ShardWriter(shard_path(self.root, str(task["task_id"])), template=self.template, task=task,
+                                        precision=self.precision, compression=self.compression)
+
+    def write_frame(self, key: Any, *args: Any, **kwargs: Any) -> dict:
+        """``ShardWriter.write_frame`` of the shard under ``key``."""
+        return self.writers[key].write_frame(*args, **kwargs)
+
+    def record_dropped(self, key: Any, *args: Any, **kwargs: Any) -> None:
+        """``ShardWriter.record_dropped`` of the shard under ``key``."""
+        self.writers[key].record_dropped(*args, **kwargs)
+
+    def close(self, key: Any, *, started_at: float | None = None) -> ShardRecord:
+        """Finishes the shard under ``key`` and forgets it; ``started_at`` (``time.time()`` when the
+        batch began) sets the record's ``timings["wall_s"]``."""
+        writer = self.writers[key]
+        if started_at is not None:
+            writer.timings["wall_s"] = time.time() - started_at
+        record = writer.close()
+        del self.writers[key]
+        return record
+
+    def abort(self) -> None:
+        """Deletes the temporary file of every shard not closed (after a failure)."""
+        for writer in self.writers.values():
+            writer.abort()
+        self.writers.clear()
+
+
 # ---------------------------------------------------------------------------------------
 # Reading and checking
 # ---------------------------------------------------------------------------------------

@@ -209,8 +209,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     import torch
 
     from data_manifest.background import BackgroundWriter
-    from data_manifest.schema import CanonicalTemplate
-    from data_manifest.shard import ShardWriter, shard_path
+    from data_manifest.shard import ShardWriterSet
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
 
@@ -222,26 +221,31 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     on_body = index >= 0
     records = []
     remaining = [len(t.poses) for t in tasks]
-    t_start = time.perf_counter()
-    writers: dict[int, Any] = {}  # task index -> its shard's writer, made at the task's first frame
-    template = CanonicalTemplate.of(ctx.template_dict)  # checked and hashed once, not per shard
+    started_at = time.time()
+    # shards are written, closed and hashed by a worker of their own while the simulation goes on
+    # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
+    background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") else "thread")
+    shards = "shards"  # the ShardWriterSet's key on the worker
+    background.create(shards, ShardWriterSet, out_dir, ctx.template_dict, precision=spec["output"]["precision"],
+                      compression=spec["output"]["compression"])
+    written: dict[int, bool] = {}  # task index -> its shard is written here (False: finished in an earlier run)
 
-    def writer_of(i: int):
-        """The shard writer of task ``i`` (None when it finished in an earlier run)."""
-        if i not in writers:
+    def writes(i: int) -> bool:
+        """Whether task ``i``'s shard is written in this run; opens it on the worker at its first frame."""
+        if i not in written:
             t = tasks[i]
-            task_dict = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split],
-                         "seed": int(spec["seed"]), "shape": t.shape, "style": t.style_vector, "pair": int(t.pair),
-                         "style_index": int(t.style_index), "fabric": spec["garment"]["fabric"]}
-            writers[i] = None if t.task_id in skip else ShardWriter(
-                shard_path(out_dir, t.task_id), template=template, task=task_dict,
-                precision=spec["output"]["precision"], compression=spec["output"]["compression"])
-        return writers[i]
+            written[i] = t.task_id not in skip
+            if written[i]:
+                background.call(shards, ShardWriterSet.open, i, {
+                    "task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
+                    "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
+                    "fabric": spec["garment"]["fabric"]})
+        return written[i]
     filters = spec["filters"]
     weights = tmpl.skinning_weights
     from simulate.quality import triangle_areas
 
-    rest_areas = {t.style_index: triangle_areas(ctx.style_rest[t.style_index], tmpl.faces) for t in tasks}
+    rest_areas = {k: triangle_areas(ctx.style_rest[k], tmpl.faces) for k in {t.style_index for t in tasks}}
     unskin = _Unskinner(weights, ctx.device)
 
     def record_frames(frames: list) -> list[bool]:
@@ -251,7 +255,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         reasons: dict[int, str | None] = {}
         metrics: dict[int, dict] = {}
         for i, frame in enumerate(frames):
-            if writer_of(frame.task) is not None:  # else finished in an earlier run
+            if writes(frame.task):  # else finished in an earlier run
                 # the status filters first: a frame they drop needs no geometric metrics
                 reasons[i] = status_drop_reason(bool(np.isfinite(frame.positions).all()), frame.status, filters)
         measured = [i for i, r in reasons.items() if r is None]
@@ -274,29 +278,26 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
-            writer = writer_of(frame.task)
             if reason is None:
                 x = np.asarray(frame.positions, np.float64)
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
-                background.submit(writer.write_frame, x, unposed[unposed_row[i]] - base, t.poses[frame.key], row,
-                                  frame_index=int(frame.key), pose_id=np.array([t.pose_ids[frame.key]], np.float32))
+                background.call(shards, ShardWriterSet.write_frame, frame.task, x, unposed[unposed_row[i]] - base,
+                                t.poses[frame.key], row, frame_index=int(frame.key),
+                                pose_id=np.array([t.pose_ids[frame.key]], np.float32))
             else:
-                background.submit(writer.record_dropped, reason, frame_index=int(frame.key), pose=t.poses[frame.key])
+                background.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
+                                pose=t.poses[frame.key])
             remaining[frame.task] -= 1
             if remaining[frame.task] == 0:
-                background.submit_collect(close_shard, writer)
+                background.call_collect(shards, ShardWriterSet.close, frame.task, started_at=started_at)
         list_finished(background.completed())
         phases = ctx.phases
         for key, seconds in (("record_meter_s", t_unskin - t_meter), ("record_unskin_s", t_submit - t_unskin),
                              ("record_submit_s", time.perf_counter() - t_submit)):
             phases[key] = phases.get(key, 0.0) + seconds
         return [reasons.get(i) is None for i in range(len(frames))]
-
-    def close_shard(writer):
-        writer.timings["wall_s"] = time.perf_counter() - t_start
-        return writer.close()
 
     def list_finished(finished: list) -> None:
         for record in finished:
@@ -306,8 +307,6 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
 
     seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
                               shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
-    # shards are written, closed and hashed on a thread of their own while the simulation goes on
-    background = BackgroundWriter()
     try:
         with torch.no_grad():
             if ctx.phases is None:
@@ -319,10 +318,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         list_finished(background.close())
         ctx.phases["writer_busy_s"] = ctx.phases.get("writer_busy_s", 0.0) + background.busy_s
     except BaseException:
-        background.close(raise_error=False)
-        for w in writers.values():
-            if w is not None and w.record is None:
-                w.abort()
+        background.close(raise_error=False, cleanup=ShardWriterSet.abort)  # no temporary file stays behind
         raise
     return [r if isinstance(r, dict) else r.to_dict() if hasattr(r, "to_dict") else r for r in records]
 

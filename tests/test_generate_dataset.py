@@ -207,6 +207,18 @@ def test_kill_then_resume_equals_uninterrupted_run(reference, tmp_path):
     assert _shard_hashes(out) == _shard_hashes(reference), "resumed dataset differs from the uninterrupted one"
 
 
+def test_shards_written_by_a_worker_process_equal_the_threads(reference, tmp_path, monkeypatch):
+    from data_manifest.background import MODE_ENV
+    from pipelines.generate_dataset import generate
+
+    monkeypatch.setenv(MODE_ENV, "process")  # the GPU runs' writer (the CPU default is a thread)
+    manifest = generate(_with(), tmp_path, progress=False, log=lambda m: None)
+    assert _shard_hashes(tmp_path) == _shard_hashes(reference)
+    assert all(s["timings"]["wall_s"] > 0 for s in manifest.shards), "the worker sets each shard's wall time"
+    assert validate_dataset(tmp_path).ok
+    assert not list(tmp_path.rglob("*.tmp*")), "no temporary file stays behind"
+
+
 def test_ray_executor_matches_local(reference, tmp_path):
     pytest.importorskip("ray")
     from pipelines.generate_dataset import generate

@@ -18,6 +18,7 @@ import pytest
 from data_manifest.schema import FLOAT16_ERROR_BOUND_M, TMP_SUFFIX
 from data_manifest.shard import (
     ShardWriter,
+    ShardWriterSet,
     check_shard_layout,
     decode_positions,
     file_sha256,
@@ -334,3 +335,26 @@ def test_dropped_frames_are_logged_with_their_pose_and_reason(tmp_path):
         writer.write_frame(**frames[2], frame_index=0)
     with h5py.File(unlogged, "r") as handle:
         assert "dropped" not in handle and check_shard_layout(handle) == []
+
+
+def test_a_writer_set_writes_the_bytes_of_lone_writers_and_aborts_only_the_shards_left_open(tmp_path):
+    frames = frames_for(3)
+    lone = write_frames(shard_path(tmp_path / "lone", "task-0"), frames)
+    shards = ShardWriterSet(tmp_path / "set", tube_template())
+    for key, task_id in ((0, "task-0"), (1, "task-1")):
+        shards.open(key, make_task(task_id))
+    with pytest.raises(ValueError, match=r"shard key 1 is already open \(task 'task-1'\)"):
+        shards.open(1, make_task("task-1"))
+    for k, frame in enumerate(frames):
+        for key in (0, 1):
+            shards.write_frame(key, **frame, frame_index=3 * k)
+    shards.record_dropped(0, "penetration", 2)
+    started = time.time() - 5.0
+    record = shards.close(0, started_at=started)
+    assert record.sha256 == lone.record.sha256 == file_sha256(shard_path(tmp_path / "set", "task-0"))
+    assert 5.0 <= record.timings["wall_s"] < 60.0
+    assert list(shards.writers) == [1]
+    shards.abort()  # task-1 was never closed: its temporary file goes, the closed shard stays
+    assert sorted(p.name for p in (tmp_path / "set").rglob("*")) == sorted(
+        p.name for p in [shard_path(tmp_path / "set", "task-0"), shard_path(tmp_path / "set", "task-0").parent])
+    assert not shards.writers
