@@ -60,13 +60,20 @@ def main() -> None:
                         help="seconds between stack samples; Python's thread switch interval is lowered to a quarter "
                              "of it so the sampler gets the GIL in time (at 0.002 s that slowed a full-spec run from 90 "
                              "to 70 target poses/s on an H100; 0.02 leaves Python's default 0.005 s)")
+    parser.add_argument("--writer", choices=("thread", "process"), default=None,
+                        help="the shard writer's worker (default: a process on CUDA, a thread on the CPU; sets "
+                             "$DRAPE_SHARD_WRITER, see data_manifest.background)")
     args = parser.parse_args()
+    if args.writer is not None:
+        os.environ["DRAPE_SHARD_WRITER"] = args.writer
     if args.sample_interval <= 0:
         raise SystemExit(f"--sample-interval must be > 0 s (got {args.sample_interval})")
     sampler = StackSampler(args.sample_stacks, args.sample_interval) if args.sample_stacks else None
     if sampler is not None:
         sampler.start()
     if args.stub_frame_writes:
+        if args.writer != "thread":
+            raise SystemExit("--stub-frame-writes patches the shard writer in this process: use it with --writer thread")
         stub_frame_writes()
     if args.switch_interval is not None:
         sys.setswitchinterval(args.switch_interval)
@@ -163,7 +170,7 @@ def main() -> None:
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
         "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim, "filter_overrides": args.filter,
-        "stub_frame_writes": args.stub_frame_writes, "switch_interval": sys.getswitchinterval(),
+        "stub_frame_writes": args.stub_frame_writes, "writer": args.writer or "default", "switch_interval": sys.getswitchinterval(),
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
         "target_frames_per_s": round(fps, 2), "keep_rate": round(keep_rate, 3),
@@ -194,8 +201,9 @@ def main() -> None:
 class StackSampler:
     """Diagnostic wall-clock profiler: a daemon thread samples the main thread's Python stack every
     ``interval_s`` and, at exit, writes how many samples each function was on the stack
-    (inclusive) and on top of it (leaf) to ``path`` as JSON. Unlike cProfile it charges waits
-    inside C calls (device syncs, copies, the GIL) to the Python function that made them."""
+    (inclusive), on top of it (leaf) and, per source line, how many samples were in it (lines) to
+    ``path`` as JSON. Unlike cProfile it charges waits inside C calls (device syncs, copies, the
+    GIL) to the Python function and line that made them."""
 
     def __init__(self, path: str, interval_s: float = 0.002) -> None:
         import collections
@@ -204,6 +212,7 @@ class StackSampler:
         self.path, self.interval_s = path, interval_s
         self.inclusive: collections.Counter = collections.Counter()
         self.leaf: collections.Counter = collections.Counter()
+        self.lines: collections.Counter = collections.Counter()  # file:line on the stack (which line of a loop waits)
         self.samples = 0
         self._main = threading.main_thread().ident
         self._stop = False
@@ -220,16 +229,19 @@ class StackSampler:
         while not self._stop:
             time.sleep(self.interval_s)
             frame = sys._current_frames().get(self._main)
-            names = []
+            names, lines = [], []
             while frame is not None:
                 code = frame.f_code
                 names.append(f"{Path(code.co_filename).name}:{code.co_name}:{code.co_firstlineno}")
+                lines.append(f"{Path(code.co_filename).name}:{frame.f_lineno}")
                 frame = frame.f_back
             if names:
                 self.samples += 1
                 self.leaf[names[0]] += 1
                 for name in set(names):
                     self.inclusive[name] += 1
+                for line in set(lines):
+                    self.lines[line] += 1
 
     def write(self) -> None:
         if self._stop:  # written already (a run stopped by SIGTERM writes before it leaves)
@@ -237,7 +249,8 @@ class StackSampler:
         self._stop = True
         self._thread.join()
         result = {"interval_s": self.interval_s, "samples": self.samples,
-                  "inclusive": self.inclusive.most_common(120), "leaf": self.leaf.most_common(80)}
+                  "inclusive": self.inclusive.most_common(120), "leaf": self.leaf.most_common(80),
+                  "lines": self.lines.most_common(200)}
         Path(self.path).write_text(json.dumps(result, indent=1))
 
 
@@ -311,7 +324,7 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
         "bench": "dataset", "complete": False, "spec": args.spec, "device": spec["simulation"]["device"],
         "worlds": spec["simulation"]["worlds"], "resolution": spec["garment"]["resolution"],
         "sim_overrides": args.sim, "filter_overrides": args.filter,
-        "stub_frame_writes": args.stub_frame_writes, "switch_interval": sys.getswitchinterval(), "wall_s": round(wall, 2),
+        "stub_frame_writes": args.stub_frame_writes, "writer": args.writer or "default", "switch_interval": sys.getswitchinterval(), "wall_s": round(wall, 2),
         "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),
         "projected_full_s": round(full_targets / fps, 1) if fps > 0 else None, "full_spec_target_frames": full_targets,

@@ -9,9 +9,10 @@ log="$out/$stage.log"; jl="$out/$stage.jsonl"
 run() { echo "+ $*" >>"$log"; timeout "${T:-400}" "$@" >>"$log" 2>&1; echo "rc=$?" >>"$log"; }
 case $stage in
   tests)
-    T=300 run python -m pytest -q -p no:cacheprovider tests/test_cloth_oracles.py tests/test_cloth_builder.py \
+    T=420 run python -m pytest -q -p no:cacheprovider tests/test_cloth_oracles.py tests/test_cloth_builder.py \
       tests/test_solver_worlds.py tests/test_contact_collider.py tests/test_contact_self.py tests/test_quality.py \
-      tests/test_learn_common.py tests/test_tailornet_model.py tests/test_body_anny.py ;;
+      tests/test_learn_common.py tests/test_tailornet_model.py tests/test_body_anny.py tests/test_body_kinematics.py \
+      tests/test_sequence.py ;;
   sim)
     T=200 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 1 4 16 64 128 256 512 --frames 20 --out "$jl"
     T=150 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 64 --relax --max-frames 400 --out "$jl"
