@@ -12,7 +12,7 @@ from .schema import (
     MissingShardError,
     template_sha256,
 )
-from .shard import ShardRecord, ShardWriter, remove_orphan_temporaries, shard_path
+from .shard import ShardRecord, ShardWriter, ShardWriterSet, remove_orphan_temporaries, shard_path
 from .validate import Report, info, validate_dataset
 
 __all__ = [
@@ -26,6 +26,7 @@ __all__ = [
     "Report",
     "ShardRecord",
     "ShardWriter",
+    "ShardWriterSet",
     "collect_provenance",
     "info",
     "merge_manifests",
