@@ -103,6 +103,35 @@ def test_packing_offsets_masses_and_colouring() -> None:
     assert model.skinning_weights[1].shape == (len(tube_v), 3) and model.skinning_weights[0] is None
 
 
+def test_worlds_that_repeat_a_garment_get_the_arrays_of_a_garment_built_alone() -> None:
+    """Garments with the same rest geometry, faces and fabric share their element arrays (computed
+    once); each world's elements, masses and pins are still exactly those of the garment alone."""
+    tube_v, tube_f = tube_cloth(8, 4, 0.2, 0.3)
+    bent = tube_v * np.array([1.0, 1.1, 0.9])  # another rest geometry, same faces
+    worlds = [(tube_v, "cotton", [0]), (bent, "cotton", []), (tube_v, "cotton", [3, 5]), (tube_v, "silk", [])]
+    builder = ClothBuilder()
+    for v, fabric, pinned in worlds:
+        builder.add_garment(v, tube_f, fabric=fabric, pinned=pinned)
+    model = builder.finalize("cpu")
+    for w, (v, fabric, pinned) in enumerate(worlds):
+        alone = ClothBuilder()
+        alone.add_garment(v, tube_f, fabric=fabric, pinned=pinned)
+        ref = alone.finalize("cpu")
+        start, count = int(model.world_particle_start[w]), int(model.world_particle_count[w])
+        span = slice(start, start + count)
+        assert np.array_equal(model.particle_mass.numpy()[span], ref.particle_mass.numpy())
+        assert np.array_equal(model.particle_inv_mass.numpy()[span], ref.particle_inv_mass.numpy())
+        for kind, fields in (("tri", ("indices", "dm_inv", "area", "compliance")),
+                             ("bend", ("indices", "rest_angle", "compliance"))):
+            mine = getattr(model, f"{kind}_world").numpy() == w  # this world's elements, in colour order
+            for name in fields:
+                got = getattr(model, f"{kind}_{name}").numpy()[mine]
+                want = getattr(ref, f"{kind}_{name}").numpy()
+                if name == "indices":
+                    got = got - start
+                assert np.array_equal(got, want), f"world {w}: {kind}_{name} differs from the garment built alone"
+
+
 def test_features_switch_off_bending() -> None:
     verts, faces = _grid()
     builder = ClothBuilder()
