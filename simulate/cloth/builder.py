@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 
 import numpy as np
 import warp as wp
@@ -87,6 +88,16 @@ def dihedral_angles(x: np.ndarray, bend_indices: np.ndarray) -> np.ndarray:
     return np.arccos(cos_t) * sign
 
 
+def _mesh_digest(vertices: np.ndarray, faces: np.ndarray) -> bytes:
+    """A 128-bit digest of a garment's rest vertices and faces (as the builder stores them):
+    garments with equal digests are checked and turned into elements once."""
+    digest = hashlib.blake2b(digest_size=16)
+    for a in (vertices, faces):
+        digest.update(str((a.dtype, a.shape)).encode())
+        digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.digest()
+
+
 @dataclasses.dataclass
 class _Garment:
     vertices: np.ndarray
@@ -95,6 +106,7 @@ class _Garment:
     pinned: np.ndarray
     attached: np.ndarray
     skinning_weights: np.ndarray | None
+    digest: bytes  # of vertices and faces (_mesh_digest)
 
 
 def _index_array(name: str, value: object, count: int) -> np.ndarray:
@@ -133,6 +145,7 @@ class ClothBuilder:
         self.attachment_stiffness = float(attachment_stiffness)
         self._garments: list[_Garment] = []
         self._colour_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._checked: set[bytes] = set()  # digests of garment meshes whose geometry passed the checks
 
     @property
     def world_count(self) -> int:
@@ -185,6 +198,27 @@ class ClothBuilder:
         if repeated.size:
             f = repeated[0]
             raise ValueError(f"faces[{f}] = {tris[f].tolist()} repeats a vertex (degenerate triangle, area 0)")
+        digest = _mesh_digest(verts, tris)
+        if digest not in self._checked:  # a dataset batch adds ~40 distinct garments to 256 worlds
+            self._check_geometry(verts, tris)
+            self._checked.add(digest)
+        fab = resolve_fabric(fabric)
+        pinned_idx = _index_array("pinned", pinned, vcount)
+        attached_idx = _index_array("attached", attached, vcount)
+        weights = None
+        if skinning_weights is not None:
+            weights = np.asarray(skinning_weights, dtype=np.float32)
+            if weights.ndim != 2 or weights.shape[0] != vcount:
+                raise ValueError(f"skinning_weights must have shape ({vcount}, J) (got {weights.shape})")
+            if not np.all(np.isfinite(weights)):
+                raise ValueError("skinning_weights must be finite (got NaN or inf)")
+        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights, digest))
+        return len(self._garments) - 1
+
+    @staticmethod
+    def _check_geometry(verts: np.ndarray, tris: np.ndarray) -> None:
+        """Rejects degenerate triangles, unreferenced vertices and non-manifold edges (see add_garment)."""
+        vcount = len(verts)
         _, area = triangle_rest_frames(verts, tris)
         edge_len2 = np.stack([np.sum((verts[tris[:, (k + 1) % 3]] - verts[tris[:, k]]) ** 2, axis=1)
                               for k in range(3)], axis=1).max(axis=1)
@@ -206,18 +240,6 @@ class ClothBuilder:
             k = uniq[np.nonzero(counts > 2)[0][0]]
             raise ValueError(f"edge {[int(k // vcount), int(k % vcount)]} is shared by {counts[counts > 2][0]} faces, "
                              "expected at most 2 (non-manifold mesh)")
-        fab = resolve_fabric(fabric)
-        pinned_idx = _index_array("pinned", pinned, vcount)
-        attached_idx = _index_array("attached", attached, vcount)
-        weights = None
-        if skinning_weights is not None:
-            weights = np.asarray(skinning_weights, dtype=np.float32)
-            if weights.ndim != 2 or weights.shape[0] != vcount:
-                raise ValueError(f"skinning_weights must have shape ({vcount}, J) (got {weights.shape})")
-            if not np.all(np.isfinite(weights)):
-                raise ValueError("skinning_weights must be finite (got NaN or inf)")
-        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights))
-        return len(self._garments) - 1
 
     # ------------------------------------------------------------------ packing
     def _topology(self, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -310,7 +332,7 @@ class ClothBuilder:
             vcount = len(g.vertices)
             starts.append(offset)
             counts.append(vcount)
-            key = (g.vertices.tobytes(), g.faces.tobytes(), repr(g.fabric))
+            key = (g.digest, repr(g.fabric))
             if key not in elements:
                 elements[key] = self._elements(g, feats.bending)
             vmass, tri, bend = elements[key]
