@@ -224,7 +224,10 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     started_at = time.time()
     # shards are written, closed and hashed by a worker of their own while the simulation goes on
     # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
-    background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") else "thread")
+    import multiprocessing
+
+    in_daemon = multiprocessing.current_process().daemon  # e.g. a Pool worker: it may not start processes
+    background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
     shards = "shards"  # the ShardWriterSet's key on the worker
     background.create(shards, ShardWriterSet, out_dir, ctx.template_dict, precision=spec["output"]["precision"],
                       compression=spec["output"]["compression"])
