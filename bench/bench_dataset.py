@@ -135,10 +135,16 @@ def main() -> None:
         print(f"[{time.perf_counter() - t0:7.1f} s] {message}", file=sys.stderr, flush=True)
 
     last: dict = {}
+    beats: list[dict] = []  # every heartbeat, for the steady rates over the run's second half
+
+    def on_heartbeat(beat: dict) -> None:
+        last.update(beat)
+        beats.append(dict(beat))
     # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
     def report_partial() -> None:
-        print(json.dumps(partial_result(args, spec, last, full_targets, time.perf_counter() - t0)), flush=True)
+        print(json.dumps({**partial_result(args, spec, last, full_targets, time.perf_counter() - t0),
+                          "steady": steady_rates(beats)}), flush=True)
         if sampler is not None:  # os._exit below skips atexit
             sampler.write()
         if not args.keep:
@@ -152,7 +158,7 @@ def main() -> None:
 
     signal.signal(signal.SIGTERM, stop_on_sigterm)
     try:
-        manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=last.update)
+        manifest = generate(spec, out, progress=False, log=log, heartbeat_s=args.heartbeat, on_heartbeat=on_heartbeat)
     except KeyboardInterrupt:
         report_partial()
         raise SystemExit(130)
@@ -183,6 +189,7 @@ def main() -> None:
         "projected_target_kept_s_setup_once": setup_once_projection(sim.get("seconds", wall), phases, kept),
         "audit_max_mm": manifest.audit.get("max_mm"), "audit_mean_mm": manifest.audit.get("mean_mm"),
         "phases": sim.get("phases"),
+        "steady": steady_rates(beats),
         # busy world-frames per target (transition + hold + each task's start-up, no idle worlds)
         "world_frames_per_target": round(world_frames_per_target, 1),
         # of which: moving toward the next body (shape blend, slerp'ed poses, routes home), holding
@@ -308,6 +315,30 @@ def frame_split(phases: dict, targets: int) -> dict[str, float]:
     """Busy world-frames per target by what the worlds were doing (run_sequences' statistics)."""
     return {k: round(float(phases.get(f"{k}_world_frames", 0)) / max(targets, 1), 2)
             for k in ("transition", "hold", "settle")}
+
+
+def steady_rates(beats: list[dict]) -> dict | None:
+    """Rates over the second half of a run's simulation, from its heartbeats (``generate``'s
+    ``on_heartbeat`` dicts: elapsed_s, targets_done, world_frames, frames): the first targets
+    finish in a burst once the worlds' first holds end, so rates from the start, or over short
+    windows early on, do not compare between runs. From the first heartbeat at or past half the
+    last one's elapsed time to the last: target poses, world-frames and simulator frames per
+    second of simulation. None with fewer than two heartbeats past the start."""
+    beats = [b for b in beats if float(b.get("elapsed_s", 0.0)) > 0.0]
+    if len(beats) < 2:
+        return None
+    end = beats[-1]
+    start = next(b for b in beats if float(b["elapsed_s"]) >= float(end["elapsed_s"]) / 2.0)
+    if start is end:
+        start = beats[-2]
+    seconds = float(end["elapsed_s"]) - float(start["elapsed_s"])
+
+    def rate(key: str) -> float:
+        return round((float(end.get(key, 0)) - float(start.get(key, 0))) / seconds, 2)
+
+    return {"from_s": round(float(start["elapsed_s"]), 1), "to_s": round(float(end["elapsed_s"]), 1),
+            "target_poses_per_s": rate("targets_done"), "world_frames_per_s": rate("world_frames"),
+            "frames_per_s": rate("frames")}
 
 
 #: Heartbeat entries that are progress, not run_sequences statistics.
