@@ -9,7 +9,9 @@ phase timings, the projected time for the full spec's target frames at the slice
 (``world_frames_per_target``, ``ms_per_world_frame``) with the stepping time they imply for a
 full spec whose worlds stay busy (``projected_packed_stepping_s``), the issue's target measure
 (``kept_frames_per_s`` and ``projected_target_kept_s``: the time to keep TailorNet's 55,800
-frames at the slice's rates, against ``target_s`` = 600), plus the audit's error distribution.
+frames at the slice's rates, against ``target_s`` = 600), plus the audit's error distribution,
+and ``steady``: target poses, world-frames and simulator frames per second over the second half
+of the simulation (from the heartbeats; compare runs by these, not by rates from the start).
 On CUDA the frame loop delivers one frame's targets while the next steps, so ``sim_s`` and
 ``ms_per_world_frame`` count only the stepping the host still waited for, not all of it.
 
