@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import multiprocessing
 import os
 import sys
 import time
@@ -224,8 +225,6 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     started_at = time.time()
     # shards are written, closed and hashed by a worker of their own while the simulation goes on
     # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
-    import multiprocessing
-
     in_daemon = multiprocessing.current_process().daemon  # e.g. a Pool worker: it may not start processes
     background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
     shards = "shards"  # the ShardWriterSet's key on the worker
