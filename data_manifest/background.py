@@ -36,7 +36,7 @@ MODES = ("thread", "process")
 #: Environment variable that overrides the caller's choice of worker ("thread" or "process").
 MODE_ENV = "DRAPE_SHARD_WRITER"
 
-_CREATE, _CALL, _DISCARD = "create", "call", "discard"
+_CREATE, _CALL = "create", "call"
 
 
 def resolve_mode(default: str) -> str:
@@ -91,11 +91,6 @@ def _serve(calls, results, caller_alive: Callable[[], bool] | None = None) -> No
         try:
             if op == _CREATE:
                 objects[key] = result = fn(*args, **kwargs)
-            elif op == _DISCARD:
-                result = None
-                obj = objects.pop(key)
-                if fn is not None:
-                    result = fn(obj, *args, **kwargs)
             elif key is None:
                 result = fn(*args, **kwargs)
             else:
@@ -145,7 +140,7 @@ class BackgroundWriter:
     Plain calls: :meth:`submit` / :meth:`submit_collect` (``fn`` must be picklable in process
     mode: a module-level function or a method of a module-level class). Objects that live on the
     worker (shard writers in process mode): :meth:`create` makes one under a key, :meth:`call` /
-    :meth:`call_collect` run ``fn(object, ...)`` on it, :meth:`discard` drops it. The return
+    :meth:`call_collect` run ``fn(object, ...)`` on it. The return
     values of collected calls come back from :meth:`completed`. The first exception a call raises
     stops the worker from running later calls; :meth:`submit`, :meth:`completed` and
     :meth:`close` raise it in the caller's thread (in process mode with the worker's traceback
@@ -238,12 +233,6 @@ class BackgroundWriter:
         """Queues ``fn(obj, *args, **kwargs)`` on the object under ``key``; its return value comes
         back from :meth:`completed`."""
         self._put((_CALL, key, fn, args, kwargs, True))
-
-    def discard(self, key: Hashable, fn: Callable[..., Any] | None = None, *args: Any, collect: bool = False,
-                **kwargs: Any) -> None:
-        """Drops the object under ``key`` from the worker, after ``fn(obj, *args, **kwargs)`` when
-        given (its value collected with ``collect``)."""
-        self._put((_DISCARD, key, fn, args, kwargs, collect))
 
     def completed(self) -> list:
         """Return values collected since the last call (calls still queued are not waited for)."""

@@ -187,49 +187,35 @@ def _reroute(task: SequenceTask, schedule, next_key: int, start_pose: np.ndarray
     j = int(np.nonzero((kinds == KEY) & (keys == next_key))[0][0])
     if route is None:
         head = _visit_entries(task, next_key, start_pose, threshold, stop=next_key + 1)
-    else:
-        n = len(route)
-        head = (np.tile(task.shape, (n, 1)).astype(np.float32), np.asarray(route, np.float32),
-                np.where(np.arange(n) == n - 1, KEY, TRANSITION), np.where(np.arange(n) == n - 1, next_key, -1))
+    else:  # the route's last pose is the target
+        head = _entries(task, np.asarray(route, np.float32), np.arange(len(route)) - (len(route) - 1), next_key)
     return tuple(np.concatenate([h.astype(old.dtype), old[j + 1:]]) for h, old in zip(head, schedule))
 
 
-def _routes_from(tasks: list[SequenceTask], start_poses: list[np.ndarray], threshold: float) -> list[list[np.ndarray]]:
-    """For every target of each task: the slerp'ed poses from that task's start pose to it, ending
-    with it (what ``_reroute`` inserts), all tasks in one batched call (one call per task cost
-    ~26 ms each on the device machine, 6 s of a 240-world run; each segment is interpolated on its
-    own, so a task's routes do not depend on the others in the call)."""
-    return [routes for _, routes in _plans_from(tasks, start_poses, threshold, visits=False)]
-
-
-def _plans_from(tasks: list[SequenceTask], start_poses: list[np.ndarray], threshold: float, *,
-                visits: bool = True) -> list[tuple[tuple | None, list[np.ndarray]]]:
+def _plans_from(tasks: list[SequenceTask], start_poses: list[np.ndarray],
+                threshold: float) -> list[tuple[tuple, list[np.ndarray]]]:
     """Per task, from its start pose: the schedule visiting all its targets (``_visit_entries``
-    from the first; None without ``visits``) and the route to each target (``_routes_from``), all
-    segments of all tasks interpolated in one batched call (each segment on its own, so a task's
-    plan does not depend on the others in the call)."""
+    from the first) and, for every target, the slerp'ed poses from the start pose to it, ending
+    with it (the route ``_reroute`` inserts), all segments of all tasks interpolated in one batched
+    call (one call per task cost ~10-80 ms on the device machine; each segment is interpolated on
+    its own, so a task's plan does not depend on the others in the call)."""
     if not tasks:
         return []
     starts, ends = [], []
     for t, p in zip(tasks, start_poses):
         start = np.asarray(p, np.float32).reshape(1, -1)
         keys = np.asarray(t.poses, np.float32)
-        if visits:  # start -> key 0 -> key 1 ...
-            starts.append(np.concatenate([start, keys[:-1]]))
-            ends.append(keys)
-        starts.append(np.broadcast_to(start, keys.shape))  # start -> each key
-        ends.append(keys)
+        starts += [np.concatenate([start, keys[:-1]]), np.broadcast_to(start, keys.shape)]  # visit; routes
+        ends += [keys, keys]
     starts, ends = np.concatenate(starts), np.concatenate(ends)
     poses, segment = interpolate_segments(starts, ends, threshold)
     bounds = np.searchsorted(segment, np.arange(len(ends) + 1))
     out, first = [], 0
     for t in tasks:
         n = len(t.poses)
-        visit = None
-        if visits:
-            a, b = bounds[first], bounds[first + n]
-            visit = _entries(t, poses[a:b], segment_key_index(segment[a:b] - first))
-            first += n
+        a, b = bounds[first], bounds[first + n]
+        visit = _entries(t, poses[a:b], segment_key_index(segment[a:b] - first))
+        first += n
         out.append((visit, [poses[a:b] for a, b in zip(bounds[first:first + n], bounds[first + 1:first + n + 1])]))
         first += n
     return out

@@ -47,7 +47,7 @@ def test_calls_run_in_submission_order_on_one_worker_and_collected_values_come_b
     for i in range(50):
         (writer.call_collect if i % 7 == 0 else writer.call)("r", Recorder.add, i)
     writer.submit_collect(sum, [1, 2, 3])  # a plain call, no object
-    writer.discard("r", Recorder.report, collect=True)
+    writer.call_collect("r", Recorder.report)
     *values, total, (seen, (pid, thread)) = writer.close()
     assert seen == list(range(50))
     assert values == [i * 10 for i in range(50) if i % 7 == 0], "only the collected values, in order"

@@ -230,7 +230,10 @@ def test_restart_to_last_kept_goes_back_to_the_last_accepted_frame_and_heads_on_
 def test_rerouting_a_schedule_equals_planning_it_afresh():
     """_reroute (used when a world goes home or back to its last good state) keeps the entries after
     the next target and re-plans only the way to it: the same entries as a full re-plan."""
-    from simulate.sequence import _reroute, _routes_from, _schedule, _visit_entries
+    from simulate.sequence import _plans_from, _reroute, _schedule, _visit_entries
+
+    def _routes_from(tasks, starts, threshold):
+        return [routes for _, routes in _plans_from(tasks, starts, threshold)]
 
     rng = np.random.default_rng(1)
     task = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
@@ -257,8 +260,8 @@ def test_rerouting_a_schedule_equals_planning_it_afresh():
 def test_a_task_planned_with_others_visits_and_routes_as_planned_alone():
     """run_sequences plans the schedule of a world's next task and its routes home in one batched
     call with other tasks' (``_plans_from``): each task's visiting schedule equals
-    ``_visit_entries`` from the same start and its routes equal ``_routes_from`` alone."""
-    from simulate.sequence import KEY, _plans_from, _routes_from, _visit_entries
+    ``_visit_entries`` from the same start and its routes equal those planned alone."""
+    from simulate.sequence import KEY, _plans_from, _visit_entries
 
     rng = np.random.default_rng(2)
 
@@ -276,7 +279,7 @@ def test_a_task_planned_with_others_visits_and_routes_as_planned_alone():
         for a, b in zip(visit, fresh):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
-        alone = _routes_from([task], [start], 0.1)[0]
+        alone = _plans_from([task], [start], 0.1)[0][1]
         assert len(routes) == len(alone) == len(task.poses)
         for a, b in zip(routes, alone):
             np.testing.assert_array_equal(a, b)
