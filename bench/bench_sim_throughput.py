@@ -93,6 +93,12 @@ def main() -> None:
                         help="CUDA only: also run --profile-frames frames without graph capture under Warp's kernel "
                              "timing and print one sim_profile line per world count (GPU ms per frame by kernel)")
     parser.add_argument("--profile-frames", type=int, default=3)
+    parser.add_argument("--garments", type=int, default=0,
+                        help="K > 0: K garments of distinct rest shapes over the worlds (a dataset batch has 40 styles); "
+                             "0: every world the same")
+    parser.add_argument("--no-share-element-data", action="store_true",
+                        help="each world's tiled sweep reads its own copy of the element data even where worlds "
+                             "repeat a garment (the A/B of SolverXPBD's share_element_data)")
     parser.add_argument("--out", default=None, help="also append JSON lines to this file")
     args = parser.parse_args()
 
@@ -113,7 +119,8 @@ def main() -> None:
         # then explode and freeze, and the bench times fewer live worlds than it reports)
         jitter = 0.0 if args.scene == "tshirt" else 0.02
         model, collider = batched_drape(scene, worlds, args.device, jitter=jitter, seed=worlds,
-                                        features=Features(self_contact=args.self_contact))
+                                        features=Features(self_contact=args.self_contact), garments=args.garments)
+        solver_options = {"share_element_data": False} if args.no_share_element_data and args.solver == "xpbd" else None
         build_s = time.perf_counter() - t_build
         substeps = None if args.solver == "mass_spring" else args.substeps
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
@@ -122,7 +129,8 @@ def main() -> None:
                           gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                           body_contact_detect_every=args.contact_detect_every,
                           max_frames=10 ** 9)
-        sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw)
+        sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw,
+                                   solver_options=solver_options)
         sim.step_frame()  # compile + first frame
         sim.step_frame()  # graph capture (CUDA) or second eager frame
         wp.synchronize_device(model.device)
@@ -139,7 +147,10 @@ def main() -> None:
             "gs_relaxation": args.gs_relaxation, "bending_mode": args.bending_mode or args.mode,
             "gs_sweep": args.gs_sweep, "gs_block_dim": args.gs_block_dim,
             "contact_detect_every": args.contact_detect_every,
-            "self_contact": args.self_contact, "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
+            "self_contact": args.self_contact, "garments": args.garments,
+            "element_data_copies": (None if getattr(sim.solver, "element_data_source", None) is None
+                                    else len(np.unique(sim.solver.element_data_source))),
+            "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),
             "amortized_ms_per_world_frame": round(1e3 * wall / (args.frames * worlds), 4),
@@ -153,7 +164,8 @@ def main() -> None:
                                    gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    body_contact_detect_every=args.contact_detect_every, tolerance=args.tolerance,
                                    max_frames=args.max_frames)
-            sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings)
+            sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings,
+                                   solver_options=solver_options)
             wp.synchronize_device(model.device)
             t0 = time.perf_counter()
             status = sim.relax()
@@ -171,7 +183,8 @@ def main() -> None:
         records = [record]
         if args.profile and wp.get_device(args.device).is_cuda:
             eager = dataclasses.replace(raw, use_cuda_graph=False)
-            sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=eager)
+            sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=eager,
+                                   solver_options=solver_options)
             records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
                             "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
                             "mode": args.mode, "self_contact": args.self_contact, "graph_ms_per_frame": record["ms_per_frame"],

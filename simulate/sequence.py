@@ -454,7 +454,8 @@ def run_sequences(
             record_route_s: routing the delivered frames' worlds on or home; the rest keeps the
             states of holds that ended), parts of the body phase (body_target_s: the collider's
             targets, body_prefetch_s: posing ahead beside a frame in flight), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
-            itself when given).
+            itself when given), and on CUDA element_data_copies: the copies of garment data the
+            sweep reads (the batch's distinct garments, see ``shared_element_data``).
     """
     if (on_frame is None) == (on_frames is None):
         raise ValueError("run_sequences needs exactly one of on_frame and on_frames")
@@ -582,6 +583,9 @@ def run_sequences(
     stats["setup_model_s"] += t_model - t_schedules
     stats["setup_simulator_s"] += t_ready - t_model
     stats["setup_s"] += t_ready - t_setup
+    source = getattr(sim.solver, "element_data_source", None)
+    if source is not None:  # copies of element data the tiled sweep reads (worlds repeating a garment share one)
+        stats["element_data_copies"] = max(stats.get("element_data_copies", 0), len(np.unique(source)))
     causes_before = {f"exploded_{k}": stats.get(f"exploded_{k}", 0) for k in sim.explosion_causes}
     last_good: list[dict | None] = [None] * w_count
     streak = np.zeros(w_count, dtype=np.int64)  # explosions in a row per world

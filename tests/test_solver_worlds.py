@@ -283,6 +283,63 @@ def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str
         f"sweeps differ by {np.abs(out['world_blocks'] - out['colour_launches']).max():.3g} m")
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_worlds_that_repeat_a_garment_read_one_copy_of_its_data(device: str) -> None:
+    """Worlds with the same topology, rest shape, fabric and masses read the first such world's
+    element data in the tiled sweep (``shared_element_data``) and step exactly as when each reads
+    its own; a world with another rest shape, fabric or pinned vertex keeps its own data."""
+    n = 12
+    shapes = [(0.6, "cotton", None), (0.5, "cotton", None), (0.6, "cotton", None), (0.6, "silk", None),
+              (0.5, "cotton", None), (0.6, "cotton", [0])]
+    out = {}
+    for share in (True, False):
+        builder = ClothBuilder()
+        for size, fab, pinned in shapes:
+            verts, faces = grid_cloth(n, n, size, 0.6, plane="xz", origin=(-0.3, 0.28, -0.3))
+            builder.add_garment(verts, faces, fabric=fab, pinned=pinned)
+        model = builder.finalize(device)
+        sv, sf = icosphere(0.25, subdivisions=2)
+        collider = BodyCollider(sv, sf, device=device, world_count=len(shapes))
+        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=3, iterations=3, gs_block_dim=64),
+                                   solver_options={"gs_shared": True, "share_element_data": share})
+        assert sim.solver._fused and sim.solver.shared_topology
+        expected = [0, 1, 0, 3, 1, 5] if share else list(range(len(shapes)))
+        assert sim.solver.element_data_source.tolist() == expected
+        for _ in range(10):
+            sim.step_frame()
+        out[share] = sim.positions()
+    rest = np.asarray(model.particle_q_rest_np)
+    assert np.abs(out[True] - rest).max() > 0.1, "the cloth did not fall"
+    assert np.array_equal(out[True], out[False]), (
+        f"shared element data changed the result by {np.abs(out[True] - out[False]).max():.3g} m")
+
+
+def test_shared_element_data_needs_every_value_equal() -> None:
+    from simulate.solvers.xpbd.solver_xpbd import shared_element_data, world_colour_offsets
+
+    # three worlds of 4 particles, 3 triangles each (colour 0: two, colour 1: one), no bending
+    world = np.array([0, 0, 1, 1, 2, 2, 0, 1, 2])
+    offsets = world_colour_offsets([0, 6, 9], world, 3)
+    comp = np.array([[1, 1, 1], [2, 2, 2]] * 3 + [[3, 3, 3]] * 3, np.float32)
+    dm = np.ones((9, 2, 2), np.float32)
+    bend = world_colour_offsets([0], np.zeros(0), 3)
+    inv_mass = np.ones(12, np.float32)
+    starts, counts = np.array([0, 4, 8]), np.array([4, 4, 4])
+    tri_dshift, bend_dshift, data_start, source = shared_element_data(
+        offsets, [dm, comp], bend, [np.zeros(0, np.float32)], inv_mass, starts, counts)
+    assert source.tolist() == [0, 0, 0] and data_start.tolist() == [0, 0, 0] and not bend_dshift.any()
+    for t in range(9):  # every element reads the first world's element of the same place
+        c, w = (0, t // 2) if t < 6 else (1, t - 6)
+        assert np.array_equal(comp[t - tri_dshift[c, w]], comp[t]) and world[t - tri_dshift[c, w]] == 0
+    comp_other = comp.copy()
+    comp_other[8, 2] = 4  # world 2's colour-1 triangle: another shear compliance
+    mass_other = inv_mass.copy()
+    mass_other[5] = 0.0  # world 1 pins a particle
+    _, _, data_start, source = shared_element_data(offsets, [dm, comp_other], bend, [np.zeros(0, np.float32)],
+                                                   mass_other, starts, counts)
+    assert source.tolist() == [0, 1, 2] and data_start.tolist() == [0, 4, 8]
+
+
 def test_local_topology_is_shared_only_when_every_world_has_the_same_corners() -> None:
     from simulate.solvers.xpbd.solver_xpbd import local_topology, world_colour_offsets
 

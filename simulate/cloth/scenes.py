@@ -202,7 +202,7 @@ def cape_scene(resolution: int = 100, *, width: float = 0.5, length: float = 0.9
 
 
 def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotton", jitter: float = 0.0,
-                  seed: int = 0, thickness: float = 2.0e-3, features=None):
+                  seed: int = 0, thickness: float = 2.0e-3, features=None, garments: int = 0):
     """Model and collider with ``worlds`` copies of ``scene`` (see :func:`shawl_scene`).
 
     Args:
@@ -214,6 +214,9 @@ def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotto
         seed: RNG seed for the jitter.
         thickness: body contact thickness [m].
         features: simulate.cloth.Features or None.
+        garments: 0: every world is the scene's cloth; K > 0: world w wears garment w % K, the
+            cloth scaled about its centroid by 1 + 1e-4 (w % K) (K garments of distinct rest
+            shapes, as in a dataset batch of K styles).
     Returns:
         (ClothModel, BodyCollider)
     """
@@ -222,12 +225,14 @@ def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotto
 
     rng = np.random.default_rng(seed)
     builder = ClothBuilder()
-    for _ in range(worlds):
+    cloth = scene["cloth_vertices"]
+    centre = np.mean(cloth, axis=0)
+    for w in range(worlds):
         shift = np.zeros(3)
         if jitter > 0.0:
             shift[0] = rng.uniform(-jitter, jitter)
-        builder.add_garment(scene["cloth_vertices"] + shift, scene["cloth_faces"], fabric=fabric,
-                            pinned=scene.get("pinned"))
+        garment = cloth if garments <= 0 else centre + (cloth - centre) * (1.0 + 1.0e-4 * (w % garments))
+        builder.add_garment(garment + shift, scene["cloth_faces"], fabric=fabric, pinned=scene.get("pinned"))
     model = builder.finalize(device, features=features)
     collider = BodyCollider(scene["body_vertices"], scene["body_faces"], device=device, world_count=worlds,
                             thickness=thickness)

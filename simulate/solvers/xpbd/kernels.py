@@ -175,7 +175,15 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
     Element corners come as world-local indices (``local_topology``): element ``t`` of colour
     ``c`` in world ``w`` has corners ``*_local[t - *_shift[c, w]]``. Worlds with one topology
     share one table (a 7.7k t-shirt: 0.5 MB, L2-resident) instead of streaming 12 B per triangle
-    and 16 B per bending element from every world's own indices at every sweep."""
+    and 16 B per bending element from every world's own indices at every sweep.
+
+    Element data (rest shape, compliance, rest angle) and inverse masses are read at the element's
+    place in a world that holds the same values (``shared_element_data``): element ``t`` of colour
+    ``c`` in world ``w`` reads ``tri_dm_inv[t - tri_dshift[c, w]]`` and its corners' inverse masses
+    at ``world_data_start[w] + j``. Worlds that repeat a garment (a dataset batch: 40 styles in
+    256 worlds) then read one copy of it, which stays in L2, instead of one copy each; the
+    multipliers stay per element. With zero shifts and ``world_data_start`` = each world's own
+    start every world reads its own data."""
 
     def tile_write(t, i, v):
         """``t[i] = v`` without the block barrier Warp's tile item assignment ends with: lanes write
@@ -203,6 +211,9 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
         bend_rest_angle: wp.array(dtype=float),
         bend_compliance: wp.array(dtype=float),
         inv_mass: wp.array(dtype=float),
+        tri_dshift: wp.array2d(dtype=wp.int32),
+        bend_dshift: wp.array2d(dtype=wp.int32),
+        world_data_start: wp.array(dtype=wp.int32),
         world_active: wp.array(dtype=wp.int32),
         inv_dt2: float,
         relaxation: float,
@@ -227,23 +238,24 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
             return
         stride = wp.block_dim()
         base = world_particle_start[w]
+        dbase = world_data_start[w]
         count_w = world_particle_count[w]
         xs = wp.tile_load(x, shape=tile_particles, offset=base, storage="shared")
         for _it in range(iterations):
             for c in range(tri_world_offsets.shape[0]):
                 shift = tri_shift[c, w]
+                dshift = tri_dshift[c, w]
                 for t in range(tri_world_offsets[c, w] + lane, tri_world_offsets[c, w + 1], stride):
                     j0 = tri_local[t - shift, 0]
                     j1 = tri_local[t - shift, 1]
                     j2 = tri_local[t - shift, 2]
-                    i0 = base + j0
-                    i1 = base + j1
-                    i2 = base + j2
+                    td = t - dshift
                     p0 = xs[j0]
                     p1 = xs[j1]
                     p2 = xs[j2]
-                    d0, d1, d2, tlam = triangle_constraint_deltas(p0, p1, p2, inv_mass[i0], inv_mass[i1],
-                                                                  inv_mass[i2], tri_dm_inv[t], tri_compliance[t],
+                    d0, d1, d2, tlam = triangle_constraint_deltas(p0, p1, p2, inv_mass[dbase + j0],
+                                                                  inv_mass[dbase + j1], inv_mass[dbase + j2],
+                                                                  tri_dm_inv[td], tri_compliance[td],
                                                                   tri_lambda[t], inv_dt2, relaxation)
                     tile_write(xs, j0, p0 + d0)
                     tile_write(xs, j1, p1 + d1)
@@ -252,22 +264,21 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
                 block_sync()
             for c in range(bend_world_offsets.shape[0]):
                 shift = bend_shift[c, w]
+                dshift = bend_dshift[c, w]
                 for b in range(bend_world_offsets[c, w] + lane, bend_world_offsets[c, w + 1], stride):
                     k1 = bend_local[b - shift, 0]
                     k2 = bend_local[b - shift, 1]
                     k3 = bend_local[b - shift, 2]
                     k4 = bend_local[b - shift, 3]
-                    i1 = base + k1
-                    i2 = base + k2
-                    i3 = base + k3
-                    i4 = base + k4
+                    bd = b - dshift
                     q1 = xs[k1]
                     q2 = xs[k2]
                     q3 = xs[k3]
                     q4 = xs[k4]
-                    e1, e2, e3, e4, blam = bending_deltas(q1, q2, q3, q4, inv_mass[i1], inv_mass[i2],
-                                                         inv_mass[i3], inv_mass[i4], bend_rest_angle[b],
-                                                         bend_compliance[b], bend_lambda[b], inv_dt2, relaxation)
+                    e1, e2, e3, e4, blam = bending_deltas(q1, q2, q3, q4, inv_mass[dbase + k1], inv_mass[dbase + k2],
+                                                         inv_mass[dbase + k3], inv_mass[dbase + k4],
+                                                         bend_rest_angle[bd], bend_compliance[bd], bend_lambda[b],
+                                                         inv_dt2, relaxation)
                     tile_write(xs, k1, q1 + e1)
                     tile_write(xs, k2, q2 + e2)
                     tile_write(xs, k3, q3 + e3)
@@ -277,7 +288,7 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
             if wp.static(particle_pass):
                 for j in range(lane, count_w, stride):
                     i = base + j
-                    im = inv_mass[i]
+                    im = inv_mass[dbase + j]
                     if im != 0.0:
                         p = xs[j]
                         if wp.static(attachments):
