@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|profile-tshirt|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -27,6 +27,13 @@ case $stage in
     T=120 run python bench/bench_sim_throughput.py --device cuda:0 --worlds 1 64 --frames 10 --profile --out "$jl"
     T=120 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 240 \
       --frames 10 --profile --out "$jl" ;;
+  profile-tshirt)
+    # the dataset batch's stepping alone, by kernel: 256 t-shirts (7.7k) in 40 rest shapes, body queries on every
+    # 5th substep as in the spec; then each world reading its own copy of the element data (the sharing's A/B)
+    for share in "" --no-share-element-data; do
+      T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 256 \
+        --garments 40 --contact-detect-every 5 --frames 20 --profile $share --out "$jl"
+    done ;;
   dataset)
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
