@@ -62,6 +62,13 @@ def main() -> None:
                         help="seconds between stack samples; Python's thread switch interval is lowered to a quarter "
                              "of it so the sampler gets the GIL in time (at 0.002 s that slowed a full-spec run from 90 "
                              "to 70 target poses/s on an H100; 0.02 leaves Python's default 0.005 s)")
+    parser.add_argument("--device-profile", default=None, metavar="JSON",
+                        help="diagnostic: record the device's kernels (torch.profiler: torch's and Warp's alike, on "
+                             "CUDA; on the CPU only torch's operators, not Warp's kernels) over "
+                             "--device-profile-window and write the time per simulator frame by kernel to this file")
+    parser.add_argument("--device-profile-window", default="60:20", metavar="START:SECONDS",
+                        help="from the first heartbeat at or after START seconds of simulation to the first one "
+                             "SECONDS later (or the end of the run)")
     parser.add_argument("--writer", choices=("thread", "process"), default=None,
                         help="the shard writer's worker (default: a process on CUDA, a thread on the CPU; sets "
                              "$DRAPE_SHARD_WRITER, see data_manifest.background)")
@@ -71,6 +78,15 @@ def main() -> None:
     if args.sample_interval <= 0:
         raise SystemExit(f"--sample-interval must be > 0 s (got {args.sample_interval})")
     sampler = StackSampler(args.sample_stacks, args.sample_interval) if args.sample_stacks else None
+    profiler = None
+    if args.device_profile:
+        start_s, _, window_s = args.device_profile_window.partition(":")
+        try:
+            profiler = DeviceProfiler(args.device_profile, float(start_s), float(window_s),
+                                      cuda=str(args.device or "").startswith("cuda"))
+        except ValueError:
+            raise SystemExit(f"--device-profile-window: expected START:SECONDS with START >= 0 and SECONDS > 0 "
+                             f"(got {args.device_profile_window!r})") from None
     if sampler is not None:
         sampler.start()
     if args.stub_frame_writes:
@@ -142,6 +158,8 @@ def main() -> None:
     def on_heartbeat(beat: dict) -> None:
         last.update(beat)
         beats.append(dict(beat))
+        if profiler is not None:
+            profiler.on_beat(beat)
     # `timeout` sends SIGTERM: stop like Ctrl-C and still print what was measured (one JSON line,
     # "complete": false, from the last heartbeat), so a device slot that ends mid-run is not lost
     def report_partial() -> None:
@@ -149,6 +167,8 @@ def main() -> None:
                           "steady": steady_rates(beats)}), flush=True)
         if sampler is not None:  # os._exit below skips atexit
             sampler.write()
+        if profiler is not None:
+            profiler.finish(last)
         if not args.keep:
             shutil.rmtree(out, ignore_errors=True)
 
@@ -165,6 +185,8 @@ def main() -> None:
         report_partial()
         raise SystemExit(130)
     wall = time.perf_counter() - t0
+    if profiler is not None:
+        profiler.finish(last)
     sim = manifest.audit.get("simulation", {})
     targets = int(sim.get("target_frames", 0))
     phases = sim.get("phases", {}) or {}
@@ -261,6 +283,72 @@ class StackSampler:
                   "inclusive": self.inclusive.most_common(120), "leaf": self.leaf.most_common(80),
                   "lines": self.lines.most_common(200)}
         Path(self.path).write_text(json.dumps(result, indent=1))
+
+
+class DeviceProfiler:
+    """Diagnostic device profile of a window of the run: ``torch.profiler`` starts at the first
+    heartbeat at or after ``start_s`` seconds of simulation and stops at the first one ``window_s``
+    later (or at ``finish``). On CUDA it records every kernel on the device (CUPTI: torch's, and
+    Warp's inside its frame graphs); on the CPU, torch's operators. Writes ``kernel_table`` of the
+    window to ``path`` as JSON: where the device time of a simulator frame goes."""
+
+    def __init__(self, path: str, start_s: float, window_s: float, *, cuda: bool) -> None:
+        if not (start_s >= 0.0 and window_s > 0.0):
+            raise ValueError(f"start_s must be >= 0 and window_s > 0 (got {start_s}, {window_s})")
+        self.path, self.start_s, self.window_s, self.cuda = path, start_s, window_s, cuda
+        self._prof = None
+        self._first: dict | None = None
+        self.done = False
+
+    def on_beat(self, beat: dict) -> None:
+        """A heartbeat (``generate(on_heartbeat=...)``): starts or stops the recording."""
+        import torch
+
+        elapsed = float(beat.get("elapsed_s", 0.0))
+        if self._prof is None and not self.done and elapsed >= self.start_s:
+            activities = [torch.profiler.ProfilerActivity.CUDA if self.cuda else torch.profiler.ProfilerActivity.CPU]
+            self._prof = torch.profiler.profile(activities=activities)
+            self._prof.start()
+            self._first = dict(beat)
+        elif self._prof is not None and elapsed >= float(self._first.get("elapsed_s", 0.0)) + self.window_s:
+            self.finish(beat)
+
+    def finish(self, beat: dict) -> None:
+        """Stops a recording in progress and writes its table (once)."""
+        if self._prof is None or self.done:
+            return
+        self._prof.stop()
+        self.done = True
+        rows = []
+        for e in self._prof.key_averages():
+            total_us = float(getattr(e, "self_device_time_total", 0.0) if self.cuda else e.self_cpu_time_total)
+            if total_us > 0.0:
+                rows.append({"name": e.key, "count": int(e.count), "total_ms": total_us / 1e3})
+        first = self._first or {}
+        table = kernel_table(rows, frames=int(beat.get("frames", 0)) - int(first.get("frames", 0)),
+                             seconds=float(beat.get("elapsed_s", 0.0)) - float(first.get("elapsed_s", 0.0)))
+        Path(self.path).write_text(json.dumps({"device": "cuda" if self.cuda else "cpu", **table}, indent=1))
+        self._prof = None
+
+
+def kernel_table(rows: list[dict], *, frames: int, seconds: float, top: int = 60) -> dict:
+    """Device time of a profiled window per simulator frame, by kernel.
+
+    Args:
+        rows: one per kernel (or operator): name, count (launches), total_ms (its own time in the window).
+        frames: simulator frames stepped in the window; seconds: the window's wall time [s].
+    Returns:
+        dict: frames, seconds, busy_ms_per_frame (all rows' time per frame), busy_fraction (of the
+        wall time; above 1 where kernels overlap), and kernels: the ``top`` rows by time, each with
+        ms_per_frame, launches_per_frame and share of the busy time.
+    """
+    busy = sum(r["total_ms"] for r in rows)
+    per = max(frames, 1)
+    kernels = [{"name": r["name"], "ms_per_frame": round(r["total_ms"] / per, 4),
+                "launches_per_frame": round(r["count"] / per, 2), "share": round(r["total_ms"] / busy, 4) if busy else 0.0}
+               for r in sorted(rows, key=lambda r: -r["total_ms"])[:top]]
+    return {"frames": frames, "seconds": round(seconds, 3), "busy_ms_per_frame": round(busy / per, 4),
+            "busy_fraction": round(busy / 1e3 / seconds, 4) if seconds > 0 else None, "kernels": kernels}
 
 
 def stub_frame_writes() -> None:

@@ -84,6 +84,7 @@ case $stage in
   dataset-full)
     # the whole shipped spec (58,900 target poses) in 30-pose tasks that refill 256 worlds, cut by T seconds:
     # the steady-state rate of the full job (the bench prints a partial JSON line when timeout stops it)
+    # (where the device's time goes: EXTRA="--device-profile $OUT/device_profile.json --device-profile-window 100:20")
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses 2600 --test-poses 179 \
       --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-full ${KEEP:+--keep} ${EXTRA:-} ;;
   self-contact)
