@@ -120,8 +120,8 @@ def main() -> None:
         jitter = 0.0 if args.scene == "tshirt" else 0.02
         model, collider = batched_drape(scene, worlds, args.device, jitter=jitter, seed=worlds,
                                         features=Features(self_contact=args.self_contact), garments=args.garments)
-        solver_options = {"share_element_data": False} if args.no_share_element_data and args.solver == "xpbd" else None
         build_s = time.perf_counter() - t_build
+        solver_options = {"share_element_data": False} if args.no_share_element_data and args.solver == "xpbd" else None
         substeps = None if args.solver == "mass_spring" else args.substeps
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
         raw = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode, tolerance=1e-12,
@@ -148,8 +148,7 @@ def main() -> None:
             "gs_sweep": args.gs_sweep, "gs_block_dim": args.gs_block_dim,
             "contact_detect_every": args.contact_detect_every,
             "self_contact": args.self_contact, "garments": args.garments,
-            "element_data_copies": (None if getattr(sim.solver, "element_data_source", None) is None
-                                    else len(np.unique(sim.solver.element_data_source))),
+            "element_data_copies": getattr(sim.solver, "element_data_copies", None),
             "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
             "world_frames_per_s": round(worlds * args.frames / wall, 2),
@@ -165,7 +164,7 @@ def main() -> None:
                                    body_contact_detect_every=args.contact_detect_every, tolerance=args.tolerance,
                                    max_frames=args.max_frames)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings,
-                                   solver_options=solver_options)
+                                       solver_options=solver_options)
             wp.synchronize_device(model.device)
             t0 = time.perf_counter()
             status = sim.relax()
@@ -184,7 +183,7 @@ def main() -> None:
         if args.profile and wp.get_device(args.device).is_cuda:
             eager = dataclasses.replace(raw, use_cuda_graph=False)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=eager,
-                                   solver_options=solver_options)
+                                       solver_options=solver_options)
             records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
                             "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
                             "mode": args.mode, "self_contact": args.self_contact, "graph_ms_per_frame": record["ms_per_frame"],

@@ -583,9 +583,9 @@ def run_sequences(
     stats["setup_model_s"] += t_model - t_schedules
     stats["setup_simulator_s"] += t_ready - t_model
     stats["setup_s"] += t_ready - t_setup
-    source = getattr(sim.solver, "element_data_source", None)
-    if source is not None:  # copies of element data the tiled sweep reads (worlds repeating a garment share one)
-        stats["element_data_copies"] = max(stats.get("element_data_copies", 0), len(np.unique(source)))
+    copies = getattr(sim.solver, "element_data_copies", None)  # worlds repeating a garment read one copy
+    if copies is not None:
+        stats["element_data_copies"] = max(stats.get("element_data_copies", 0), copies)
     causes_before = {f"exploded_{k}": stats.get(f"exploded_{k}", 0) for k in sim.explosion_causes}
     last_good: list[dict | None] = [None] * w_count
     streak = np.zeros(w_count, dtype=np.int64)  # explosions in a row per world

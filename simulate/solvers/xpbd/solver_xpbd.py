@@ -109,10 +109,11 @@ def shared_element_data(tri_offsets: np.ndarray, tri_data: list[np.ndarray], ben
     """
     world_start = np.asarray(world_start, np.int64)
     world_count = np.asarray(world_count, np.int64)
+    tri_offsets = np.asarray(tri_offsets, np.int64)
+    bend_offsets = np.asarray(bend_offsets, np.int64)
     worlds = len(world_start)
 
     def rows(offsets: np.ndarray, w: int) -> np.ndarray:
-        offsets = np.asarray(offsets, np.int64)
         return np.concatenate([np.arange(offsets[c, w], offsets[c, w + 1]) for c in range(offsets.shape[0])]
                               + [np.zeros(0, np.int64)])
 
@@ -131,8 +132,6 @@ def shared_element_data(tri_offsets: np.ndarray, tri_data: list[np.ndarray], ben
         k, theirs = first.setdefault(digest.digest(), (w, mine))
         if k != w and all(np.array_equal(a, b) for a, b in zip(mine, theirs)):  # equal, not only a digest match
             source[w] = k
-    tri_offsets = np.asarray(tri_offsets, np.int64)
-    bend_offsets = np.asarray(bend_offsets, np.int64)
     tri_dshift = tri_offsets[:, :worlds] - tri_offsets[:, source]
     bend_dshift = bend_offsets[:, :worlds] - bend_offsets[:, source]
     return (tri_dshift.astype(np.int32), bend_dshift.astype(np.int32), world_start[source].astype(np.int32),
@@ -301,6 +300,12 @@ class SolverXPBD(SolverBase):
                 self._element_data = [wp.array(tri_dshift, dtype=wp.int32, device=dev),
                                       wp.array(bend_dshift, dtype=wp.int32, device=dev),
                                       wp.array(data_start, dtype=wp.int32, device=dev)]
+
+    @property
+    def element_data_copies(self) -> int | None:
+        """Copies of element data the tiled sweep reads (the batch's distinct garments when worlds
+        share them); None without the shared-memory sweep."""
+        return None if self.element_data_source is None else len(np.unique(self.element_data_source))
 
     def _block_args(self, control: ClothControl, inv_dt2: float) -> list:
         """The world-block kernels' model arguments, up to the relaxation."""
