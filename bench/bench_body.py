@@ -1,5 +1,9 @@
 """Body-model load time, memory and pose-evaluation time; prints one JSON line per measurement.
 
+The ``body_skin_product`` line times LBS's per-vertex 3x3 product both ways on the same posed
+batch: ``kinematics.apply_linear`` (what posing uses) against ``(m @ v[..., None])[..., 0]``
+(cuBLAS strided-batched gemv, at most 65,535 products a launch on CUDA).
+
     python bench/bench_body.py [--backend anny] [--batches 1 256] [--device cpu] [--repeats 5]
 """
 from __future__ import annotations
@@ -22,6 +26,7 @@ def main() -> None:
     args = parser.parse_args()
     import torch
 
+    from simulate.body import kinematics as kin
     from simulate.body import load_body_model
 
     t0 = time.perf_counter()
@@ -49,6 +54,33 @@ def main() -> None:
         print(json.dumps({"bench": "body_pose", "backend": body.name, "device": args.device, "batch": batch,
                           "median_ms": round(1e3 * float(np.median(times)), 3),
                           "per_body_ms": round(1e3 * float(np.median(times)) / batch, 4)}))
+        with torch.no_grad():
+            posed = body.pose_torch(shape, pose)
+            blended = kin.blend_transforms(posed.skinning_weights.to(posed.vertices), posed.skinning_transforms)
+            linear, points = blended[..., :3, :3], posed.rest_vertices.expand(batch, -1, -1)
+            products = {"elementwise_ms": lambda: kin.apply_linear(linear, points),
+                        "matmul_ms": lambda: (linear @ points[..., None])[..., 0]}
+            row = {name: round(1e3 * _median_time(fn, args), 3) for name, fn in products.items()}
+        print(json.dumps({"bench": "body_skin_product", "backend": body.name, "device": args.device, "batch": batch,
+                          "points": int(points.shape[0] * points.shape[1]), **row,
+                          "matmul_over_elementwise": round(row["matmul_ms"] / max(row["elementwise_ms"], 1e-6), 2)}))
+
+
+def _median_time(fn, args) -> float:
+    """Median wall time [s] of ``fn()`` over ``args.repeats`` runs after one warm-up (synchronised on CUDA)."""
+    import torch
+
+    fn()
+    times = []
+    for _ in range(args.repeats):
+        if args.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        fn()
+        if args.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
 
 
 if __name__ == "__main__":

@@ -31,6 +31,18 @@ def test_axis_angle_matches_rodrigues_and_round_trips():
     assert np.allclose(kin.axis_angle_to_matrix(torch.zeros(3, dtype=torch.float64)).numpy(), np.eye(3))
 
 
+def test_apply_linear_matches_per_point_matrix_products():
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(4, 50, 3, 3))
+    v = rng.normal(size=(4, 50, 3))
+    expected = np.einsum("bnij,bnj->bni", m, v)
+    np.testing.assert_allclose(kin.apply_linear(torch.as_tensor(m), torch.as_tensor(v)).numpy(), expected, atol=1e-12)
+    # a vector broadcast over the batch (a shared rest shape) and a transposed (non-contiguous) matrix
+    mt = torch.as_tensor(m).transpose(-1, -2)
+    np.testing.assert_allclose(kin.apply_linear(mt, torch.as_tensor(v[:1])).numpy(),
+                               np.einsum("bnji,nj->bni", m, v[0]), atol=1e-12)
+
+
 def test_inverse_lbs_undoes_lbs_for_random_points_and_poses():
     rng = np.random.default_rng(1)
     parents, rest_joints = _random_chain(rng)

@@ -137,8 +137,20 @@ def forward_kinematics(
         world[:, idx_t] = world[:, parents_t[idx_t]] @ local[:, idx_t]
     skinning = world.clone()
     # A_k = G_k @ translate(-j_k): subtract the rotated rest joint from the translation
-    skinning[..., :3, 3] = world[..., :3, 3] - (world[..., :3, :3] @ rest_joints[..., None])[..., 0]
+    skinning[..., :3, 3] = world[..., :3, 3] - apply_linear(world[..., :3, :3], rest_joints)
     return world, skinning
+
+
+def apply_linear(matrices: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """``matrices @ vectors`` for many small matrices, (..., 3, 3) x (..., 3) -> (..., 3), elementwise.
+
+    ``(m @ v[..., None])[..., 0]`` sends the product to cuBLAS as a strided-batched matrix-vector
+    product, which takes at most 65,535 products a launch: posing 148 anny bodies (2 M points) was
+    32 launches and 6.1 ms per dataset frame on an H200 (13 % of the GPU's time). Summing the
+    columns scaled by the vector's components is three fused elementwise passes instead.
+    """
+    return (matrices[..., 0] * vectors[..., 0:1] + matrices[..., 1] * vectors[..., 1:2]
+            + matrices[..., 2] * vectors[..., 2:3])
 
 
 def blend_transforms(weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
@@ -159,7 +171,7 @@ def lbs(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -
         posed points [m], shape (B, N, 3).
     """
     blended = blend_transforms(weights, transforms)  # (B, N, 4, 4)
-    return (blended[..., :3, :3] @ points[..., None])[..., 0] + blended[..., :3, 3]
+    return apply_linear(blended[..., :3, :3], points) + blended[..., :3, 3]
 
 
 def inverse_lbs(points: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
