@@ -74,7 +74,7 @@ def test_sweeps_hold_the_default_once_and_reject_bad_names() -> None:
     for size in ("small", "full"):
         settings = sweep_settings(size)
         labels = [s.label for s in settings]
-        assert labels[0] == DEFAULT_SETTING.label == "xpbd-gs s10 i10 tol0.05 f32" and len(set(labels)) == len(labels), f"{size}: {labels}"
+        assert labels[0] == DEFAULT_SETTING.label == "xpbd-gs s15 i5 tol0.05 f32" and len(set(labels)) == len(labels), f"{size}: {labels}"
         assert {s.group for s in settings} == {"xpbd-gs", "xpbd-jac", "mass-spring"}
         assert {s.precision for s in settings} == {"float32", "float16"}
     with pytest.raises(ValueError, match="sweep"):

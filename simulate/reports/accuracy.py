@@ -96,7 +96,7 @@ class Setting:
                 self.iterations if self.solver == "xpbd" else 0, self.tolerance)
 
 
-DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 10, 10, 0.05, "float32")
+DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 15, 5, 0.05, "float32")
 """The production default (pipelines/configs/tailornet-tshirt.yaml ``simulation`` block)."""
 
 PRODUCTION_BASE = SimSettings(damping=20.0, explosion_stretch=50.0, outlier_fraction=0.02, patience=3)
