@@ -82,7 +82,8 @@ case $stage in
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-240} --test-poses 30 \
       --sim poses_per_task=${PER_TASK:-30} --device cuda:0 --out /tmp/tn-scale ${KEEP:+--keep} ${EXTRA:-} ;;
   dataset-full)
-    # the whole shipped spec (58,900 target poses) in 30-pose tasks that refill 256 worlds, cut by T seconds:
+    # the whole shipped spec (58,900 target poses) in 30-pose tasks that refill 256 worlds, cut by T seconds
+    # (T=585 lets it finish on a warm H200: 513 s of wall time with the 15 x 5 spec):
     # the steady-state rate of the full job (the bench prints a partial JSON line when timeout stops it)
     # (where the device's time goes: EXTRA="--device-profile $OUT/device_profile.json --device-profile-window 100:20")
     T=${T:-560} run python bench/bench_dataset.py --spec tailornet-tshirt --poses 2600 --test-poses 179 \
