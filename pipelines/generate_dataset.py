@@ -108,6 +108,7 @@ def sequence_settings(spec: dict):
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
+                            self_contact_during=s["contact"]["self_contact_during"],
                             restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"],
                             body_lookahead=int(s["body_lookahead"]))
 

@@ -70,6 +70,8 @@ records and hashes. Schema (every key optional unless marked required)::
       body_lookahead: int = 8          target and route poses posed ahead per world in batched
                                         body-model calls (SequenceSettings.body_lookahead)
       contact: {thickness [m], friction, self_contact: bool,
+                self_contact_during: all | transitions = all,  with self_contact: every frame, or
+                                        only while the body moves between poses (holds relax without)
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
                                         (0, N, 2N, ... of a frame) and move the planes with the body
@@ -118,7 +120,7 @@ DEFAULTS: dict[str, Any] = {
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
-        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1,
+        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
                     "body_contact_detect_every": 1, "canonical_self_contact": True},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
@@ -250,6 +252,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     for flag in ("self_contact", "canonical_self_contact"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
+    c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions"))
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
     c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)

@@ -39,6 +39,7 @@ from simulate.contact import BodyCollider
 from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
 
 # Entry kinds of a world's schedule.
+SELF_CONTACT_DURING = ("all", "transitions")
 TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
 SETTLE = 1  # hold until converged, not recorded (after the shape transition)
 KEY = 2  # hold until converged, then record
@@ -78,6 +79,10 @@ class SequenceSettings:
     contact_thickness: float = 0.004
     friction: float | None = None
     self_contact: bool = False
+    self_contact_during: str = "all"
+    """With ``self_contact``: "all" frames, or only "transitions" (a world searches for self-contacts
+    while its body moves between poses: shape blends, slerp'ed poses, routes home; its holds relax
+    without). Layers cross while the body moves, and the push kept holds from converging."""
     recover_explosions: bool = True
     """A world that explodes loses only the target pose it was heading to: its last good state
     (garment and body at the previous finished hold) is put back and the world goes on to the
@@ -121,6 +126,9 @@ class SequenceSettings:
     def __post_init__(self) -> None:
         if self.restart_to not in RESTART_TO:
             raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
+        if self.self_contact_during not in SELF_CONTACT_DURING:
+            raise ValueError(f"SequenceSettings.self_contact_during must be one of {', '.join(SELF_CONTACT_DURING)} "
+                             f"(got {self.self_contact_during!r})")
 
 
 @dataclass
@@ -750,6 +758,7 @@ def run_sequences(
         stats["body_model_s"] += ahead.model_s - model_s
         return posed
 
+    moving_only_contact = settings.self_contact and settings.self_contact_during == "transitions"
     with streams.stepping():
         while not done.all() or pending:
             t0 = time.perf_counter()
@@ -765,6 +774,9 @@ def run_sequences(
                 sim.restart(changed & ~done)
                 changed[:] = False
             ran = sim.status == WorldStatus.RUNNING  # the worlds this frame advances
+            if moving_only_contact:
+                sim.control.set_self_contact(np.fromiter(
+                    (not done[w] and schedules[w][2][ptr[w]] == TRANSITION for w in range(w_count)), dtype=bool, count=w_count))
             if not ran.any() and not pending:
                 raise RuntimeError("run_sequences stalled: no world is running and no frame is pending "
                                    f"({int((~done).sum())} worlds not done)")

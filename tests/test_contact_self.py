@@ -116,9 +116,9 @@ def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
         detect = contact.detect
         calls[every] = 0
 
-        def counted(*args, _detect=detect, _every=every):
+        def counted(*args, _detect=detect, _every=every, **kwargs):
             calls[_every] += 1
-            _detect(*args)
+            _detect(*args, **kwargs)
 
         contact.detect = counted
         for _ in range(30):
@@ -127,3 +127,32 @@ def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
         assert upper[:, 1].min() > contact.thickness - ATOL_GAP_M, (every, upper[:, 1].min())
         assert upper[:, 1].max() < 0.01, every
     assert calls == {1: 150, 5: 30}, calls
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_worlds_with_self_contact_off_get_no_candidates(device: str) -> None:
+    """``ClothControl.world_self_contact`` turns the search off per world (generate-dataset's
+    ``self_contact_during: transitions`` turns it off in holding worlds): two layers 2 mm apart
+    find each other in the world that has it on and not in the one that has it off."""
+    from simulate.contact.self_contact import SelfContact
+
+    v, f = grid_cloth(5, 5, 0.1, 0.1, plane="xz")
+    layers = np.concatenate([v, v + np.array([0.0, 0.002, 0.0], np.float32)])
+    faces = np.concatenate([f, f + len(v)])
+    builder = ClothBuilder()
+    for _ in range(2):
+        builder.add_garment(layers, faces, fabric="cotton")
+    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
+    control = model.control()
+    contact = SelfContact(model, rest_exclusion=0.0)  # the layers are this close at rest too
+    x = wp.array(model.particle_q_rest_np, dtype=wp.vec3, device=device)
+    per_world = len(layers)
+    found = {}
+    for mask in ((True, True), (True, False)):
+        control.set_self_contact(np.array(mask))
+        contact.detect(x, control.world_active, world_self_contact=control.world_self_contact)
+        found[mask] = (contact.candidate.numpy().reshape(2, per_world) >= 0).sum(axis=1)
+    assert found[(True, True)][0] == found[(True, True)][1] > per_world // 2, f"layers 2 mm apart must touch: {found}"
+    assert found[(True, False)][0] == found[(True, True)][0] and found[(True, False)][1] == 0, found
+    with pytest.raises(ValueError, match=r"self-contact mask must have shape \(2,\)"):
+        control.set_self_contact(np.ones(3, bool))

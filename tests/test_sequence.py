@@ -1,6 +1,8 @@
 """Sequence driver (simulate.sequence): key order, explosion recovery, world isolation."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -32,7 +34,8 @@ def scene(anny_body):
     return anny_body, template, draped[0], canonical, small, jump
 
 
-def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: float = 0.05, max_frames: int = 25):
+def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: float = 0.05, max_frames: int = 25,
+         **overrides):
     body, template, start, *_ = scene
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
@@ -40,6 +43,7 @@ def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: floa
         sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
+    settings = dataclasses.replace(settings, **overrides)
     frames = []
     stats = run_sequences(body, template.faces, tasks, body_faces=body.part_faces(("torso", "arms")), settings=settings,
                           device="cpu", on_frame=frames.append)
@@ -439,3 +443,29 @@ def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream
         np.testing.assert_array_equal(a.positions, b.positions, err_msg=f"task {a.task} key {a.key}")
         np.testing.assert_array_equal(a.body_vertices, b.body_vertices, err_msg=f"task {a.task} key {a.key}")
     assert stats["frames"] == ref_stats["frames"]
+
+
+def test_self_contact_during_transitions_searches_only_in_moving_worlds(scene, monkeypatch):
+    """``self_contact_during="transitions"``: at every frame launch exactly the worlds on a
+    transition entry (shape blend, slerp'ed pose) have self-contact on, so the world-frames with it
+    on are the transition world-frames, and holds have it off."""
+    from simulate.cloth.quasi_static import QuasiStaticSimulator
+
+    *_, canonical, small, _jump = scene
+    launched = []
+    launch = QuasiStaticSimulator.launch_frame
+
+    def spy(self):
+        assert self.solver.self_contact is not None, "self-contact must be on in the solver"
+        launched.append(((self.status == WorldStatus.RUNNING).copy(), self.control._self_contact_host.copy()))
+        return launch(self)
+
+    monkeypatch.setattr(QuasiStaticSimulator, "launch_frame", spy)
+    frames, stats = _run(scene, [[small, canonical], [canonical, small]], recover=True, self_contact=True,
+                         self_contact_during="transitions", interpolation_threshold=0.1)
+    assert len(frames) == 4
+    on = sum(int((ran & mask.astype(bool)).sum()) for ran, mask in launched)
+    assert on == stats["transition_world_frames"] > 0, (on, stats["transition_world_frames"])
+    assert stats["hold_world_frames"] > 0 and any(not m.all() for _, m in launched), "holds must have it off"
+    with pytest.raises(ValueError, match="self_contact_during must be one of all, transitions"):
+        SequenceSettings(self_contact_during="holds")

@@ -20,6 +20,8 @@ def test_shipped_specs_validate():
     ({"garment": {"type": "cape"}}, "spec.garment.type must be one of tshirt"),
     ({"simulation": {"tolerance": -1}}, "spec.simulation.tolerance must be a number > 0.0"),
     ({"simulation": {"contact": {"self_contact": "yes"}}}, "spec.simulation.contact.self_contact must be true or false"),
+    ({"simulation": {"contact": {"self_contact_during": "holds"}}},
+     "spec.simulation.contact.self_contact_during must be one of all, transitions"),
     ({"simulation": {"contact": {"canonical_self_contact": 1}}},
      "spec.simulation.contact.canonical_self_contact must be true or false"),
     ({"output": {"precision": "float8"}}, "spec.output.precision must be one of float32, float16"),

@@ -74,6 +74,10 @@ class ClothControl:
         """1 where a world's attachments act, 0 once released; shape (world_count,)."""
         self.world_active = wp.array(np.ones(model.world_count, dtype=np.int32), device=device)
         """1 where a world is integrated, 0 where it is frozen (converged or exploded); (world_count,)."""
+        self.world_self_contact = wp.array(np.ones(model.world_count, dtype=np.int32), device=device)
+        """1 where a world's self-contact (if the solver has it) finds candidates at its next search,
+        0 where it is off; (world_count,). See :meth:`set_self_contact`."""
+        self._self_contact_host = np.ones(model.world_count, dtype=np.int32)
         self.collider: BodyCollider | None = None
         """Body collider (positions interpolated per substep by the driver), or None."""
         self._model = model
@@ -100,6 +104,17 @@ class ClothControl:
         enabled = self.world_attachment_enabled.numpy()
         enabled[self._world_index(worlds)] = 1
         self.world_attachment_enabled.assign(enabled)
+
+    def set_self_contact(self, enabled: np.ndarray) -> None:
+        """Turns self-contact on (True) or off (False) per world, (world_count,) bools. Only a
+        changed mask goes to the device (a captured frame graph reads the array as it is)."""
+        mask = np.asarray(enabled)
+        if mask.shape != (self._model.world_count,):
+            raise ValueError(f"self-contact mask must have shape ({self._model.world_count},) (got {mask.shape})")
+        mask = mask.astype(bool).astype(np.int32)
+        if not np.array_equal(mask, self._self_contact_host):
+            self.world_self_contact.assign(mask)
+            self._self_contact_host = mask
 
     def _world_index(self, worlds: Any) -> np.ndarray:
         count = self._model.world_count

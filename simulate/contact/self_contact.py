@@ -90,6 +90,7 @@ def detect_self_contacts(
     tri_world: wp.array(dtype=wp.int32),
     particle_world: wp.array(dtype=wp.int32),
     world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
     world_offset: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
     adj_start: wp.array(dtype=wp.int32),
@@ -113,12 +114,13 @@ def detect_self_contacts(
     particle (its 2-ring): at cloth resolution these are closer than the contact reach whenever
     the cloth curves or compresses, and repelling them pushed a 7k-vertex shirt apart.  Pairs
     closer than ``rest_exclusion`` [m] in the rest geometry (a garment's armpit crease, where
-    sleeve and torso panels meet at an acute angle) are not contacts either.
+    sleeve and torso panels meet at an acute angle) are not contacts either. Particles of worlds
+    that are not active, or whose ``world_self_contact`` is 0, get no candidate (no push).
     """
     i = wp.tid()
     candidate_out[i] = -1
     w = particle_world[i]
-    if world_active[w] == 0:
+    if world_active[w] == 0 or world_self_contact[w] == 0:
         return
     p = x[i]
     if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
@@ -264,17 +266,21 @@ class SelfContact:
         self.delta = wp.zeros(count, dtype=wp.vec3, device=dev)
         """Per-particle self-contact correction of the current iteration [m]."""
 
-    def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0) -> None:
+    def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
+               world_self_contact: wp.array | None = None) -> None:
         """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle.
 
         With velocities ``v`` [m/s] and the substep ``dt`` [s], the search of each particle also
-        covers its travel over the ``detect_every - 1`` substeps until the next search."""
+        covers its travel over the ``detect_every - 1`` substeps until the next search.
+        ``world_self_contact`` (int32, (world_count,), optional): worlds with 0 get no candidates,
+        so no self-contact push until their next search (``ClothControl.world_self_contact``)."""
         m = self.model
         wp.launch(place_cloth_points, dim=m.particle_count, inputs=[x, m.particle_world, self.world_offset],
                   outputs=[self.mesh.points], device=m.device)
         self.mesh.refit()
         wp.launch(detect_self_contacts, dim=m.particle_count,
-                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, self.world_offset,
+                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active,
+                          world_active if world_self_contact is None else world_self_contact, self.world_offset,
                           x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
                           self.rest, self.rest_exclusion, self.thickness + self.margin,
                           x if v is None else v, 0.0 if v is None else float(dt) * (self.detect_every - 1), MAX_SWEEP_M],

@@ -346,7 +346,8 @@ class SolverXPBD(SolverBase):
                           state_in.particle_q, state_in.particle_qd], outputs=[x], device=dev)
         self.detect_contacts(x, control, substep)
         if self.self_contact is not None and substep % self.self_contact.detect_every == 0:
-            self.self_contact.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt)
+            self.self_contact.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
+                                     world_self_contact=control.world_self_contact)
         self.tri_lambda.zero_()
         self.bend_lambda.zero_()
         if self.attachments:
