@@ -70,8 +70,9 @@ records and hashes. Schema (every key optional unless marked required)::
       body_lookahead: int = 8          target and route poses posed ahead per world in batched
                                         body-model calls (SequenceSettings.body_lookahead)
       contact: {thickness [m], friction, self_contact: bool,
-                self_contact_during: all | transitions = all,  with self_contact: every frame, or
-                                        only while the body moves between poses (holds relax without)
+                self_contact_during: all | transitions | holds = all,  with self_contact: every frame,
+                                        only while the body moves between poses, or only while a
+                                        pose (or the shape's settle) is held
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
                                         (0, N, 2N, ... of a frame) and move the planes with the body
@@ -252,7 +253,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     for flag in ("self_contact", "canonical_self_contact"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
-    c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions"))
+    c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions", "holds"))
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
     c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)

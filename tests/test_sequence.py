@@ -445,10 +445,11 @@ def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream
     assert stats["frames"] == ref_stats["frames"]
 
 
-def test_self_contact_during_transitions_searches_only_in_moving_worlds(scene, monkeypatch):
-    """``self_contact_during="transitions"``: at every frame launch exactly the worlds on a
-    transition entry (shape blend, slerp'ed pose) have self-contact on, so the world-frames with it
-    on are the transition world-frames, and holds have it off."""
+@pytest.mark.parametrize("during", ["transitions", "holds"])
+def test_self_contact_during_limits_the_search_to_moving_or_holding_worlds(scene, monkeypatch, during):
+    """``self_contact_during``: at every frame launch exactly the worlds on a transition entry
+    (shape blend, slerp'ed pose) have self-contact on ("transitions"), or exactly the others
+    ("holds": target poses and settles), so the world-frames with it on are those frames."""
     from simulate.cloth.quasi_static import QuasiStaticSimulator
 
     *_, canonical, small, _jump = scene
@@ -462,10 +463,13 @@ def test_self_contact_during_transitions_searches_only_in_moving_worlds(scene, m
 
     monkeypatch.setattr(QuasiStaticSimulator, "launch_frame", spy)
     frames, stats = _run(scene, [[small, canonical], [canonical, small]], recover=True, self_contact=True,
-                         self_contact_during="transitions", interpolation_threshold=0.1)
+                         self_contact_during=during, interpolation_threshold=0.1)
     assert len(frames) == 4
     on = sum(int((ran & mask.astype(bool)).sum()) for ran, mask in launched)
-    assert on == stats["transition_world_frames"] > 0, (on, stats["transition_world_frames"])
-    assert stats["hold_world_frames"] > 0 and any(not m.all() for _, m in launched), "holds must have it off"
-    with pytest.raises(ValueError, match="self_contact_during must be one of all, transitions"):
-        SequenceSettings(self_contact_during="holds")
+    expected = (stats["transition_world_frames"] if during == "transitions"
+                else stats["hold_world_frames"] + stats["settle_world_frames"])
+    assert on == expected > 0, (during, on, stats)
+    assert stats["transition_world_frames"] > 0 and stats["hold_world_frames"] > 0, stats
+    assert any(not m.all() for _, m in launched) and any(m.any() for _, m in launched), "the mask must change"
+    with pytest.raises(ValueError, match="self_contact_during must be one of all, transitions, holds"):
+        SequenceSettings(self_contact_during="never")
