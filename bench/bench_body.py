@@ -40,20 +40,10 @@ def main() -> None:
     for batch in args.batches:
         shape = rng.uniform(0.2, 0.8, (batch, body.shape_size)).astype(np.float32)
         pose = rng.normal(0, 0.2, (batch, body.pose_size)).astype(np.float32)
-        body.pose(shape, pose)  # warm-up
-        times = []
-        for _ in range(args.repeats):
-            if args.device.startswith("cuda"):
-                torch.cuda.synchronize()
-            t = time.perf_counter()
-            with torch.no_grad():
-                body.pose_torch(shape, pose)
-            if args.device.startswith("cuda"):
-                torch.cuda.synchronize()
-            times.append(time.perf_counter() - t)
+        with torch.no_grad():
+            pose_s = _median_time(lambda: body.pose_torch(shape, pose), args)
         print(json.dumps({"bench": "body_pose", "backend": body.name, "device": args.device, "batch": batch,
-                          "median_ms": round(1e3 * float(np.median(times)), 3),
-                          "per_body_ms": round(1e3 * float(np.median(times)) / batch, 4)}))
+                          "median_ms": round(1e3 * pose_s, 3), "per_body_ms": round(1e3 * pose_s / batch, 4)}))
         with torch.no_grad():
             posed = body.pose_torch(shape, pose)
             blended = kin.blend_transforms(posed.skinning_weights.to(posed.vertices), posed.skinning_transforms)

@@ -38,8 +38,9 @@ from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, World
 from simulate.contact import BodyCollider
 from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
 
+SELF_CONTACT_DURING = ("all", "transitions", "holds")  # SequenceSettings.self_contact_during
+
 # Entry kinds of a world's schedule.
-SELF_CONTACT_DURING = ("all", "transitions", "holds")
 TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
 SETTLE = 1  # hold until converged, not recorded (after the shape transition)
 KEY = 2  # hold until converged, then record
