@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from simulate.contact.self_contact import self_contact_correction
 from simulate.solvers.common_kernels import (bending_angle_grad, project_attachment, project_body_contact,
                                              triangle_constraint_deltas)
 
@@ -154,7 +155,7 @@ def solve_elements_gs_world_blocks(
 
 
 def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = False, body_contact: bool = False,
-                                   attachments: bool = False):
+                                   attachments: bool = False, self_contact: bool = False):
     """World-block Gauss-Seidel iterations with the world's positions in shared memory.
 
     The block loads its world's positions (at most ``tile_particles``, 12 bytes each) into a
@@ -171,6 +172,14 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
     ``project_body_contact``) to its own particles in the tile, so the result is bit-identical to
     alternating the two launches while the tile is loaded and stored once per substep.  One
     kernel per (tile size, flags): the tile's shape is a compile-time constant.
+
+    With ``self_contact`` (and ``particle_pass``) the particle pass first adds each particle's
+    self-contact push (``self_contact_correction``, as ``SelfContact.project`` computes it): the
+    candidate triangle lies in the particle's own world (the search only finds those), so its
+    corners are in the tile. Every lane computes its particles' pushes from the swept tile into
+    ``self_delta`` (global, each lane only its own entries), the block meets at a barrier, then
+    lanes apply them; so no push reads a position another lane has already moved, as in the
+    separate launches of ``SelfContact.project`` and the particle kernel.
 
     Element corners come as world-local indices (``local_topology``): element ``t`` of colour
     ``c`` in world ``w`` has corners ``*_local[t - *_shift[c, w]]``. Worlds with one topology
@@ -228,6 +237,12 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
         contact_normal: wp.array(dtype=wp.vec3),
         contact_offset: wp.array(dtype=float),
         contact_depth: wp.array(dtype=float),
+        tri_indices: wp.array2d(dtype=wp.int32),
+        self_candidate: wp.array(dtype=wp.int32),
+        self_side: wp.array(dtype=float),
+        self_thickness: float,
+        self_relaxation: float,
+        self_delta: wp.array(dtype=wp.vec3),
         # In/out:
         tri_lambda: wp.array(dtype=wp.vec3),
         bend_lambda: wp.array(dtype=float),
@@ -285,12 +300,25 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
                     tile_write(xs, k4, q4 + e4)
                     bend_lambda[b] = blam
                 block_sync()
+            if wp.static(particle_pass and self_contact):
+                for j in range(lane, count_w, stride):
+                    i = base + j
+                    push = wp.vec3(0.0)
+                    t = self_candidate[i]
+                    if t >= 0 and inv_mass[dbase + j] != 0.0:
+                        push = self_contact_correction(xs[j], xs[tri_indices[t, 0] - base], xs[tri_indices[t, 1] - base],
+                                                       xs[tri_indices[t, 2] - base], self_side[i], self_thickness,
+                                                       self_relaxation)
+                    self_delta[i] = push
+                block_sync()
             if wp.static(particle_pass):
                 for j in range(lane, count_w, stride):
                     i = base + j
                     im = inv_mass[dbase + j]
                     if im != 0.0:
                         p = xs[j]
+                        if wp.static(self_contact):
+                            p = p + self_delta[i]
                         if wp.static(attachments):
                             p = project_attachment(p, im, i, w, inv_dt2, particle_attachment, attachment_target,
                                                    world_attachment_stiffness, world_attachment_enabled,

@@ -238,6 +238,8 @@ class SolverXPBD(SolverBase):
 
             self.self_contact = SelfContact(model, **dict(self_contact_options or {}))
         self.self_delta = self.self_contact.delta if self.self_contact else wp.zeros(1, dtype=wp.vec3, device=dev)
+        self._no_candidates = wp.full(1, -1, dtype=wp.int32, device=dev)  # the tiled kernel's arguments
+        self._no_side = wp.ones(1, dtype=float, device=dev)  # without self-contact
         self._particle_kernel = ck.make_particle_constraints_kernel(
             self._gather, self.body_contact, self.attachments, self.self_contact is not None)
         self._tri_ranges = [(a, b - a) for a, b in zip(model.tri_colour_offsets[:-1], model.tri_colour_offsets[1:])
@@ -263,11 +265,13 @@ class SolverXPBD(SolverBase):
             tile = 64 * -(-int(np.max(model.world_particle_count)) // 64)
             if gs_shared is None:
                 gs_shared = dev.is_cuda and 12 * tile <= SHARED_TILE_MAX_BYTES
-            # The whole substep in one launch when the particle pass has nothing but attachments and
-            # body contact (no Jacobi gather, no self-contact between the sweeps).
-            self._fused = bool(gs_shared and not self._gather and self.self_contact is None)
+            # The whole substep in one launch when the particle pass has no Jacobi gather: its
+            # attachments, body contact and self-contact pushes run between the sweeps in the tile.
+            self._fused = bool(gs_shared and not self._gather)
             self._shared_kernel = (_shared_kernel(tile, self._fused, self.body_contact and self._fused,
-                                                  self.attachments and self._fused) if gs_shared else None)
+                                                  self.attachments and self._fused,
+                                                  self.self_contact is not None and self._fused)
+                                   if gs_shared else None)
             if gs_shared:  # where each world's tile starts and how much of it is the world's
                 self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
                 self._world_count = wp.array(model.world_particle_count, dtype=wp.int32, device=dev)
@@ -324,10 +328,16 @@ class SolverXPBD(SolverBase):
                 self.gs_relaxation]
 
     def _particle_pass_args(self, control: ClothControl) -> list:
-        """The shared-memory kernel's particle-pass arguments (attachments, then body contact)."""
+        """The shared-memory kernel's particle-pass arguments (attachments, body contact, then
+        self-contact)."""
+        sc = self.self_contact
+        if sc is None:
+            self_args = [self._no_candidates, self._no_side, 0.0, 0.0, self.self_delta]
+        else:
+            self_args = [sc.candidate, sc.side, sc.thickness, sc.relaxation, sc.delta]
         return [self.model.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
                 control.world_attachment_enabled, self.attachment_lambda, self.contact_active, self.contact_normal,
-                self.contact_offset, self.contact_depth]
+                self.contact_offset, self.contact_depth, self.model.tri_indices, *self_args]
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
