@@ -98,6 +98,12 @@ def test_packing_offsets_masses_and_colouring() -> None:
     packed = {tuple(sorted(t)) for t in tri.tolist()}
     expected = {tuple(sorted(t)) for t in grid_f.tolist()} | {tuple(sorted(t)) for t in (tube_f + len(grid_v)).tolist()}
     assert packed == expected
+    # Element slots per particle: exactly its corners' slots, ascending (triangles before bending).
+    start, slots = model.particle_adj_start.numpy(), model.particle_adj_slot.numpy()
+    corners = np.concatenate([tri.reshape(-1), model.bend_indices.numpy()[:model.bend_count].reshape(-1)])
+    for i in range(model.particle_count):
+        own = slots[start[i]:start[i + 1]]
+        assert (np.diff(own) > 0).all() and own.tolist() == np.nonzero(corners == i)[0].tolist(), i
     # Flat rest cloth: all rest dihedral angles are zero.
     assert np.allclose(model.bend_rest_angle.numpy()[model.bend_world.numpy() == 0], 0.0, atol=1e-6)
     assert model.skinning_weights[1].shape == (len(tube_v), 3) and model.skinning_weights[0] is None

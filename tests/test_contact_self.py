@@ -194,3 +194,74 @@ def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: 
     assert upper[:, 1].max() < 0.15 and upper[:, 1].min() > 0.0, "the upper layer must come to rest on the lower"
     assert np.array_equal(out["world_blocks"], out["colour_launches"]), (
         f"the tiled substep differs by {np.abs(out['world_blocks'] - out['colour_launches']).max():.3g} m")
+
+
+def _closest_point(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Point of triangle abc closest to p, by projecting onto the plane and, outside the
+    triangle, onto the nearest of its edges (a plain reference for Ericson's region tests)."""
+    n = np.cross(b - a, c - a)
+    q = p - np.dot(p - a, n) / np.dot(n, n) * n
+    ab, ac, aq = b - a, c - a, q - a
+    d00, d01, d11 = ab @ ab, ab @ ac, ac @ ac
+    v = (d11 * (aq @ ab) - d01 * (aq @ ac)) / (d00 * d11 - d01 * d01)
+    w = (d00 * (aq @ ac) - d01 * (aq @ ab)) / (d00 * d11 - d01 * d01)
+    if v >= 0 and w >= 0 and v + w <= 1:
+        return q
+    best = None
+    for s, e in ((a, b), (b, c), (c, a)):
+        t = np.clip(np.dot(p - s, e - s) / np.dot(e - s, e - s), 0.0, 1.0)
+        x = s + t * (e - s)
+        if best is None or np.linalg.norm(p - x) < np.linalg.norm(p - best):
+            best = x
+    return best
+
+
+@pytest.mark.parametrize("rest_exclusion", [0.0, 0.03])
+def test_candidate_search_matches_brute_force(rest_exclusion: float) -> None:
+    """Each particle's candidate is the nearest triangle of its world within the reach, outside its
+    2-ring and not closer than ``rest_exclusion`` at rest, found by brute force over every
+    triangle: a sheet folded onto itself 3 mm apart with jitter, in two worlds (one shifted).
+    Without the rest-shape exclusion the 2-ring alone keeps the fold's own triangles out."""
+    from simulate.contact.self_contact import SelfContact
+
+    n = 9
+    v, f = grid_cloth(n, n, 0.16, 0.16, plane="xz")
+    rng = np.random.default_rng(3)
+    folded = v.astype(np.float64).copy()
+    top = folded[:, 0] > 0.08 + 1e-6  # the half past the fold line x = 0.08 lies back over the other half
+    folded[top, 0] = 0.16 - folded[top, 0]
+    folded[top, 1] = 0.003
+    folded += rng.normal(0.0, 4e-4, folded.shape)
+    builder = ClothBuilder()
+    for _ in range(2):
+        builder.add_garment(v, f, fabric="cotton")
+    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    contact = SelfContact(model, thickness=0.004, margin=0.004, rest_exclusion=rest_exclusion)
+    x = np.concatenate([folded, folded + np.array([0.5, 0.0, 0.0])]).astype(np.float32)
+    contact.detect(wp.array(x, dtype=wp.vec3, device="cpu"), model.control().world_active)
+    got = contact.candidate.numpy()
+    tri = model.tri_indices.numpy()
+    tri_world = model.tri_world.numpy()
+    rest = np.asarray(model.particle_q_rest_np, np.float64)
+    pworld = model.particle_world.numpy()
+    reach = contact.thickness + contact.margin
+    expected = np.full(model.particle_count, -1)
+    nearest = np.full(model.particle_count, np.inf)  # distance to the nearest allowed triangle [m]
+    allowed = [set() for _ in range(model.particle_count)]
+    for i in range(model.particle_count):
+        ring1 = {int(u) for t in tri if i in t for u in t}
+        for t, (a, b, c) in enumerate(tri):
+            if tri_world[t] != pworld[i] or i in (a, b, c) or ring1 & {int(a), int(b), int(c)}:
+                continue
+            if np.linalg.norm(rest[i] - _closest_point(rest[i], *rest[[a, b, c]])) < contact.rest_exclusion:
+                continue
+            allowed[i].add(t)
+            d = np.linalg.norm(x[i] - _closest_point(x[i].astype(np.float64), *x[[a, b, c]].astype(np.float64)))
+            if d < min(reach, nearest[i]):
+                nearest[i], expected[i] = d, t
+    assert (expected >= 0).sum() > model.particle_count // 4, "the folded halves must find each other"
+    assert np.array_equal(got >= 0, expected >= 0), np.nonzero((got >= 0) != (expected >= 0))[0]
+    for i in np.nonzero(got >= 0)[0]:  # the nearest, up to ties (two triangles meeting at the closest point)
+        a, b, c = tri[got[i]]
+        d = np.linalg.norm(x[i] - _closest_point(x[i].astype(np.float64), *x[[a, b, c]].astype(np.float64)))
+        assert got[i] in allowed[i] and d < nearest[i] + 1e-6, (i, got[i], expected[i], d, nearest[i])

@@ -139,7 +139,8 @@ class ClothModel:
     * ``particle_attachment`` int32 (particle_count,) attachment index or -1
     * ``particle_adj_start`` int32 (particle_count + 1,), ``particle_adj_slot`` int32: CSR list
       of the element slots (``3 t + k`` for triangle corners, ``3 T + 4 b + k`` for bending
-      corners) touching each particle, used by the Jacobi gather and mass-spring forces
+      corners) touching each particle, ascending (a particle's triangle slots come first; the
+      self-contact search relies on it), used by the Jacobi gather and mass-spring forces
     * ``tri_indices`` int32 (tri_count, 3), ``tri_dm_inv`` mat22 (tri_count,) inverse rest
       frame matrix [1/m], ``tri_area`` float [m^2], ``tri_compliance`` vec3 (1/(Y A), 1/(Y A),
       1/(G A)) [1/N m], ``tri_world`` int32, ``tri_jacobi_scale`` float (1 / most triangles at
