@@ -103,6 +103,8 @@ def sequence_settings(spec: dict):
                       damping=float(s["damping"]), explosion_stretch=float(s["explosion_stretch"]),
                       max_frames=int(s["max_relax_frames"]), limit_cycle_window=int(s["limit_cycle_window"]),
                       self_contact_detect_every=int(s["contact"]["self_contact_detect_every"]),
+                      self_contact_rest_exclusion=(None if s["contact"]["self_contact_rest_exclusion"] is None
+                                                   else float(s["contact"]["self_contact_rest_exclusion"])),
                       body_contact_detect_every=int(s["contact"]["body_contact_detect_every"]))
     return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
                             interpolation_threshold=float(s["interpolation_threshold"]),

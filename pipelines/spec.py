@@ -74,6 +74,8 @@ records and hashes. Schema (every key optional unless marked required)::
                                         only while the body moves between poses, or only while a
                                         pose (or the shape's settle) is held
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
+                self_contact_rest_exclusion [m] | null = null,  pairs closer than this at rest are never
+                                        self-contacts (null: twice thickness + search margin)
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
                                         (0, N, 2N, ... of a frame) and move the planes with the body
                                         in between (SimSettings.body_contact_detect_every)
@@ -122,6 +124,7 @@ DEFAULTS: dict[str, Any] = {
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
+                    "self_contact_rest_exclusion": None,
                     "body_contact_detect_every": 1, "canonical_self_contact": True},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
@@ -255,6 +258,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
             c.fail(f"{sim}.contact.{flag}", "true or false")
     c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions", "holds"))
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
+    if spec[sim]["contact"]["self_contact_rest_exclusion"] is not None:
+        c.number(f"{sim}.contact.self_contact_rest_exclusion", 0.0, 0.2)
     c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)

@@ -265,3 +265,28 @@ def test_candidate_search_matches_brute_force(rest_exclusion: float) -> None:
         a, b, c = tri[got[i]]
         d = np.linalg.norm(x[i] - _closest_point(x[i].astype(np.float64), *x[[a, b, c]].astype(np.float64)))
         assert got[i] in allowed[i] and d < nearest[i] + 1e-6, (i, got[i], expected[i], d, nearest[i])
+
+
+def test_rest_exclusion_comes_from_the_settings_and_the_spec() -> None:
+    """``SimSettings.self_contact_rest_exclusion`` (the spec's ``contact.self_contact_rest_exclusion``)
+    reaches the solver's SelfContact; None keeps its default, a negative value is refused."""
+    import copy
+
+    from pipelines.generate_dataset import sequence_settings
+    from pipelines.spec import load_spec
+
+    v, f = grid_cloth(5, 5, 0.1, 0.1, plane="xz")
+    builder = ClothBuilder()
+    builder.add_garment(v, f, fabric="cotton")
+    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    spec = copy.deepcopy(load_spec("quickstart"))
+    for value in (None, 0.006):
+        spec["simulation"]["contact"]["self_contact_rest_exclusion"] = value
+        settings = sequence_settings(spec).sim
+        assert settings.self_contact_rest_exclusion == value
+        sim = QuasiStaticSimulator(model, None, settings=settings)
+        contact = sim.solver.self_contact
+        expected = 2.0 * (contact.thickness + contact.margin) if value is None else value
+        assert contact.rest_exclusion == pytest.approx(expected)
+    with pytest.raises(ValueError, match="self_contact_rest_exclusion"):
+        SimSettings(self_contact_rest_exclusion=-1.0)

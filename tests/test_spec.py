@@ -22,6 +22,8 @@ def test_shipped_specs_validate():
     ({"simulation": {"contact": {"self_contact": "yes"}}}, "spec.simulation.contact.self_contact must be true or false"),
     ({"simulation": {"contact": {"self_contact_during": "never"}}},
      "spec.simulation.contact.self_contact_during must be one of all, transitions, holds"),
+    ({"simulation": {"contact": {"self_contact_rest_exclusion": -0.01}}},
+     "spec.simulation.contact.self_contact_rest_exclusion must be a number >= 0.0 and <= 0.2"),
     ({"simulation": {"contact": {"canonical_self_contact": 1}}},
      "spec.simulation.contact.canonical_self_contact must be true or false"),
     ({"output": {"precision": "float8"}}, "spec.output.precision must be one of float32, float16"),

@@ -99,6 +99,9 @@ class SimSettings:
     self_contact_detect_every: int = 1
     """Self-contact (XPBD, when the model's features have it): find candidate triangles on
     every this-many-th substep of a frame and reuse them in between (see SelfContact)."""
+    self_contact_rest_exclusion: float | None = None
+    """Self-contact: particle-triangle pairs closer than this in the rest geometry are never
+    contacts [m] (None = SelfContact's default, twice the contact reach)."""
     body_contact_detect_every: int = 1
     """Query the body for contact planes on substeps 0, N, 2N, ... of each frame; in between the
     planes move with the body (which moves linearly within a frame), and the body mesh is moved
@@ -128,6 +131,8 @@ class SimSettings:
             "max_frames": int(self.max_frames) == self.max_frames and self.max_frames >= 1,
             "self_contact_detect_every": int(self.self_contact_detect_every) == self.self_contact_detect_every
             and self.self_contact_detect_every >= 1,
+            "self_contact_rest_exclusion": self.self_contact_rest_exclusion is None
+            or (np.isfinite(self.self_contact_rest_exclusion) and self.self_contact_rest_exclusion >= 0.0),
             "body_contact_detect_every": int(self.body_contact_detect_every) == self.body_contact_detect_every
             and self.body_contact_detect_every >= 1,
             "limit_cycle_window": int(self.limit_cycle_window) == self.limit_cycle_window and self.limit_cycle_window >= 0,
@@ -184,7 +189,8 @@ class QuasiStaticSimulator:
             opts.setdefault("bending_mode", s.xpbd_bending_mode)
             opts.setdefault("gs_sweep", s.gs_sweep)
             opts.setdefault("gs_block_dim", s.gs_block_dim)
-            opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every)})
+            opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
+                                                     "rest_exclusion": s.self_contact_rest_exclusion})
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:
             self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10
