@@ -29,6 +29,8 @@ import sys
 import time
 from pathlib import Path
 
+import yaml
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -139,8 +141,8 @@ def main() -> None:
             old = table[key]
             if isinstance(old, bool):
                 table[key] = value.lower() in ("1", "true", "yes")
-            elif old is None:  # optional fields (poses_per_task): an integer, or null
-                table[key] = None if value.lower() in ("none", "null") else int(value)
+            elif old is None:  # optional fields (poses_per_task, a rest exclusion): a number, or null
+                table[key] = None if value.lower() in ("none", "null") else yaml.safe_load(value)
             else:
                 table[key] = type(old)(value)
     if args.range_scale is not None:
