@@ -112,7 +112,7 @@ def sequence_settings(spec: dict):
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
                             self_contact_during=s["contact"]["self_contact_during"],
                             restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"],
-                            body_lookahead=int(s["body_lookahead"]))
+                            body_lookahead=int(s["body_lookahead"]), cross_group_tasks=bool(s["cross_group_tasks"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:

@@ -120,6 +120,14 @@ class SequenceSettings:
     calls in 876 frames instead of one per frame). Memory: world_count x lookahead posed bodies
     (~0.34 MB each for anny)."""
 
+    cross_group_tasks: bool = True
+    """A world whose group (``world_groups``) has no task left takes the next task of the group
+    with the most target poses waiting per busy world: that group's garment (rest shape, fabric:
+    ``QuasiStaticSimulator.adopt_garment``), shape and settled home drape are swapped in, and the
+    task runs as it would in a world of its own group (tested bit for bit). Without it a group's
+    worlds wait idle once its tasks run out while others still queue (the full TailorNet spec
+    on an H200: the last ~5 % of its targets took ~120 s of the 513 with ~9 worlds busy). Only
+    solvers that can swap garments (XPBD) do it."""
     concurrent_streams: bool = True
     """On CUDA, frames step on a stream of their own while the host hands the previous frame's
     target frames over (``on_frames``) and poses the next bodies beside them (see ``run_sequences``).
@@ -414,7 +422,9 @@ def run_sequences(
     a world (the same cloth rest geometry, start drape, shape and fabric, see ``world_groups``)
     form a group, each group gets worlds in proportion to its target poses (``allocate_worlds``),
     and a world that finishes a task takes its group's next one (in the given order) from its home
-    drape, the settled canonical drape on the group's shape. Worlds whose tasks end at different
+    drape, the settled canonical drape on the group's shape; once its group has none left, it takes
+    the next task of the group with the most target poses waiting per busy world, that group's
+    garment and home drape swapped in (``SequenceSettings.cross_group_tasks``). Worlds whose tasks end at different
     times would otherwise sit idle while the last ones finish, and a frame of a few busy worlds
     costs most of a full one (7.7k t-shirts on an H100: 23 ms per frame for 30 worlds, 38 ms for
     240). Which world takes which task depends only on the batch, so the result is reproducible.
@@ -466,7 +476,8 @@ def run_sequences(
             states of holds that ended), parts of the body phase (body_target_s: the collider's
             targets, body_prefetch_s: posing ahead beside a frame in flight), explosions by cause (exploded_non_finite / _speed / _stretch) (``stats``
             itself when given), and on CUDA element_data_copies: the copies of garment data the
-            sweep reads (the batch's distinct garments, see ``shared_element_data``).
+            sweep reads (the batch's distinct garments, see ``shared_element_data``); task_switches
+            (a world taking a queued task) and group_switches (of them, tasks of another group).
     """
     if (on_frame is None) == (on_frames is None):
         raise ValueError("run_sequences needs exactly one of on_frame and on_frames")
@@ -490,6 +501,9 @@ def run_sequences(
             queues[g].append(i)
     cur = np.array(first, dtype=np.int64)  # task each world runs
     group = np.array([group_of_task[i] for i in first], dtype=np.int64)  # group of each world
+    # the first world of each group: it keeps the group's garment while the group has tasks queued
+    group_source = {int(g): w for w, g in reversed(list(enumerate(group)))}
+    group_home: dict[int, dict] = {}  # each group's settled canonical drape, from its first settle
     w_count = len(cur)
     neutral = np.asarray(body.shape_default, np.float32)
     canonical = np.asarray(body.canonical_pose, np.float32)
@@ -557,11 +571,28 @@ def run_sequences(
         else:
             changed[w] = True
 
+    def busiest_group() -> int | None:
+        """The group with the most target poses queued per busy world, among those whose home
+        drape is known (None: no task waits anywhere, or cross-group tasks are off)."""
+        if not (settings.cross_group_tasks and sim.swaps_garments):
+            return None
+        busy = np.bincount(group[~done], minlength=n_groups)
+        waiting = [(sum(len(tasks[i].poses) for i in queues[k]) / max(int(busy[k]), 1), -k)
+                   for k in range(n_groups) if queues[k] and k in group_home]
+        return -max(waiting)[1] if waiting else None
+
     def finish(w: int) -> None:
-        """World ``w`` is through its task: it takes its group's next task, or is done."""
+        """World ``w`` is through its task: it takes its group's next task, or another group's
+        (``SequenceSettings.cross_group_tasks``), or is done."""
         if not queues[group[w]]:
-            done[w] = True
-            return
+            k = busiest_group()
+            if k is None:
+                done[w] = True
+                return
+            sim.adopt_garment(w, group_source[k])  # a world that holds group k's garment
+            group[w] = k
+            home[w] = group_home[k]
+            stats["group_switches"] += 1
         cur_before = cur[w]
         t = cur[w] = queues[group[w]].popleft()
         stats["task_switches"] += 1
@@ -586,7 +617,7 @@ def run_sequences(
     for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
               "sim_s", "sim_launch_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
               "record_copy_s", "record_frames_s", "record_deliver_s", "record_route_s", "body_target_s",
-              "body_prefetch_s", "plan_calls", "setup_s",
+              "body_prefetch_s", "plan_calls", "setup_s", "group_switches",
               "setup_schedules_s", "setup_model_s", "setup_simulator_s", "task_switches"):
         stats.setdefault(k, 0)
     t_ready = time.perf_counter()
@@ -846,6 +877,7 @@ def run_sequences(
                                 last_good[w] = state
                             if kind == SETTLE:
                                 home[w] = state
+                                group_home.setdefault(int(group[w]), state)
                         if kind == KEY:
                             keyed.append(j)
                         else:

@@ -521,3 +521,48 @@ def test_small_limit_cycles_count_as_rest_and_drift_does_not(device: str) -> Non
     np.testing.assert_array_equal(after_reset[11][0], 0)
     with pytest.raises(ValueError, match="limit_cycle_window"):
         SimSettings(limit_cycle_window=-1)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("shared", [True, False])
+def test_a_world_that_adopts_another_garment_steps_as_a_world_built_with_it(device: str, shared: bool) -> None:
+    """``adopt_garment``: world 1 takes world 0's garment (rest shape, fabric) in place and then
+    steps bit for bit as world 1 of a batch built with that garment, in the tiled sweep (which
+    then reads world 0's element data) and in global memory, with body and self-contact on."""
+    v, f = grid_cloth(8, 8, 0.4, 0.4, plane="xz", origin=(-0.2, 0.3, -0.2))
+    loose = (1.03 * v).astype(np.float32)
+    sv, sf = icosphere(0.25, subdivisions=2)
+
+    def make(garments):
+        builder = ClothBuilder()
+        for verts, fab, *faces in garments:
+            builder.add_garment(verts, faces[0] if faces else f, fabric=fab)
+        model = builder.finalize(device, features=Features(self_contact=True, friction=True))
+        collider = BodyCollider(sv, sf, device=device, world_count=len(garments))
+        return QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=4, iterations=4),
+                                    solver_options={"gs_shared": shared, "gs_block_dim": 64})
+
+    swapped = make([(v, "cotton"), (loose, "silk"), (loose, "silk")])
+    built = make([(v, "cotton"), (v, "cotton"), (loose, "silk")])
+    assert swapped.swaps_garments
+    for _ in range(3):
+        swapped.step_frame()
+        built.step_frame()
+    swapped.adopt_garment(1, 0)
+    if shared:
+        assert swapped.solver.element_data_source.tolist() == [0, 0, 2]
+    assert swapped.model.fabrics[1].name == "cotton"
+    np.testing.assert_array_equal(swapped.solver.self_contact.rest.numpy(), built.solver.self_contact.rest.numpy())
+    for sim in (swapped, built):
+        sim.revive(1, v)
+    for _ in range(8):
+        swapped.step_frame()
+        built.step_frame()
+    one = built.model.world_slice(1)
+    assert np.abs(built.positions()[one] - v).max() > 0.05, "the cloth did not move"
+    # world 2 read world 1's copy of the loose garment before: it reads its own now
+    np.testing.assert_array_equal(swapped.positions(), built.positions())
+    small_v, small_f = grid_cloth(7, 7, 0.4, 0.4, plane="xz")
+    other = make([(v, "cotton"), (small_v, "silk", small_f)])
+    with pytest.raises(ValueError, match="same triangles"):
+        other.adopt_garment(1, 0)

@@ -202,3 +202,56 @@ class ClothModel:
             raise ValueError(f"world must be in [0, {self.world_count}) (got {world})")
         start = int(self.world_particle_start[world])
         return slice(start, start + int(self.world_particle_count[world]))
+
+    def world_element_ranges(self, world: int) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
+        """``world``'s triangles and bending elements as (start, count) per colour (elements are
+        sorted by colour, then world)."""
+        if not 0 <= world < self.world_count:
+            raise ValueError(f"world must be in [0, {self.world_count}) (got {world})")
+        if not hasattr(self, "_element_world_np"):
+            self._element_world_np = (self.tri_world.numpy()[:self.tri_count], self.bend_world.numpy()[:self.bend_count])
+        out = []
+        for offsets, owner in zip((self.tri_colour_offsets, self.bend_colour_offsets), self._element_world_np):
+            ranges = []
+            for a, b in zip(offsets[:-1], offsets[1:]):
+                lo, hi = np.searchsorted(owner[a:b], [world, world + 1])
+                ranges.append((a + int(lo), int(hi - lo)))
+            out.append(ranges)
+        return out[0], out[1]
+
+    def copy_world_garment(self, dst: int, src: int) -> None:
+        """Gives world ``dst`` world ``src``'s garment: rest shape (triangle rest frames and areas,
+        rest dihedral angles, rest positions), fabric (compliances, masses, thickness, damping,
+        friction) and skinning weights, copied in place on the device (a captured frame graph
+        keeps reading the same arrays). Both worlds must have the same triangles in the same
+        element order (``ValueError`` otherwise) and no attachments; positions, velocities and
+        contacts are the caller's (``QuasiStaticSimulator.adopt_garment``)."""
+        if dst == src:
+            return
+        n = int(self.world_particle_count[src])
+        if (int(self.world_particle_count[dst]) != n or not np.array_equal(self.world_faces[dst], self.world_faces[src])):
+            raise ValueError(f"world {dst} can take world {src}'s garment only with the same triangles "
+                             f"({int(self.world_particle_count[dst])} and {n} particles)")
+        att = self.particle_attachment.numpy() if self.attachment_count else None
+        if att is not None and ((att[self.world_slice(dst)] >= 0).any() or (att[self.world_slice(src)] >= 0).any()):
+            raise ValueError(f"worlds {dst} and {src}: garments with attachments cannot be swapped")
+        tri_d, bend_d = self.world_element_ranges(dst)
+        tri_s, bend_s = self.world_element_ranges(src)
+        d0, s0 = int(self.world_particle_start[dst]), int(self.world_particle_start[src])
+        for ranges_d, ranges_s, indices, arrays in (
+                (tri_d, tri_s, self.tri_indices_np, (self.tri_dm_inv, self.tri_compliance, self.tri_area)),
+                (bend_d, bend_s, self.bend_indices_np, (self.bend_rest_angle, self.bend_compliance))):
+            for (a, k), (b, m) in zip(ranges_d, ranges_s):
+                if k != m or not np.array_equal(indices[a:a + k] - d0, indices[b:b + m] - s0):
+                    raise ValueError(f"worlds {dst} and {src} order their elements differently: no garment swap")
+                for arr in arrays:
+                    if k:
+                        wp.copy(arr, arr, dest_offset=a, src_offset=b, count=k)
+        for arr in (self.particle_mass, self.particle_inv_mass, self.particle_radius):
+            wp.copy(arr, arr, dest_offset=d0, src_offset=s0, count=n)
+        for arr in (self.world_damping, self.world_friction):
+            wp.copy(arr, arr, dest_offset=dst, src_offset=src, count=1)
+        for host in (self.particle_q_rest_np, self.particle_mass_np, self.particle_inv_mass_np):
+            host[d0:d0 + n] = host[s0:s0 + n]
+        self.fabrics[dst] = self.fabrics[src]
+        self.skinning_weights[dst] = self.skinning_weights[src]

@@ -53,6 +53,15 @@ class SolverBase:
         self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
 
+    swaps_garments = False
+    """Whether ``garment_changed`` can follow ``ClothModel.copy_world_garment`` (worlds of a batch
+    taking another garment's tasks)."""
+
+    def garment_changed(self, dst: int, src: int) -> None:
+        """World ``dst`` now holds world ``src``'s garment (``ClothModel.copy_world_garment``):
+        update whatever the solver derived from the model's per-world data at construction."""
+        raise NotImplementedError(f"{type(self).__name__} cannot swap a world's garment")
+
     def _check(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 [s] (got {dt!r})")

@@ -299,11 +299,44 @@ class SolverXPBD(SolverBase):
                     bend_dshift = np.zeros_like(bend_offsets[:, :w])
                     data_start, source = starts, np.arange(w, dtype=np.int32)
                 self.element_data_source = source
+                self._element_data_np = (tri_dshift, bend_dshift, np.asarray(data_start, np.int32))
+                self._colour_offsets_np = (tri_offsets, bend_offsets)
                 """World whose element data (rest shapes, compliances, inverse masses) each world's
                 tiled sweep reads (``shared_element_data``); each world's own without sharing."""
                 self._element_data = [wp.array(tri_dshift, dtype=wp.int32, device=dev),
                                       wp.array(bend_dshift, dtype=wp.int32, device=dev),
                                       wp.array(data_start, dtype=wp.int32, device=dev)]
+
+    swaps_garments = True
+
+    def garment_changed(self, dst: int, src: int) -> None:
+        """World ``dst`` now holds world ``src``'s garment: the tiled sweep reads the element data
+        ``src`` reads (``shared_element_data``; the same values as ``dst``'s own copy, one copy in
+        L2), and the self-contact search excludes ``dst``'s pairs by ``src``'s rest shape."""
+        source = self.element_data_source
+        if source is not None:
+            tri_dshift, bend_dshift, data_start = self._element_data_np
+            starts = np.asarray(self.model.world_particle_start, np.int32)
+
+            def read_from(w: int, k: int) -> None:
+                """World ``w`` reads world ``k``'s element data (the same values)."""
+                for shift, offsets in ((tri_dshift, self._colour_offsets_np[0]),
+                                       (bend_dshift, self._colour_offsets_np[1])):
+                    shift[:, w] = offsets[:, w] - offsets[:, k]  # w's k-th element of colour c at k's
+                data_start[w] = starts[k]
+                source[w] = k
+
+            # worlds that read dst's copy keep their garment: the first of them serves the others now
+            readers = [w for w in range(len(source)) if w != dst and source[w] == dst]
+            for w in readers:
+                read_from(w, readers[0])
+            read_from(dst, int(source[src]))
+            for arr, host in zip(self._element_data, self._element_data_np):
+                arr.assign(host)
+        if self.self_contact is not None:
+            n = int(self.model.world_particle_count[src])
+            wp.copy(self.self_contact.rest, self.self_contact.rest, dest_offset=int(self.model.world_particle_start[dst]),
+                    src_offset=int(self.model.world_particle_start[src]), count=n)
 
     @property
     def element_data_copies(self) -> int | None:
