@@ -566,3 +566,20 @@ def test_a_world_that_adopts_another_garment_steps_as_a_world_built_with_it(devi
     other = make([(v, "cotton"), (small_v, "silk", small_f)])
     with pytest.raises(ValueError, match="same triangles"):
         other.adopt_garment(1, 0)
+
+
+def test_the_mass_spring_solver_refuses_to_swap_a_garment() -> None:
+    """The mass-spring solver's substeps follow the stable step of the garments it was built with
+    (``stable_dt``), which a swapped-in garment could undercut: it says it cannot swap
+    (``swaps_garments``), ``adopt_garment`` refuses, and the model is left as it was."""
+    v, f = grid_cloth(5, 5, 0.2, 0.2, plane="xz")
+    builder = ClothBuilder()
+    builder.add_garment(v, f, fabric="cotton")
+    builder.add_garment(1.1 * v, f, fabric="silk")
+    model = builder.finalize("cpu")
+    sim = QuasiStaticSimulator(model, None, solver="mass_spring")
+    before = model.tri_dm_inv.numpy().copy()
+    assert not sim.swaps_garments
+    with pytest.raises(NotImplementedError, match="cannot swap"):
+        sim.adopt_garment(1, 0)
+    assert np.array_equal(model.tri_dm_inv.numpy(), before) and model.fabrics[1].name == "silk"
