@@ -436,19 +436,24 @@ def test_a_world_out_of_tasks_takes_another_groups_task_as_a_world_of_that_group
     posed = body.pose(np.stack([shapes[t] for t, _ in sorted(frames)]), np.stack([keys[t][k] for t, k in sorted(frames)]))
     for (t, k), v in zip(sorted(frames), posed.vertices):
         np.testing.assert_allclose(frames[t, k].body_vertices, v, rtol=0, atol=1e-5, err_msg=f"task {t} key {k}")
-    switched = 2  # world 1 ran task 3, then took group 0's queued task 2 (world 0 ran 0 and 1)
-    for (t, k), frame in frames.items():
-        other = out[False][0][t, k]
-        if t != switched:  # the same world ran it in both runs
-            assert frame.status == other.status
-            np.testing.assert_array_equal(frame.positions, other.positions, err_msg=f"task {t} key {k}")
-    # Task 2 ran in world 0 without switches: the worlds' body queries run in cells of their own
-    # (BodyCollider), which round differently, so its drapes agree to float precision at the first
-    # target (1.2e-5 m measured; a rest shape or fabric left unswapped moves it by millimetres), and
-    # later ones wander as a hold's contacts amplify it (QuasiStaticSimulator.adopt_garment is
-    # tested bit for bit in one world).
-    first = np.abs(frames[switched, 0].positions - out[False][0][switched, 0].positions).max()
-    assert first < 1e-4, first
+    # World 1 ran task 3, then took one of group 0's queued tasks 1 and 2 (which one depends on
+    # which world finished first, so on the machine's float rounding); world 0 ran 0 and the other.
+    # A task run by the same world in both runs steps bit for bit alike. The switched task ran in
+    # world 0 without switches: the worlds' body queries run in cells of their own (BodyCollider),
+    # which round differently, so its drapes agree to float precision at the first target
+    # (1.2e-5 m measured; a rest shape or fabric left unswapped moves it by centimetres), and later
+    # ones wander as a hold's contacts amplify it (QuasiStaticSimulator.adopt_garment is tested
+    # bit for bit in one world).
+    def same(t):
+        return all(frames[t, k].status == out[False][0][t, k].status
+                   and np.array_equal(frames[t, k].positions, out[False][0][t, k].positions) for k in range(len(keys[t])))
+
+    assert same(0) and same(3), "tasks that kept their worlds must step as without switches"
+    inexact = [t for t in (1, 2) if not same(t)]
+    assert len(inexact) <= 1, inexact
+    for t in inexact:
+        first = np.abs(frames[t, 0].positions - out[False][0][t, 0].positions).max()
+        assert first < 1e-4, (t, first)
 
 
 def _cuda_available() -> bool:
