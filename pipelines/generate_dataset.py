@@ -112,7 +112,8 @@ def sequence_settings(spec: dict):
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
                             self_contact_during=s["contact"]["self_contact_during"],
                             restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"],
-                            body_lookahead=int(s["body_lookahead"]), cross_group_tasks=bool(s["cross_group_tasks"]))
+                            body_lookahead=int(s["body_lookahead"]), cross_group_tasks=bool(s["cross_group_tasks"]),
+                            home_between_targets=bool(s["home_between_targets"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:

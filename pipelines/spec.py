@@ -67,6 +67,9 @@ records and hashes. Schema (every key optional unless marked required)::
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
+      home_between_targets: bool = false  every world goes back to its settled canonical drape after
+                                        each target and reaches the next along a slerp from the
+                                        canonical pose (restart_after_rejects does so after rejects)
       cross_group_tasks: bool = true   a world whose style-shape pair has no task left takes a task
                                         of the pair with the most target poses waiting per world
                                         (its garment, shape and home drape swapped in), so the
@@ -127,7 +130,7 @@ DEFAULTS: dict[str, Any] = {
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
         "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
-        "cross_group_tasks": True,
+        "cross_group_tasks": True, "home_between_targets": False,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
                     "self_contact_rest_exclusion": None,
                     "body_contact_detect_every": 1, "canonical_self_contact": True},
@@ -258,8 +261,9 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)
     c.number(f"{sim}.contact.friction", 0.0, 2.0)
-    if not isinstance(spec[sim]["cross_group_tasks"], bool):
-        c.fail(f"{sim}.cross_group_tasks", "true or false")
+    for flag in ("cross_group_tasks", "home_between_targets"):
+        if not isinstance(spec[sim][flag], bool):
+            c.fail(f"{sim}.{flag}", "true or false")
     for flag in ("self_contact", "canonical_self_contact"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")

@@ -114,6 +114,11 @@ class SequenceSettings:
     on the H200 (TailorNet spec, 6,700 targets) "last_kept" kept 40.5 % of the targets against
     47.2 % for "home", and saved only 0.6 of 12.8 moving frames per target: a frame that passed
     the filters can still carry the start of a tangle."""
+    home_between_targets: bool = False
+    """Every world goes home (its settled canonical drape) after each target frame, accepted or
+    not, and heads for its next target from the canonical pose: each target is reached along a
+    slerp from the canonical pose instead of from the previous target (no tangle is carried from
+    one target to the next, at the price of longer moves)."""
     body_lookahead: int = 8
     """Schedule entries per world posed ahead; whenever a world runs out, every world short of
     entries is topped up in the same batched body-model call (an H200 run of 240 worlds made 555
@@ -617,7 +622,7 @@ def run_sequences(
     for k in ("frames", "world_frames", "transition_world_frames", "hold_world_frames", "settle_world_frames",
               "sim_s", "sim_launch_s", "body_s", "record_s", "recover_s", "loop_s", "recoveries", "body_calls", "bodies_posed", "body_model_s",
               "record_copy_s", "record_frames_s", "record_deliver_s", "record_route_s", "body_target_s",
-              "body_prefetch_s", "plan_calls", "setup_s", "group_switches",
+              "body_prefetch_s", "plan_calls", "setup_s", "group_switches", "homecomings",
               "setup_schedules_s", "setup_model_s", "setup_simulator_s", "task_switches"):
         stats.setdefault(k, 0)
     t_ready = time.perf_counter()
@@ -773,6 +778,9 @@ def run_sequences(
                     restart_from(w, last_kept[w], next_key)
                 else:
                     go_home(w, next_key)
+            elif settings.home_between_targets and home[w] is not None and next_key < len(tasks[cur[w]].poses):
+                stats["homecomings"] += 1
+                go_home(w, next_key)
             else:
                 advance(w)
         stats["record_route_s"] += time.perf_counter() - f2

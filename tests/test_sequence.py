@@ -192,6 +192,23 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     assert accepted_stats["restarts_after_rejects"] == 0 and not accepted_calls
 
 
+def test_home_between_targets_sends_a_world_home_after_every_target(scene):
+    """home_between_targets: after each target frame, accepted or not, the world goes home and
+    reaches its next target from the canonical pose: the frames equal, bit for bit, those of a run
+    that goes home because it rejected the frame before; without the setting it moves on."""
+    body, _, _, canonical, small, _ = scene
+    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
+    homed, homed_stats = _run_rejecting(scene, [bent, small, bent], home_between_targets=True)
+    rejected, rejected_stats = _run_rejecting(scene, [bent, small, bent], reject_keys=(0, 1), restart_after_rejects=1)
+    onward, onward_stats = _run_rejecting(scene, [bent, small, bent])
+    assert homed_stats["homecomings"] == 2 and homed_stats["restarts_after_rejects"] == 0, homed_stats
+    assert rejected_stats["restarts_after_rejects"] == 2 and onward_stats["homecomings"] == 0
+    assert [f.key for f in homed] == [0, 1, 2]
+    for a, b in zip(homed, rejected):
+        np.testing.assert_array_equal(a.positions, b.positions, err_msg=f"key {a.key}")
+    assert np.abs(homed[1].positions - onward[1].positions).max() > 1e-3, "going home must change the way there"
+
+
 def test_restart_to_last_kept_goes_back_to_the_last_accepted_frame_and_heads_on_from_its_pose(scene):
     """restart_to="last_kept": after a rejected frame the world is put back at its last accepted
     frame (garment and body) and slerps from that pose to its next target, as a world that had

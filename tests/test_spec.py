@@ -36,6 +36,7 @@ def test_shipped_specs_validate():
     ({"simulation": {"restart_to": "start"}}, "spec.simulation.restart_to must be one of home, last_kept"),
     ({"simulation": {"body_lookahead": 0}}, "spec.simulation.body_lookahead must be an integer >= 1"),
     ({"simulation": {"cross_group_tasks": "yes"}}, "spec.simulation.cross_group_tasks must be true or false"),
+    ({"simulation": {"home_between_targets": 1}}, "spec.simulation.home_between_targets must be true or false"),
     ({"simulation": {"contact": {"body_contact_detect_every": 0}}},
      "spec.simulation.contact.body_contact_detect_every must be an integer >= 1"),
     ({"simulation": {"outlier_fraction": 0.9}}, "spec.simulation.outlier_fraction must be a number >= 0.0 and <= 0.5"),
