@@ -367,17 +367,24 @@ def test_worlds_are_shared_out_by_target_poses():
     assert world_groups(tasks) == [0, 1, 0, 2, 3]
 
 
+def _poses_and_shapes(scene):
+    """Two more target poses (spine bent, spine twisted) and two shapes (neutral, heavy)."""
+    body, *_, canonical, _, _ = scene
+    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.4, 0.0]})
+    twist = canonical + body.pose_from_dict({"spine1": [0.3, 0.0, 0.0]})
+    neutral = np.asarray(body.shape_default, np.float32)
+    heavy = neutral.copy()
+    heavy[body.shape_names.index("weight")] = 0.8
+    return bent, twist, neutral, heavy
+
+
 def test_worlds_take_their_groups_next_task_when_one_is_done(scene):
     """With fewer worlds than tasks, a world that is through its task goes home (its settled
     canonical drape) and takes its group's next task: every target of every task is handed over
     once, in its task's order, on the body of that task; the run is reproducible; and a task that
     followed another in a world gives the drapes it gives in a world of its own."""
     body, template, start, canonical, small, _ = scene
-    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.4, 0.0]})
-    twist = canonical + body.pose_from_dict({"spine1": [0.3, 0.0, 0.0]})
-    heavy = np.asarray(body.shape_default, np.float32).copy()
-    heavy[body.shape_names.index("weight")] = 0.8
-    neutral = np.asarray(body.shape_default, np.float32)
+    bent, twist, neutral, heavy = _poses_and_shapes(scene)
     keys = [[bent, small], [twist], [small, bent, twist], [small, bent]]
     shapes = [neutral, neutral, neutral, heavy]  # two groups: tasks 0-2 on one shape, task 3 on another
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=sh, poses=np.stack(k))
@@ -385,7 +392,8 @@ def test_worlds_take_their_groups_next_task_when_one_is_done(scene):
     settings = SequenceSettings(
         sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
-        shape_transition_frames=1, interpolation_threshold=0.2, restart_after_rejects=1)
+        shape_transition_frames=1, interpolation_threshold=0.2, restart_after_rejects=1,
+        cross_group_tasks=False)  # a world keeps its group (the next test lifts this)
     common = dict(body_faces=body.part_faces(("torso", "arms")), settings=settings, device="cpu")
 
     def run(task_list, worlds):
@@ -422,11 +430,7 @@ def test_a_world_out_of_tasks_takes_another_groups_task_as_a_world_of_that_group
     Every target is handed over once on its own task's body, and each task's frames equal, bit for
     bit, those of the run in which only its own group's world runs it."""
     body, template, start, canonical, small, _ = scene
-    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.4, 0.0]})
-    twist = canonical + body.pose_from_dict({"spine1": [0.3, 0.0, 0.0]})
-    heavy = np.asarray(body.shape_default, np.float32).copy()
-    heavy[body.shape_names.index("weight")] = 0.8
-    neutral = np.asarray(body.shape_default, np.float32)
+    bent, twist, neutral, heavy = _poses_and_shapes(scene)
     centre = template.vertices.mean(axis=0)
     loose = (centre + 1.03 * (template.vertices - centre)).astype(np.float32)  # another style: 3 % larger
     keys = [[bent, small], [twist, small], [small, bent], [small]]
