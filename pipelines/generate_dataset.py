@@ -358,6 +358,11 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
         lines.append(f"  {'  restarts after rejects':<26}{int(phases.get('restarts_after_rejects', 0)):>6}  "
                      f"(worlds sent back to the canonical drape after dropped frames)")
+        if phases.get("homecomings"):
+            lines.append(f"  {'  homecomings':<26}{int(phases['homecomings']):>6}  "
+                         f"(home_between_targets: worlds sent back after kept frames)")
+        lines.append(f"  {'  tasks of other pairs':<26}{int(phases.get('group_switches', 0)):>6}  "
+                     f"(worlds that took a task of another style-shape pair, cross_group_tasks)")
     return "\n".join(lines)
 
 
@@ -469,6 +474,7 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                          f"non-finite / speed / stretch {int(ph.get('exploded_non_finite', 0))} / "
                          f"{int(ph.get('exploded_speed', 0))} / {int(ph.get('exploded_stretch', 0))}), "
                          f"{int(ph.get('restarts_after_rejects', 0))} restarts after rejects, "
+                         f"{int(ph.get('group_switches', 0))} tasks of other pairs, "
                          f"{int(ph.get('body_calls', 0))} body-model calls")
             log(line)
 

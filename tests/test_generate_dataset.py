@@ -268,6 +268,7 @@ def test_summary_table_reports_drops_and_where_the_time_went(reference):
     assert all(f"dropped: {reason}" in table for reason in DROP_REASONS), table
     assert "2.00 target frames/s" in table and "explosions recovered" in table, table
     assert table.split("of them restarted")[1].split()[0] == str(int(phases["restarts"])), table
+    assert table.split("tasks of other pairs")[1].split()[0] == str(int(phases["group_switches"])), table
     assert f"over {int(phases['frames'])} simulator frames" in table, table
     parts = [phases[k] for k in ("setup_schedules_s", "setup_model_s", "setup_simulator_s")]
     assert min(parts) >= 0 and abs(sum(parts) - phases["setup_s"]) < 0.01, phases
