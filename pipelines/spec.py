@@ -73,7 +73,7 @@ records and hashes. Schema (every key optional unless marked required)::
       cross_group_tasks: bool = true   a world whose style-shape pair has no task left takes a task
                                         of the pair with the most target poses waiting per world
                                         (its garment, shape and home drape swapped in), so the
-                                        batch's worlds stay busy to the end (XPBD)
+                                        batch's worlds stay busy to the end
       body_lookahead: int = 8          target and route poses posed ahead per world in batched
                                         body-model calls (SequenceSettings.body_lookahead)
       contact: {thickness [m], friction, self_contact: bool,

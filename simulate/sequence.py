@@ -131,8 +131,7 @@ class SequenceSettings:
     ``QuasiStaticSimulator.adopt_garment``), shape and settled home drape are swapped in, and the
     task runs as it would in a world of its own group (tested bit for bit). Without it a group's
     worlds wait idle once its tasks run out while others still queue (the full TailorNet spec
-    on an H200: the last ~5 % of its targets took ~120 s of the 513 with ~9 worlds busy). Only
-    solvers that can swap garments (XPBD) do it."""
+    on an H200: the last ~5 % of its targets took ~120 s of the 513 with ~9 worlds busy)."""
     concurrent_streams: bool = True
     """On CUDA, frames step on a stream of their own while the host hands the previous frame's
     target frames over (``on_frames``) and poses the next bodies beside them (see ``run_sequences``).
@@ -579,7 +578,7 @@ def run_sequences(
     def busiest_group() -> int | None:
         """The group with the most target poses queued per busy world, among those whose home
         drape is known (None: no task waits anywhere, or cross-group tasks are off)."""
-        if not (settings.cross_group_tasks and sim.swaps_garments):
+        if not settings.cross_group_tasks:
             return None
         busy = np.bincount(group[~done], minlength=n_groups)
         waiting = [(sum(len(tasks[i].poses) for i in queues[k]) / max(int(busy[k]), 1), -k)

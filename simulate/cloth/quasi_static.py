@@ -445,17 +445,10 @@ class QuasiStaticSimulator:
         self.world_frames[world] = 0
         self._calm[world] = 0
 
-    @property
-    def swaps_garments(self) -> bool:
-        """Whether ``adopt_garment`` works with this solver."""
-        return bool(self.solver.swaps_garments)
-
     def adopt_garment(self, world: int, source: int) -> None:
         """World ``world`` takes world ``source``'s garment (rest shape, fabric; same triangles,
         see ``ClothModel.copy_world_garment``), in place on the device; put its positions there
         with ``revive`` after. A batch's world can then run another garment's tasks."""
-        if not self.swaps_garments:
-            raise NotImplementedError(f"the {type(self.solver).__name__} solver cannot swap a world's garment")
         self.model.copy_world_garment(world, source)
         self.solver.garment_changed(world, source)
 

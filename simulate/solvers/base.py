@@ -53,14 +53,13 @@ class SolverBase:
         self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
 
-    swaps_garments = False
-    """Whether ``garment_changed`` can follow ``ClothModel.copy_world_garment`` (worlds of a batch
-    taking another garment's tasks)."""
-
     def garment_changed(self, dst: int, src: int) -> None:
         """World ``dst`` now holds world ``src``'s garment (``ClothModel.copy_world_garment``):
-        update whatever the solver derived from the model's per-world data at construction."""
-        raise NotImplementedError(f"{type(self).__name__} cannot swap a world's garment")
+        update whatever the solver derived from the model's per-world data at construction.
+        Nothing here: the base buffers are per particle, and a solver that reads the model's
+        element arrays at every step (mass-spring) sees the new garment as it is. A substep
+        chosen from the model's stable step stays stable: ``src``'s garment was in the model
+        already."""
 
     def _check(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
         if not dt > 0.0:

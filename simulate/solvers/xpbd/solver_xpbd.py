@@ -307,8 +307,6 @@ class SolverXPBD(SolverBase):
                                       wp.array(bend_dshift, dtype=wp.int32, device=dev),
                                       wp.array(data_start, dtype=wp.int32, device=dev)]
 
-    swaps_garments = True
-
     def garment_changed(self, dst: int, src: int) -> None:
         """World ``dst`` now holds world ``src``'s garment: the tiled sweep reads the element data
         ``src`` reads (``shared_element_data``; the same values as ``dst``'s own copy, one copy in
