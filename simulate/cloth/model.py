@@ -20,7 +20,7 @@ from simulate.cloth.fabric import Fabric
 if TYPE_CHECKING:
     from simulate.contact.body_collider import BodyCollider
 
-__all__ = ["Features", "ClothModel", "ClothState", "ClothControl"]
+__all__ = ["Features", "ClothModel", "ClothState", "ClothControl", "world_colour_offsets"]
 
 
 @dataclasses.dataclass
@@ -126,6 +126,29 @@ class ClothControl:
         return index
 
 
+def world_colour_offsets(colour_offsets: list[int], element_world: np.ndarray, world_count: int) -> np.ndarray:
+    """Where each world's elements of each colour lie in elements sorted by colour, then world.
+
+    Args:
+        colour_offsets: colour c spans elements ``colour_offsets[c]`` .. ``colour_offsets[c + 1]``.
+        element_world: world of each element, shape (E,), non-decreasing within a colour.
+        world_count: worlds W.
+    Returns:
+        int32 (C, W + 1): world w's elements of colour c are ``[c, w]`` .. ``[c, w + 1]``; one
+        row of zeros (empty ranges) when there are no elements.
+    """
+    rows = []
+    worlds = np.arange(world_count + 1)
+    for a, b in zip(colour_offsets[:-1], colour_offsets[1:]):
+        wid = np.asarray(element_world[a:b])
+        if np.any(np.diff(wid) < 0):
+            raise ValueError(f"elements of colour {len(rows)} are not sorted by world")
+        rows.append(a + np.searchsorted(wid, worlds, side="left"))
+    if not rows:
+        return np.zeros((1, world_count + 1), dtype=np.int32)
+    return np.asarray(rows, dtype=np.int32)
+
+
 class ClothModel:
     """Static cloth description for ``world_count`` worlds, created by ``ClothBuilder.finalize``.
 
@@ -203,21 +226,15 @@ class ClothModel:
         start = int(self.world_particle_start[world])
         return slice(start, start + int(self.world_particle_count[world]))
 
-    def world_element_ranges(self, world: int) -> tuple[list[tuple[int, int]], list[tuple[int, int]]]:
-        """``world``'s triangles and bending elements as (start, count) per colour (elements are
-        sorted by colour, then world)."""
-        if not 0 <= world < self.world_count:
-            raise ValueError(f"world must be in [0, {self.world_count}) (got {world})")
-        if not hasattr(self, "_element_world_np"):
-            self._element_world_np = (self.tri_world.numpy()[:self.tri_count], self.bend_world.numpy()[:self.bend_count])
-        out = []
-        for offsets, owner in zip((self.tri_colour_offsets, self.bend_colour_offsets), self._element_world_np):
-            ranges = []
-            for a, b in zip(offsets[:-1], offsets[1:]):
-                lo, hi = np.searchsorted(owner[a:b], [world, world + 1])
-                ranges.append((a + int(lo), int(hi - lo)))
-            out.append(ranges)
-        return out[0], out[1]
+    def world_element_offsets(self) -> tuple[np.ndarray, np.ndarray]:
+        """``world_colour_offsets`` of the triangles and of the bending elements, (C, W + 1) each
+        (computed once)."""
+        if not hasattr(self, "_world_element_offsets"):
+            self._world_element_offsets = tuple(
+                world_colour_offsets(offsets, world.numpy()[:count], self.world_count)
+                for offsets, world, count in ((self.tri_colour_offsets, self.tri_world, self.tri_count),
+                                              (self.bend_colour_offsets, self.bend_world, self.bend_count)))
+        return self._world_element_offsets
 
     def copy_world_garment(self, dst: int, src: int) -> None:
         """Gives world ``dst`` world ``src``'s garment: rest shape (triangle rest frames and areas,
@@ -235,13 +252,14 @@ class ClothModel:
         att = self.particle_attachment.numpy() if self.attachment_count else None
         if att is not None and ((att[self.world_slice(dst)] >= 0).any() or (att[self.world_slice(src)] >= 0).any()):
             raise ValueError(f"worlds {dst} and {src}: garments with attachments cannot be swapped")
-        tri_d, bend_d = self.world_element_ranges(dst)
-        tri_s, bend_s = self.world_element_ranges(src)
+        tri_offsets, bend_offsets = self.world_element_offsets()
         d0, s0 = int(self.world_particle_start[dst]), int(self.world_particle_start[src])
-        for ranges_d, ranges_s, indices, arrays in (
-                (tri_d, tri_s, self.tri_indices_np, (self.tri_dm_inv, self.tri_compliance, self.tri_area)),
-                (bend_d, bend_s, self.bend_indices_np, (self.bend_rest_angle, self.bend_compliance))):
-            for (a, k), (b, m) in zip(ranges_d, ranges_s):
+        for offsets, indices, arrays in (
+                (tri_offsets, self.tri_indices_np, (self.tri_dm_inv, self.tri_compliance, self.tri_area)),
+                (bend_offsets, self.bend_indices_np, (self.bend_rest_angle, self.bend_compliance))):
+            for a, b, k, m in zip(offsets[:, dst], offsets[:, src], offsets[:, dst + 1] - offsets[:, dst],
+                                  offsets[:, src + 1] - offsets[:, src]):
+                a, b, k, m = int(a), int(b), int(k), int(m)
                 if k != m or not np.array_equal(indices[a:a + k] - d0, indices[b:b + m] - s0):
                     raise ValueError(f"worlds {dst} and {src} order their elements differently: no garment swap")
                 for arr in arrays:

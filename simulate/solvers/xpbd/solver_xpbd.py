@@ -8,7 +8,7 @@ import hashlib
 import numpy as np
 import warp as wp
 
-from simulate.cloth.model import ClothControl, ClothModel, ClothState
+from simulate.cloth.model import ClothControl, ClothModel, ClothState, world_colour_offsets
 from simulate.solvers import common_kernels as ck
 from simulate.solvers.base import SolverBase
 from simulate.solvers.xpbd import kernels
@@ -23,29 +23,6 @@ particle, rounded up to 64 particles) is at most this (13,600 particles; an H100
 228 KB); larger worlds sweep in global memory."""
 _shared_kernel = functools.cache(kernels.make_elements_gs_shared_kernel)
 """One shared-memory sweep kernel per tile size (Warp compiles each once)."""
-
-
-def world_colour_offsets(colour_offsets: list[int], element_world: np.ndarray, world_count: int) -> np.ndarray:
-    """Where each world's elements of each colour lie in elements sorted by colour, then world.
-
-    Args:
-        colour_offsets: colour c spans elements ``colour_offsets[c]`` .. ``colour_offsets[c + 1]``.
-        element_world: world of each element, shape (E,), non-decreasing within a colour.
-        world_count: worlds W.
-    Returns:
-        int32 (C, W + 1): world w's elements of colour c are ``[c, w]`` .. ``[c, w + 1]``; one
-        row of zeros (empty ranges) when there are no elements.
-    """
-    rows = []
-    worlds = np.arange(world_count + 1)
-    for a, b in zip(colour_offsets[:-1], colour_offsets[1:]):
-        wid = np.asarray(element_world[a:b])
-        if np.any(np.diff(wid) < 0):
-            raise ValueError(f"elements of colour {len(rows)} are not sorted by world")
-        rows.append(a + np.searchsorted(wid, worlds, side="left"))
-    if not rows:
-        return np.zeros((1, world_count + 1), dtype=np.int32)
-    return np.asarray(rows, dtype=np.int32)
 
 
 def local_topology(world_offsets: np.ndarray, indices: np.ndarray, element_world: np.ndarray,
