@@ -35,7 +35,7 @@ def _view_rotation(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
 
 
 def _draw(ax, layers: list[MeshLayer], rot: np.ndarray) -> None:
-    import matplotlib.cm as cm
+    import matplotlib
     from matplotlib.collections import PolyCollection
 
     polys, colors, depths = [], [], []
@@ -51,7 +51,7 @@ def _draw(ax, layers: list[MeshLayer], rot: np.ndarray) -> None:
             s = np.asarray(layer.scalars, dtype=np.float64)[layer.faces].mean(1)
             lo = np.nanmin(s) if layer.vmin is None else layer.vmin
             hi = np.nanmax(s) if layer.vmax is None else layer.vmax
-            base = cm.get_cmap(layer.cmap)((s - lo) / max(hi - lo, 1e-12))[:, :3]
+            base = matplotlib.colormaps[layer.cmap]((s - lo) / max(hi - lo, 1e-12))[:, :3]
         else:
             base = np.tile(np.asarray(layer.color, dtype=np.float64), (len(tri), 1))
         rgb = np.clip(base * shade[:, None], 0, 1)
