@@ -108,7 +108,12 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         pruned = np.zeros((0, all_poses.shape[1]), np.float32)
     else:
         sampler = PoseSampler(joints=joints, range_scale=float(spec["poses"]["range_scale"]), base_pose=body.canonical_pose)
-        all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42))
+        kind = spec["poses"]["joints"] if spec["poses"]["joints"] in ("upper", "lower", "all") else \
+            ("lower" if gtype in ("pants", "shorts", "skirt") else "upper")
+        min_clearance = spec["poses"]["min_clearance"]
+        all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42),
+                                         min_clearance=None if min_clearance is None else float(min_clearance),
+                                         clearance_pairs=kind)
     pose_sets = {"train": all_poses[: spec["poses"]["train_count"]], "test": all_poses[spec["poses"]["train_count"]:]}
 
     plan = Plan(all_styles, style_vectors, all_shapes, pairs, pose_sets, pruned)

@@ -30,6 +30,9 @@ records and hashes. Schema (every key optional unless marked required)::
       path: str | null                  .npz with `poses` (N, 60) for source=file
       joints: upper|lower|all|list = garment default
       range_scale: float in (0, 1] = 1.0
+      min_clearance: float [m] | null = null   also prune sampled poses whose skin clearance (arm to
+                                        torso for tops, between the legs for bottoms) is below this
+                                        (simulate.body.clearance); null = only the capsule test
       train_count: int                  poses of the training pose set
       test_count: int                   unseen poses
     splits:                             poses per pair in each TailorNet split
@@ -122,7 +125,7 @@ DEFAULTS: dict[str, Any] = {
     "styles": {"train": 2, "test": 1, "space": None},
     "shapes": {"train": 2, "test": 1},
     "pairs": {"train": 2, "test": 1},
-    "poses": {"source": "sampled", "path": None, "joints": None, "range_scale": 1.0, "train_count": 8, "test_count": 4},
+    "poses": {"source": "sampled", "path": None, "joints": None, "range_scale": 1.0, "min_clearance": None, "train_count": 8, "test_count": 4},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
@@ -229,6 +232,10 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if joints is not None and not (joints in ("upper", "lower", "all") or (isinstance(joints, list) and joints)):
         c.fail("poses.joints", "upper, lower, all or a list of joint names")
     c.number("poses.range_scale", 0.0, 1.0, lo_open=True)
+    if spec["poses"]["min_clearance"] is not None:
+        c.number("poses.min_clearance", 0.0, 0.2)
+        if spec["poses"]["source"] == "file":
+            c.fail("poses.min_clearance", "null when poses.source is file (only sampled poses are pruned)")
     c.integer("poses.train_count", 1)
     c.integer("poses.test_count", 0)
     for split in SPLITS:

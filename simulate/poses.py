@@ -81,16 +81,27 @@ class PoseSampler:
 
 def sample_poses(
     body: BodyModel, shape: np.ndarray, count: int, sampler: PoseSampler, rng: np.random.Generator,
-    *, prune: bool = True, margin: float = 0.01, max_rounds: int = 50,
+    *, prune: bool = True, margin: float = 0.01, max_rounds: int = 50, min_clearance: float | None = None,
+    clearance_pairs: str = "upper",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``count`` valid poses, pruning self-intersecting ones.
+
+    With ``min_clearance`` [m], poses whose skin clearance (``LimbClearance`` of
+    ``CLEARANCE_PAIRS[clearance_pairs]``: arms to torso for tops, between the legs for bottoms)
+    falls below it are pruned too: a garment cannot pass between parts that close.
 
     Returns:
         (poses (count, 60), pruned (M, 60): the rejected poses, recorded for provenance).
     """
+    from simulate.body.clearance import CLEARANCE_PAIRS, LimbClearance
     from simulate.body.mesh_utils import SelfIntersectionChecker
 
+    if min_clearance is not None and not (np.isfinite(min_clearance) and min_clearance >= 0.0):
+        raise ValueError(f"poses.min_clearance must be a distance >= 0 [m] (got {min_clearance!r})")
+    if clearance_pairs not in CLEARANCE_PAIRS:
+        raise ValueError(f"clearance pairs {clearance_pairs!r} are unknown; expected one of {', '.join(CLEARANCE_PAIRS)}")
     checker = SelfIntersectionChecker(body, shape, margin=margin) if prune else None
+    clearance = LimbClearance(body, shape, CLEARANCE_PAIRS[clearance_pairs]) if prune and min_clearance else None
     kept, pruned = [], []
     have = 0
     for _ in range(max_rounds):
@@ -99,6 +110,8 @@ def sample_poses(
         batch = sampler.sample(max(2 * (count - have), 16), rng)
         if checker is not None:
             bad, _ = checker.check(batch)
+            if clearance is not None:
+                bad[~bad] = clearance.measure(batch[~bad]).min(axis=1) < min_clearance
             pruned.append(batch[bad])
             batch = batch[~bad]
         kept.append(batch)
@@ -106,7 +119,7 @@ def sample_poses(
     poses = np.concatenate(kept)[:count] if kept else np.zeros((0, POSE_SIZE), np.float32)
     if len(poses) < count:
         raise ValueError(f"poses: only {len(poses)} of {count} sampled poses survived self-intersection pruning; "
-                         "lower poses.range_scale or the count")
+                         "lower poses.range_scale" + (", poses.min_clearance" if min_clearance else "") + " or the count")
     return poses, (np.concatenate(pruned) if pruned else np.zeros((0, POSE_SIZE), np.float32))
 
 

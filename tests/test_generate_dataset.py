@@ -255,6 +255,23 @@ def test_poses_per_task_splits_a_pair_into_consecutive_tasks(anny_body):
             assert [t.task_id for t in parts] == [f"{task.task_id}-c{c:03d}" for c in range(len(parts))]
 
 
+def test_min_clearance_reaches_the_plan_and_its_pruned_poses(anny_body):
+    """poses.min_clearance prunes the sampled poses by skin clearance (arms to torso for a t-shirt)
+    and records them with the capsule test's pruned poses."""
+    from pipelines.dataset_plan import plan_dataset
+    from pipelines.spec import validate_spec
+    from simulate.body.clearance import CLEARANCE_PAIRS, LimbClearance
+
+    spec = _with(poses__range_scale=1.0, poses__train_count=6, poses__min_clearance=0.03)
+    plan = plan_dataset(validate_spec(spec), anny_body)
+    plain = plan_dataset(validate_spec(_with(poses__range_scale=1.0, poses__train_count=6)), anny_body)
+    clearance = LimbClearance(anny_body, anny_body.shape_default, CLEARANCE_PAIRS["upper"])
+    poses = np.concatenate([plan.poses["train"], plan.poses["test"]])
+    assert clearance.measure(poses).min() >= 0.03
+    assert len(plan.pruned_poses) > len(plain.pruned_poses)
+    assert (clearance.measure(plan.pruned_poses).min(axis=1) < 0.03).any()
+
+
 def test_summary_table_reports_drops_and_where_the_time_went(reference):
     from data_manifest.manifest import Manifest
     from pipelines.generate_dataset import DROP_REASONS, _summary_table
