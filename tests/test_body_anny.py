@@ -159,3 +159,15 @@ def test_shaped_bodies_do_not_depend_on_torch_threads(anny_body):
         torch.set_num_threads(before)
     assert np.array_equal(out[0][0], out[1][0]), "rest bodies differ between 1 and 2 torch threads"
     assert np.array_equal(out[0][1], out[1][1]), "posed bodies differ between 1 and 2 torch threads"
+
+
+def test_posed_vertices_of_a_subset_equal_those_of_the_full_pose(anny_body):
+    """``posed_vertices`` skins only the vertices asked for, with pose()'s numbers."""
+    from simulate.poses import PoseSampler
+
+    poses = PoseSampler().sample(6, np.random.default_rng(2))
+    idx = np.array([0, 17, 4000, anny_body.vertex_count - 1])
+    full = anny_body.pose(np.repeat(anny_body.shape_default[None], 6, 0), poses).vertices
+    np.testing.assert_array_equal(anny_body.posed_vertices(anny_body.shape_default, poses, idx), full[:, idx])
+    with pytest.raises(ValueError, match="one shape"):
+        anny_body.posed_vertices(np.repeat(anny_body.shape_default[None], 2, 0), poses[:2], idx)

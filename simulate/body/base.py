@@ -326,6 +326,26 @@ class BodyModel(abc.ABC):
                                               translation=trans, levels=ix["levels"])
         return world[..., :3, 3].cpu().numpy()
 
+    def posed_vertices(self, shape, pose, indices) -> np.ndarray:
+        """Posed positions [m] of the vertices ``indices`` only, (B, len(indices), 3) numpy: the same
+        skinning as :meth:`pose` without skinning every other vertex (pose pruning measures a few
+        thousand vertices of tens of thousands of poses). One shape (S,) or (1, S) for all poses."""
+        idx = torch.as_tensor(np.asarray(indices, np.int64))
+        with torch.no_grad():
+            shape_t = self.check_shape(shape)
+            if shape_t.shape[0] != 1:
+                raise ValueError(f"posed_vertices takes one shape for all poses (got {shape_t.shape[0]})")
+            rest_vertices, rest_joints = self._rest_kept(shape_t)
+            rot = self.local_rotations_torch(pose)
+            ix = self._indices_on(rot.device)
+            _, skin = kin.forward_kinematics(rot, rest_joints.expand(rot.shape[0], -1, -1), ix["parents"],
+                                             levels=ix["levels"])
+            correctives = self._pose_correctives(rot)
+            idx = idx.to(rest_vertices.device)
+            shaped = rest_vertices[:, idx] if correctives is None else (rest_vertices + correctives)[:, idx]
+            weights = self.skinning_weights_t.to(shaped.device)[idx]
+            return kin.lbs(shaped.expand(rot.shape[0], -1, -1), weights, skin).cpu().numpy()
+
     # ------------------------------------------------------------ numpy API
     def rest(self, shape) -> tuple[np.ndarray, np.ndarray]:
         """Shaped rest vertices (B, V, 3) and joints (B, J, 3) [m], numpy float32."""

@@ -109,6 +109,10 @@ class LimbClearance:
             local[used] = np.arange(len(used))
             self._surfaces.append((used, local[faces].astype(np.int32)))
         self._meshes: dict[int, tuple[list[wp.array], list[wp.Mesh], wp.array]] = {}
+        # the vertices any pair reads, posed together (BodyModel.posed_vertices), and where each lies there
+        self._posed = np.unique(np.concatenate(self._points + [used for used, _ in self._surfaces]))
+        self._slot = np.full(body.vertex_count, -1, np.int64)
+        self._slot[self._posed] = np.arange(len(self._posed))
 
     def _mesh_ids(self, pair: int, surfaces: np.ndarray) -> wp.array:
         """Loads (n, Vs, 3) surface points into per-body meshes of ``pair`` (built once, refit later)."""
@@ -131,10 +135,11 @@ class LimbClearance:
         out = np.empty((len(poses), len(self.pairs)))
         for s in range(0, len(poses), batch_size):
             chunk = poses[s:s + batch_size]
-            v = self.body.pose(np.repeat(self.shape[None], len(chunk), 0), chunk).vertices  # (n, V, 3)
+            v = self.body.posed_vertices(self.shape, chunk, self._posed)  # (n, len(_posed), 3)
             for k, (measured, (used, _)) in enumerate(zip(self._points, self._surfaces)):
-                ids = self._mesh_ids(k, v[:, used])
-                pts = wp.array(v[:, measured].reshape(-1, 3), dtype=wp.vec3, device=self.device)
+                ids = self._mesh_ids(k, np.ascontiguousarray(v[:, self._slot[used]]))
+                pts = wp.array(np.ascontiguousarray(v[:, self._slot[measured]]).reshape(-1, 3), dtype=wp.vec3,
+                               device=self.device)
                 dist = wp.empty(len(chunk) * len(measured), dtype=float, device=self.device)
                 wp.launch(_closest_distance, dim=len(chunk) * len(measured), device=self.device,
                           inputs=[ids, pts, len(measured), self.max_distance], outputs=[dist])
