@@ -40,6 +40,7 @@ class Plan:
     pairs: list[tuple[str, int, int]]  # (group, style index, shape index)
     poses: dict[str, np.ndarray]  # "train"/"test" pose sets (N, 60)
     pruned_poses: np.ndarray
+    pruned_reasons: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))  # (M,) why each went
     tasks: list[Task] = field(default_factory=list)
 
 
@@ -106,17 +107,19 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                              f"train_count + test_count = {total}")
         all_poses = all_poses[_rng(seed, 41).permutation(len(all_poses))[:total]]
         pruned = np.zeros((0, all_poses.shape[1]), np.float32)
+        reasons: list[str] = []
     else:
         sampler = PoseSampler(joints=joints, range_scale=float(spec["poses"]["range_scale"]), base_pose=body.canonical_pose)
         kind = spec["poses"]["joints"] if spec["poses"]["joints"] in ("upper", "lower", "all") else \
             ("lower" if gtype in ("pants", "shorts", "skirt") else "upper")
         min_clearance = spec["poses"]["min_clearance"]
+        reasons = []
         all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42),
                                          min_clearance=None if min_clearance is None else float(min_clearance),
-                                         clearance_pairs=kind)
+                                         clearance_pairs=kind, reasons=reasons)
     pose_sets = {"train": all_poses[: spec["poses"]["train_count"]], "test": all_poses[spec["poses"]["train_count"]:]}
 
-    plan = Plan(all_styles, style_vectors, all_shapes, pairs, pose_sets, pruned)
+    plan = Plan(all_styles, style_vectors, all_shapes, pairs, pose_sets, pruned, np.array(reasons, dtype=str))
     orders: dict[tuple, np.ndarray] = {}  # pairs given the same poses ("all") share one visiting order
     for split, (group, pose_group) in SPLIT_SOURCES.items():
         count = spec["splits"][split]

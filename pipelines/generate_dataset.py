@@ -406,8 +406,13 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
     pending = [ctx.tasks[t] for b in batches for t in b if t not in done]
     if done:
         log(f"resuming: {len(done)} of {len(ctx.plan.tasks)} shards already complete")
-    # which sampled poses self-intersected (dropped before simulation), for the record
-    np.savez(out_dir / "pruned_poses.npz", poses=ctx.plan.pruned_poses)
+    # which sampled poses were pruned before simulation, and why, for the record
+    plan = ctx.plan
+    np.savez(out_dir / "pruned_poses.npz", poses=plan.pruned_poses, reason=plan.pruned_reasons)
+    if len(plan.pruned_reasons):
+        why, counts = np.unique(plan.pruned_reasons, return_counts=True)
+        log(f"pruned sampled poses before simulation: " + ", ".join(f"{c} {w}" for w, c in zip(why, counts))
+            + f" (poses.min_clearance {spec['poses']['min_clearance']}; {out_dir / 'pruned_poses.npz'})")
     total_keys = sum(len(t.poses) for t in pending)
     from tqdm import tqdm
 

@@ -82,7 +82,7 @@ class PoseSampler:
 def sample_poses(
     body: BodyModel, shape: np.ndarray, count: int, sampler: PoseSampler, rng: np.random.Generator,
     *, prune: bool = True, margin: float = 0.01, max_rounds: int = 50, min_clearance: float | None = None,
-    clearance_pairs: str = "upper",
+    clearance_pairs: str = "upper", reasons: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``count`` valid poses, pruning self-intersecting ones.
 
@@ -91,7 +91,9 @@ def sample_poses(
     falls below it are pruned too: a garment cannot pass between parts that close.
 
     Returns:
-        (poses (count, 60), pruned (M, 60): the rejected poses, recorded for provenance).
+        (poses (count, 60), pruned (M, 60): the rejected poses, recorded for provenance). A list
+        passed as ``reasons`` is extended with why each pruned pose went, in order:
+        "self_intersection" (capsule test) or "clearance".
     """
     from simulate.body.clearance import CLEARANCE_PAIRS, LimbClearance
     from simulate.body.mesh_utils import SelfIntersectionChecker
@@ -110,8 +112,13 @@ def sample_poses(
         batch = sampler.sample(max(2 * (count - have), 16), rng)
         if checker is not None:
             bad, _ = checker.check(batch)
+            why = np.where(bad, "self_intersection", "")
             if clearance is not None:
-                bad[~bad] = clearance.measure(batch[~bad]).min(axis=1) < min_clearance
+                close = clearance.measure(batch[~bad]).min(axis=1) < min_clearance
+                why[np.nonzero(~bad)[0][close]] = "clearance"
+                bad[~bad] = close
+            if reasons is not None:
+                reasons.extend(why[bad].tolist())
             pruned.append(batch[bad])
             batch = batch[~bad]
         kept.append(batch)

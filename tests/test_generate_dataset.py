@@ -270,6 +270,11 @@ def test_min_clearance_reaches_the_plan_and_its_pruned_poses(anny_body):
     assert clearance.measure(poses).min() >= 0.03
     assert len(plan.pruned_poses) > len(plain.pruned_poses)
     assert (clearance.measure(plan.pruned_poses).min(axis=1) < 0.03).any()
+    assert plan.pruned_reasons.shape == (len(plan.pruned_poses),) and set(plan.pruned_reasons) <= {"clearance", "self_intersection"}
+    close = plan.pruned_reasons == "clearance"
+    assert close.any() and (clearance.measure(plan.pruned_poses[close]).min(axis=1) < 0.03).all()
+    from simulate.body.mesh_utils import SelfIntersectionChecker
+    assert SelfIntersectionChecker(anny_body, anny_body.shape_default).check(plan.pruned_poses[~close])[0].all()
 
 
 def test_summary_table_reports_drops_and_where_the_time_went(reference):
