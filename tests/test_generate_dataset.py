@@ -68,7 +68,8 @@ def test_dataset_is_valid_and_frame_counts_add_up(reference):
     kept = sum(s["frame_count"] for s in manifest["shards"])
     assert manifest["totals"]["frames_kept"] == kept > 0, "the tiny spec must keep frames"
     assert manifest["audit"]["samples"] >= 1 and manifest["audit"]["max_mm"]["max"] >= 0.0
-    assert (reference / "pruned_poses.npz").is_file()
+    with np.load(reference / "pruned_poses.npz") as pruned:
+        assert pruned["reason"].shape == (len(pruned["poses"]),), "every pruned pose says why"
 
 
 def test_reader_returns_what_the_simulation_recorded(reference):
