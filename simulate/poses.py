@@ -103,7 +103,9 @@ def sample_poses(
     if clearance_pairs not in CLEARANCE_PAIRS:
         raise ValueError(f"clearance pairs {clearance_pairs!r} are unknown; expected one of {', '.join(CLEARANCE_PAIRS)}")
     checker = SelfIntersectionChecker(body, shape, margin=margin) if prune else None
-    clearance = LimbClearance(body, shape, CLEARANCE_PAIRS[clearance_pairs]) if prune and min_clearance else None
+    # clearances are only compared with min_clearance: queries need not look further (much faster)
+    clearance = LimbClearance(body, shape, CLEARANCE_PAIRS[clearance_pairs], max_distance=2.0 * float(min_clearance)) \
+        if prune and min_clearance else None
     kept, pruned = [], []
     have = 0
     for _ in range(max_rounds):

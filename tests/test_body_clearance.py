@@ -72,3 +72,15 @@ def test_min_clearance_prunes_close_arms_and_leaves_other_poses_alone(anny_body)
     # the poses that pass both tests are the plain sampler's, in order: pruning does not reseed
     keep = clearance.measure(plain).min(axis=1) >= 0.02
     np.testing.assert_array_equal(poses[:keep.sum()], plain[keep])
+
+
+def test_clearances_beyond_max_distance_read_as_max_distance(anny_body):
+    """A capped clearance equals max_distance exactly (float32 rounding put 0.02 below 0.02, and
+    every pose was pruned when the pruner capped its search at the threshold)."""
+    from simulate.poses import PoseSampler
+
+    poses = PoseSampler().sample(32, np.random.default_rng(1))
+    full = LimbClearance(anny_body, anny_body.shape_default, CLEARANCE_PAIRS["upper"]).measure(poses)
+    capped = LimbClearance(anny_body, anny_body.shape_default, CLEARANCE_PAIRS["upper"], max_distance=0.02).measure(poses)
+    np.testing.assert_array_equal(capped, np.where(full >= np.float32(0.02), 0.02, full))
+    assert (capped < 0.02).sum() == (full < 0.02).sum() < len(poses) * 2

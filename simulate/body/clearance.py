@@ -144,4 +144,6 @@ class LimbClearance:
                 wp.launch(_closest_distance, dim=len(chunk) * len(measured), device=self.device,
                           inputs=[ids, pts, len(measured), self.max_distance], outputs=[dist])
                 out[s:s + len(chunk), k] = dist.numpy().reshape(len(chunk), len(measured)).min(axis=1)
+        # a capped clearance is max_distance itself, not its float32 rounding (which can sit below it)
+        out[out >= np.float32(self.max_distance)] = self.max_distance
         return out
