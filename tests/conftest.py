@@ -21,3 +21,19 @@ def anny_body():
     from simulate.body import load_body_model
 
     return load_body_model("anny")
+
+
+@pytest.fixture
+def load_bench():
+    """Imports ``bench/<name>.py`` (a script, not a package module) under a test-only name."""
+    import importlib.util
+    from pathlib import Path
+
+    def load(name: str):
+        path = Path(__file__).parents[1] / "bench" / f"{name}.py"
+        spec = importlib.util.spec_from_file_location(f"{name}_under_test", path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

@@ -1,20 +1,9 @@
 """bench/bench_dataset.py's steady rates: over the second half of the run, not from its start."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
-
-def _bench():
-    path = Path(__file__).parents[1] / "bench" / "bench_dataset.py"
-    spec = importlib.util.spec_from_file_location("bench_dataset_under_test", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_steady_rates_skip_the_start_up_burst():
-    bench = _bench()
+def test_steady_rates_skip_the_start_up_burst(load_bench):
+    bench = load_bench("bench_dataset")
     # nothing for 30 s, a burst of 900 targets by 40 s, then 100 targets/s and 5,000 world-frames/s
     beats = [{"elapsed_s": 0.0, "targets_done": 0, "world_frames": 0, "frames": 0}]
     beats += [{"elapsed_s": float(t), "targets_done": 0 if t < 40 else 900 + 100 * (t - 40),
@@ -29,8 +18,8 @@ def test_steady_rates_skip_the_start_up_burst():
     assert (two["from_s"], two["to_s"]) == (10.0, 20.0)
 
 
-def test_kernel_table_gives_device_time_per_frame():
-    bench = _bench()
+def test_kernel_table_gives_device_time_per_frame(load_bench):
+    bench = load_bench("bench_dataset")
     rows = [{"name": "sweep", "count": 100, "total_ms": 300.0}, {"name": "query", "count": 20, "total_ms": 30.0},
             {"name": "filters", "count": 40, "total_ms": 70.0}]
     table = bench.kernel_table(rows, frames=10, seconds=0.5)
@@ -40,12 +29,12 @@ def test_kernel_table_gives_device_time_per_frame():
     assert len(bench.kernel_table(rows, frames=10, seconds=0.5, top=1)["kernels"]) == 1
 
 
-def test_device_profiler_records_its_window_only(tmp_path):
+def test_device_profiler_records_its_window_only(tmp_path, load_bench):
     import json
 
     import torch
 
-    bench = _bench()
+    bench = load_bench("bench_dataset")
     path = tmp_path / "profile.json"
     prof = bench.DeviceProfiler(str(path), start_s=10.0, window_s=5.0, cuda=False)
     prof.on_beat({"elapsed_s": 0.0, "frames": 0})  # before the window: nothing recorded

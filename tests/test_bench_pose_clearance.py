@@ -1,33 +1,22 @@
 """bench/bench_pose_clearance.py: its rank correlation against scipy's, and its dataset reading."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 
-def _bench():
-    path = Path(__file__).parents[1] / "bench" / "bench_pose_clearance.py"
-    spec = importlib.util.spec_from_file_location("bench_pose_clearance_under_test", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_rank_correlation_matches_scipy_with_ties():
+def test_rank_correlation_matches_scipy_with_ties(load_bench):
     from scipy.stats import spearmanr
 
     rng = np.random.default_rng(4)
     clearance = rng.uniform(0, 0.05, 200)
     kept = (clearance + rng.normal(0, 0.01, 200)) > 0.025  # a binary verdict: many ties
-    bench = _bench()
+    bench = load_bench("bench_pose_clearance")
     assert abs(bench.rank_correlation(clearance, kept) - spearmanr(clearance, kept).correlation) < 1e-12
     assert bench.rank_correlation(clearance, kept) > 0.5
     assert np.isnan(bench.rank_correlation(clearance, np.ones(200)))
 
 
-def test_dataset_verdicts_read_kept_and_logged_dropped_frames(tmp_path):
+def test_dataset_verdicts_read_kept_and_logged_dropped_frames(tmp_path, load_bench):
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import ShardWriter, shard_path
@@ -46,6 +35,6 @@ def test_dataset_verdicts_read_kept_and_logged_dropped_frames(tmp_path):
         writer.write_frame(**frames[2], frame_index=2)
     manifest.add_shard(writer.record)
     manifest.save()
-    poses, verdicts = _bench().dataset_verdicts(tmp_path)
+    poses, verdicts = load_bench("bench_pose_clearance").dataset_verdicts(tmp_path)
     assert verdicts.tolist() == ["kept", "kept", "self_intersection"]
     np.testing.assert_allclose(poses, np.stack([frames[k]["pose"] for k in (0, 2, 1)]), rtol=0, atol=1e-6)

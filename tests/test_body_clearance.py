@@ -32,8 +32,7 @@ def test_arm_clearance_falls_as_the_arm_comes_down_and_matches_a_reference(anny_
     assert np.ptp(right) < 1e-6, "the right arm did not move"
     assert left[0] > 0.04 and left[-1] < 0.01, f"A-pose clearance must be several cm, the lowered arm's ~0: {left}"
     # the kernel's closest points against densely sampled triangles (the sampling is ~2 mm coarse)
-    used, local_faces = clearance._surfaces[0]
-    ref = _brute_force(anny_body, shape, down[2], clearance._points[0], used[local_faces])
+    ref = _brute_force(anny_body, shape, down[2], clearance._points[0], clearance.surface_faces["torso"])
     assert ref - 0.003 <= left[2] <= ref + 1e-6, (left[2], ref)
 
 

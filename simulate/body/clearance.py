@@ -22,6 +22,7 @@ import torch
 import warp as wp
 
 from simulate.body.base import BodyModel
+from simulate.quality import _MeshSlots, query_body_signed_distance
 
 __all__ = ["CLEARANCE_PAIRS", "CLEARANCE_PARTS", "LimbClearance"]
 
@@ -39,25 +40,6 @@ CLEARANCE_PAIRS: dict[str, tuple[tuple[str, str], ...]] = {
     "lower": (("left_leg", "right_leg"),),
 }
 CLEARANCE_PAIRS["all"] = CLEARANCE_PAIRS["upper"] + CLEARANCE_PAIRS["lower"]
-
-
-@wp.kernel
-def _closest_distance(
-    mesh_ids: wp.array(dtype=wp.uint64),
-    points: wp.array(dtype=wp.vec3),
-    points_per_body: int,
-    max_distance: float,
-    # Out:
-    distance_out: wp.array(dtype=float),
-):
-    """Euclidean distance [m] of each point to the closest point of its body's mesh (capped)."""
-    tid = wp.tid()
-    mesh_id = mesh_ids[tid // points_per_body]
-    p = points[tid]
-    query = wp.mesh_query_point_no_sign(mesh_id, p, max_distance)
-    distance_out[tid] = max_distance
-    if query.result:
-        distance_out[tid] = wp.length(p - wp.mesh_eval_position(mesh_id, query.face, query.u, query.v))
 
 
 def _part_mask(body: BodyModel, rest_vertices: np.ndarray, name: str) -> np.ndarray:
@@ -95,7 +77,10 @@ class LimbClearance:
         self.device = device
         rest = body.rest(self.shape[None])[0][0]
         self._points: list[np.ndarray] = []  # measured vertex indices per pair
-        self._surfaces: list[tuple[np.ndarray, np.ndarray]] = []  # (vertex indices, local faces) per pair
+        self._surface_of: list[str] = []  # surface part per pair
+        self._surfaces: dict[str, tuple[np.ndarray, _MeshSlots]] = {}  # part -> (vertex indices, per-body meshes)
+        self.surface_faces: dict[str, np.ndarray] = {}
+        """Body triangles (F, 3) of each surface part the pairs measure to."""
         for a, b in self.pairs:
             mask_a, mask_b = _part_mask(body, rest, a), _part_mask(body, rest, b)
             faces = body.faces[mask_b[body.faces].all(axis=1)]
@@ -104,30 +89,17 @@ class LimbClearance:
             near = torch.cdist(torch.as_tensor(rest[mask_a], dtype=torch.float64),
                                torch.as_tensor(rest[mask_b], dtype=torch.float64)).min(dim=1).values.numpy()
             self._points.append(np.nonzero(mask_a)[0][near > rest_exclusion])
-            used = np.unique(faces)
-            local = np.full(body.vertex_count, -1, np.int64)
-            local[used] = np.arange(len(used))
-            self._surfaces.append((used, local[faces].astype(np.int32)))
-        self._meshes: dict[int, tuple[list[wp.array], list[wp.Mesh], wp.array]] = {}
+            self._surface_of.append(b)
+            self.surface_faces[b] = faces
+            if b not in self._surfaces:  # pairs that share a surface (both arms to the torso) share its meshes
+                used = np.unique(faces)
+                local = np.full(body.vertex_count, -1, np.int64)
+                local[used] = np.arange(len(used))
+                self._surfaces[b] = (used, _MeshSlots(local[faces], len(used), device))
         # the vertices any pair reads, posed together (BodyModel.posed_vertices), and where each lies there
-        self._posed = np.unique(np.concatenate(self._points + [used for used, _ in self._surfaces]))
+        self._posed = np.unique(np.concatenate(self._points + [used for used, _ in self._surfaces.values()]))
         self._slot = np.full(body.vertex_count, -1, np.int64)
         self._slot[self._posed] = np.arange(len(self._posed))
-
-    def _mesh_ids(self, pair: int, surfaces: np.ndarray) -> wp.array:
-        """Loads (n, Vs, 3) surface points into per-body meshes of ``pair`` (built once, refit later)."""
-        points, meshes, _ = self._meshes.get(pair, ([], [], None))
-        _, faces = self._surfaces[pair]
-        for i, s in enumerate(surfaces):
-            if i < len(meshes):
-                points[i].assign(s)
-                meshes[i].refit()
-            else:
-                points.append(wp.array(s, dtype=wp.vec3, device=self.device))
-                meshes.append(wp.Mesh(points[-1], wp.array(faces.ravel(), dtype=wp.int32, device=self.device)))
-        ids = wp.array(np.array([m.id for m in meshes], np.uint64), dtype=wp.uint64, device=self.device)
-        self._meshes[pair] = (points, meshes, ids)
-        return ids[: len(surfaces)]
 
     def measure(self, poses: np.ndarray, *, batch_size: int = 128) -> np.ndarray:
         """Clearance [m] of each pair for each pose: (B, 60) poses -> (B, len(pairs))."""
@@ -135,15 +107,24 @@ class LimbClearance:
         out = np.empty((len(poses), len(self.pairs)))
         for s in range(0, len(poses), batch_size):
             chunk = poses[s:s + batch_size]
+            n = len(chunk)
             v = self.body.posed_vertices(self.shape, chunk, self._posed)  # (n, len(_posed), 3)
-            for k, (measured, (used, _)) in enumerate(zip(self._points, self._surfaces)):
-                ids = self._mesh_ids(k, np.ascontiguousarray(v[:, self._slot[used]]))
-                pts = wp.array(np.ascontiguousarray(v[:, self._slot[measured]]).reshape(-1, 3), dtype=wp.vec3,
-                               device=self.device)
-                dist = wp.empty(len(chunk) * len(measured), dtype=float, device=self.device)
-                wp.launch(_closest_distance, dim=len(chunk) * len(measured), device=self.device,
-                          inputs=[ids, pts, len(measured), self.max_distance], outputs=[dist])
-                out[s:s + len(chunk), k] = dist.numpy().reshape(len(chunk), len(measured)).min(axis=1)
+            ids = {name: slots.load(wp.array(np.ascontiguousarray(v[:, self._slot[used]]).reshape(-1, 3), dtype=wp.vec3,
+                                             device=self.device), n)
+                   for name, (used, slots) in self._surfaces.items()}  # each surface refit once per chunk
+            for k, (measured, surface) in enumerate(zip(self._points, self._surface_of)):
+                p = np.ascontiguousarray(v[:, self._slot[measured]]).reshape(-1, 3)
+                m = len(p)
+                signed = wp.empty(m, dtype=float, device=self.device)
+                closest = wp.empty(m, dtype=wp.vec3, device=self.device)
+                normal = wp.empty(m, dtype=wp.vec3, device=self.device)
+                wp.launch(query_body_signed_distance, dim=m, device=self.device,
+                          inputs=[ids[surface], wp.array(p, dtype=wp.vec3, device=self.device), len(measured),
+                                  self.max_distance], outputs=[signed, closest, normal])
+                # the Euclidean distance to the closest point; a zero normal marks no surface within max_distance
+                dist = np.where(np.any(normal.numpy() != 0.0, axis=1), np.linalg.norm(p - closest.numpy(), axis=1),
+                                self.max_distance)
+                out[s:s + n, k] = dist.reshape(n, len(measured)).min(axis=1)
         # a capped clearance is max_distance itself, not its float32 rounding (which can sit below it)
         out[out >= np.float32(self.max_distance)] = self.max_distance
         return out
