@@ -23,6 +23,7 @@ far each reference is from ours.  One JSON line per run, a summary line per solv
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -171,10 +172,14 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
              worlds: int, checkpoint_every: int = 0):
     """Our simulator to rest; returns (world 0 positions, stepping wall [s], frames, world 0's status,
     checkpoints) as :func:`timed_frames`."""
+    from simulate.cloth.fabric import resolve_fabric
     from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
     from simulate.cloth.scenes import batched_drape
 
-    model, collider = batched_drape(scene, worlds, args.device, fabric=args.fabric, thickness=args.thickness)
+    # Newton's cloth is isotropic (one Young's modulus, NewtonRun): ours takes the warp stiffness
+    # across the weft too, so both simulate the same material.
+    fabric = dataclasses.replace(resolve_fabric(args.fabric), weft_stiffness=None)
+    model, collider = batched_drape(scene, worlds, args.device, fabric=fabric, thickness=args.thickness)
     settings = SimSettings(frame_dt=args.frame_dt, substeps=substeps, iterations=iterations,
                            xpbd_mode="jacobi" if solver == "ours_xpbd_jacobi" else "gauss_seidel",
                            xpbd_bending_mode="jacobi" if solver == "ours_xpbd_gs_jb" else None,

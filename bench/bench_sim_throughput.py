@@ -27,8 +27,8 @@ def tshirt_scene(resolution: int, device: str) -> dict:
 
     sc = build_scene("tshirt", body="anny", resolution=resolution, device=device)
     body, _ = sc.body_vertices(sc.neutral_shape[None], sc.canonical_pose[None])
-    return {"cloth_vertices": sc.rest_vertices, "cloth_faces": sc.faces, "body_vertices": body[0],
-            "body_faces": sc.body_faces, "body_kind": "anny"}
+    return {"cloth_vertices": sc.rest_vertices, "cloth_faces": sc.faces, "cloth_uv": sc.material_uv,
+            "body_vertices": body[0], "body_faces": sc.body_faces, "body_kind": "anny"}
 
 
 def kernel_profile(sim, frames: int) -> dict:

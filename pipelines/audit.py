@@ -45,7 +45,8 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
         iterations=2 * base.sim.iterations, max_frames=max(4 * base.sim.max_frames, AUDIT_MIN_FRAMES)))
     positions, status = drape_static(ctx.body, ctx.template.faces, rest, shapes=np.stack([f["shape"] for f in frames]),
                                      poses=np.stack([f["pose"] for f in frames]), body_faces=ctx.body_faces,
-                                     settings=tight, device=ctx.device, fabric=spec["garment"]["fabric"], start_vertices=start)
+                                     settings=tight, device=ctx.device, fabric=spec["garment"]["fabric"],
+                                     start_vertices=start, material_uv=ctx.template.face_uv)
     dist_mm = 1e3 * np.linalg.norm(positions - start, axis=-1)  # (N, V)
     per_max, per_mean = dist_mm.max(1), dist_mm.mean(1)
     reader.close()

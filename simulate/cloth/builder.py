@@ -11,7 +11,8 @@ import warp as wp
 from simulate.cloth.fabric import Fabric, resolve_fabric
 from simulate.cloth.model import ClothModel, Features
 
-__all__ = ["ClothBuilder", "greedy_colour", "dihedral_angles", "triangle_rest_frames"]
+__all__ = ["ClothBuilder", "greedy_colour", "dihedral_angles", "triangle_rest_frames", "material_directions",
+           "GRAIN_AXIS"]
 
 _DEGENERATE_RATIO = 1.0e-6
 """A triangle is degenerate when area < _DEGENERATE_RATIO * (longest edge)^2."""
@@ -43,30 +44,110 @@ def greedy_colour(elements: np.ndarray) -> np.ndarray:
     return colours
 
 
-def triangle_rest_frames(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse rest-frame matrices and areas of triangles.
+GRAIN_AXIS = (0.0, 1.0, 0.0)
+"""Default warp direction of garments without a material UV map: the garment's up axis (+y)."""
+_GRAIN_MIN_SINE = 0.1
+"""Below this sine of the angle between the grain axis and a triangle's plane (about 5.7 degrees)
+the projected grain is too short to give a stable direction; such triangles take the fallback
+axis (perpendicular to the grain: x for the default +y) instead."""
+_DEGENERATE_UV_RATIO = 1.0e-6
+"""A face's material UV triangle is degenerate (no warp direction) when its UV area is below
+this times its longest UV edge squared; such faces take the grain axis instead."""
 
-    The rest frame of face (i0, i1, i2) has its first axis along x1 - x0 and its second in the
-    triangle plane, so ``F = [x1 - x0, x2 - x0] @ Dm_inv`` is the (3, 2) deformation gradient.
 
+def _fallback_axes(grain: np.ndarray) -> np.ndarray:
+    """Per row of ``grain`` (N, 3), the unit vector perpendicular to it built from the coordinate
+    axis least aligned with it (x for +y: the first of the tied axes)."""
+    g = grain / np.linalg.norm(grain, axis=1, keepdims=True)
+    axis = np.eye(3)[np.argmin(np.abs(g), axis=1)]
+    perp = axis - np.einsum("ij,ij->i", axis, g)[:, None] * g
+    return perp / np.linalg.norm(perp, axis=1, keepdims=True)
+
+
+def material_directions(vertices: np.ndarray, faces: np.ndarray, *, material_uv: np.ndarray | None = None,
+                        grain_axis: np.ndarray | tuple[float, float, float] = GRAIN_AXIS
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Warp and weft directions of triangles in their rest planes.
+
+    The warp of a face is the 3-D direction of its pattern's vertical: with ``material_uv`` the
+    tangent d x / d v of the affine map from the face's UV triangle to its rest triangle (the
+    image of a line of constant u, as a warp thread runs in a pattern piece whose v axis points
+    up); without it (or where the UV triangle is degenerate) ``grain_axis`` projected into the
+    triangle's plane, or, where the triangle is within ~6 degrees of perpendicular to it
+    (``_GRAIN_MIN_SINE``), an axis perpendicular to the grain (x for +y) projected likewise. The
+    weft is normal x warp. Both depend only on the triangle's geometry, UVs and orientation,
+    not on which corner a face lists first.
+
+    Args:
+        vertices: rest positions [m], (V, 3).
+        faces: triangles, (F, 3) int.
+        material_uv: optional pattern coordinates per face corner, (F, 3, 2) (any unit; only
+            directions are used), v up the pattern piece.
+        grain_axis: fallback warp direction, (3,) or one per face (F, 3); need not be unit.
+    Returns:
+        warp (F, 3), weft (F, 3) unit vectors and the unit normals (F, 3) (float64).
+    """
+    faces = np.asarray(faces)
+    x0, x1, x2 = (np.asarray(vertices, dtype=np.float64)[faces[:, k]] for k in range(3))
+    e1, e2 = x1 - x0, x2 - x0
+    cross = np.cross(e1, e2)
+    n = cross / np.maximum(np.linalg.norm(cross, axis=1), 1e-300)[:, None]
+    grain = np.broadcast_to(np.asarray(grain_axis, dtype=np.float64), (len(faces), 3))
+    direction = grain.copy()
+    if material_uv is not None:
+        uv = np.asarray(material_uv, dtype=np.float64)
+        d1, d2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]  # twice the signed UV area
+        longest2 = np.max([np.sum(d * d, axis=1) for d in (d1, d2, d2 - d1)], axis=0)
+        ok = np.abs(det) > 2.0 * _DEGENERATE_UV_RATIO * longest2
+        # [e1 e2] = J [d1 d2]  ->  d x / d v = J[:, 1] = (d1_u e2 - d2_u e1) / det
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dxdv = (d1[:, 0, None] * e2 - d2[:, 0, None] * e1) / det[:, None]
+        direction[ok] = dxdv[ok]
+    warp = direction - np.einsum("ij,ij->i", direction, n)[:, None] * n
+    length = np.linalg.norm(warp, axis=1)
+    weak = length <= _GRAIN_MIN_SINE * np.linalg.norm(direction, axis=1)
+    if weak.any():
+        alt = _fallback_axes(grain[weak])
+        warp[weak] = alt - np.einsum("ij,ij->i", alt, n[weak])[:, None] * n[weak]
+        length[weak] = np.linalg.norm(warp[weak], axis=1)
+    warp /= np.maximum(length, 1e-300)[:, None]
+    return warp, np.cross(n, warp), n
+
+
+def triangle_rest_frames(vertices: np.ndarray, faces: np.ndarray, *, material_uv: np.ndarray | None = None,
+                         grain_axis: np.ndarray | tuple[float, float, float] = GRAIN_AXIS
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse rest-frame matrices and areas of triangles, in each triangle's (warp, weft) frame.
+
+    ``Dm`` holds the rest edges x1 - x0, x2 - x0 in the orthonormal (warp, weft) frame of
+    :func:`material_directions` (rows: warp, weft components), so the (3, 2) deformation
+    gradient ``F = [x1 - x0, x2 - x0] @ Dm_inv`` has the deformed warp direction as its first
+    column f1 and the deformed weft as f2: |f1| - 1 is warp strain, |f2| - 1 weft strain and
+    f1 . f2 shear. Rolling a face's corners gives the same F (up to rounding).
+
+    Args:
+        vertices: rest positions [m], (V, 3); faces: (F, 3) int.
+        material_uv, grain_axis: see :func:`material_directions`.
     Returns:
         dm_inv (F, 2, 2) [1/m] and area (F,) [m^2].
     """
-    x0, x1, x2 = (vertices[faces[:, k]].astype(np.float64) for k in range(3))
+    faces = np.asarray(faces)
+    v = np.asarray(vertices, dtype=np.float64)
+    warp, weft, _ = material_directions(v, faces, material_uv=material_uv, grain_axis=grain_axis)
+    x0, x1, x2 = (v[faces[:, k]] for k in range(3))
     e1, e2 = x1 - x0, x2 - x0
-    cross = np.cross(e1, e2)
-    double_area = np.linalg.norm(cross, axis=1)
-    len1 = np.linalg.norm(e1, axis=1)
-    u = e1 / np.maximum(len1, 1e-30)[:, None]
-    n = cross / np.maximum(double_area, 1e-30)[:, None]
-    v = np.cross(n, u)
-    e2u = np.einsum("ij,ij->i", e2, u)
-    e2v = np.einsum("ij,ij->i", e2, v)
-    dm_inv = np.zeros((len(faces), 2, 2))
+    double_area = np.linalg.norm(np.cross(e1, e2), axis=1)
+    dm = np.stack([np.stack([np.einsum("ij,ij->i", e1, warp), np.einsum("ij,ij->i", e2, warp)], axis=1),
+                   np.stack([np.einsum("ij,ij->i", e1, weft), np.einsum("ij,ij->i", e2, weft)], axis=1)], axis=1)
+    # det(Dm) = (e1 x e2) . (warp x weft) = twice the area, as warp x weft is the unit normal.
+    dm_inv = np.empty_like(dm)
     with np.errstate(divide="ignore", invalid="ignore"):  # degenerate faces are rejected by the caller
-        dm_inv[:, 0, 0] = 1.0 / len1
-        dm_inv[:, 0, 1] = -e2u / (len1 * e2v)
-        dm_inv[:, 1, 1] = 1.0 / e2v
+        inv_det = 1.0 / double_area
+        dm_inv[:, 0, 0] = dm[:, 1, 1] * inv_det
+        dm_inv[:, 0, 1] = -dm[:, 0, 1] * inv_det
+        dm_inv[:, 1, 0] = -dm[:, 1, 0] * inv_det
+        dm_inv[:, 1, 1] = dm[:, 0, 0] * inv_det
     return dm_inv, 0.5 * double_area
 
 
@@ -88,13 +169,26 @@ def dihedral_angles(x: np.ndarray, bend_indices: np.ndarray) -> np.ndarray:
     return np.arccos(cos_t) * sign
 
 
-def _mesh_digest(vertices: np.ndarray, faces: np.ndarray) -> bytes:
-    """A 128-bit digest of a garment's rest vertices and faces (as the builder stores them):
-    garments with equal digests are checked and turned into elements once."""
+def _array_digest(*arrays: np.ndarray | None) -> bytes:
+    """A 128-bit digest of arrays (dtype, shape and bytes of each; None counts as a value)."""
     digest = hashlib.blake2b(digest_size=16)
-    for a in (vertices, faces):
+    for a in arrays:
+        if a is None:
+            digest.update(b"none")
+            continue
         digest.update(str((a.dtype, a.shape)).encode())
         digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.digest()
+
+
+def _mesh_digest(vertices: np.ndarray, faces: np.ndarray, material_key: bytes = b"") -> bytes:
+    """A 128-bit digest of a garment's rest vertices and faces (as the builder stores them) and
+    the digest of its material-frame inputs (UVs, grain axis): garments with equal digests are
+    checked and turned into elements once, so everything the elements depend on besides the
+    fabric goes in."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(_array_digest(vertices, faces))
+    digest.update(material_key)
     return digest.digest()
 
 
@@ -106,7 +200,9 @@ class _Garment:
     pinned: np.ndarray
     attached: np.ndarray
     skinning_weights: np.ndarray | None
-    digest: bytes  # of vertices and faces (_mesh_digest)
+    material_uv: np.ndarray | None  # (F, 3, 2) float64 pattern coordinates per face corner
+    grain_axis: np.ndarray  # (3,) or (F, 3) float64 warp direction where there is no UV
+    digest: bytes  # of vertices, faces, material_uv and grain_axis (_mesh_digest)
 
 
 def _index_array(name: str, value: object, count: int) -> np.ndarray:
@@ -146,6 +242,8 @@ class ClothBuilder:
         self._garments: list[_Garment] = []
         self._colour_cache: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._checked: set[bytes] = set()  # digests of garment meshes whose geometry passed the checks
+        # material-frame inputs by digest: the worlds of a batch share one (F, 3, 2) UV array
+        self._materials: dict[bytes, tuple[np.ndarray | None, np.ndarray]] = {}
 
     @property
     def world_count(self) -> int:
@@ -160,8 +258,14 @@ class ClothBuilder:
         pinned: np.ndarray | None = None,
         attached: np.ndarray | None = None,
         skinning_weights: np.ndarray | None = None,
+        material_uv: np.ndarray | None = None,
+        grain_axis: np.ndarray | tuple[float, float, float] = GRAIN_AXIS,
     ) -> int:
         """Add one garment as a new world and return the world index.
+
+        Each triangle's material frame (warp, weft; see :func:`material_directions`) comes from
+        ``material_uv`` where given (a garment template's ``face_uv``: the warp runs up each
+        pattern panel), else from ``grain_axis``; the fabric's warp stiffness acts along the warp.
 
         Args:
             vertices: rest (and initial) positions [m], shape (V, 3).
@@ -170,6 +274,10 @@ class ClothBuilder:
             pinned: vertex indices (or a (V,) bool mask) fixed in space (inverse mass 0).
             attached: vertex indices (or mask) pulled by soft, releasable springs to targets.
             skinning_weights: per-vertex skinning weights, shape (V, J), kept for callers.
+            material_uv: pattern coordinates per face corner, shape (F, 3, 2), in the order of
+                ``faces`` (v up the pattern piece; scale free). None: use ``grain_axis``.
+            grain_axis: warp direction projected into each triangle where there is no usable UV,
+                shape (3,) or (F, 3) (default +y, the garment's up axis).
         Raises:
             ValueError naming the field, the value received and what was expected.
         """
@@ -198,7 +306,34 @@ class ClothBuilder:
         if repeated.size:
             f = repeated[0]
             raise ValueError(f"faces[{f}] = {tris[f].tolist()} repeats a vertex (degenerate triangle, area 0)")
-        digest = _mesh_digest(verts, tris)
+        uv = None if material_uv is None else np.asarray(material_uv)
+        if uv is not None:
+            if uv.shape != (len(tris), 3, 2):
+                raise ValueError(f"material_uv must have shape ({len(tris)}, 3, 2), one UV per face corner "
+                                 f"(got {uv.shape})")
+            if not np.issubdtype(uv.dtype, np.number):
+                raise ValueError(f"material_uv must be numeric (got dtype {uv.dtype})")
+        grain = np.asarray(grain_axis)
+        if grain.shape not in ((3,), (len(tris), 3)) or not np.issubdtype(grain.dtype, np.number):
+            raise ValueError(f"grain_axis must be numbers of shape (3,) or ({len(tris)}, 3) (got {grain.shape}, "
+                             f"dtype {grain.dtype})")
+        # The worlds of a batch pass one template's UVs: checked, converted and stored once.
+        material_key = _array_digest(uv, grain)
+        if material_key not in self._materials:
+            if uv is not None:
+                uv = uv.astype(np.float64)
+                bad_uv = np.nonzero(~np.all(np.isfinite(uv), axis=(1, 2)))[0]
+                if bad_uv.size:
+                    raise ValueError(f"material_uv must be finite; face {bad_uv[0]} has {uv[bad_uv[0]].tolist()}")
+            grain = grain.astype(np.float64)
+            rows = grain.reshape(-1, 3)
+            bad_grain = np.nonzero(~(np.all(np.isfinite(rows), axis=1) & (np.linalg.norm(rows, axis=1) > 0.0)))[0]
+            if bad_grain.size:
+                raise ValueError(f"grain_axis must be finite and non-zero (got {rows[bad_grain[0]].tolist()}"
+                                 + (f" for face {bad_grain[0]})" if grain.ndim == 2 else ")"))
+            self._materials[material_key] = (uv, grain)
+        uv, grain = self._materials[material_key]
+        digest = _mesh_digest(verts, tris, material_key)
         if digest not in self._checked:  # a dataset batch adds ~40 distinct garments to 256 worlds
             self._check_geometry(verts, tris)
             self._checked.add(digest)
@@ -212,7 +347,7 @@ class ClothBuilder:
                 raise ValueError(f"skinning_weights must have shape ({vcount}, J) (got {weights.shape})")
             if not np.all(np.isfinite(weights)):
                 raise ValueError("skinning_weights must be finite (got NaN or inf)")
-        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights, digest))
+        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights, uv, grain, digest))
         return len(self._garments) - 1
 
     @staticmethod
@@ -267,17 +402,18 @@ class ClothBuilder:
 
     def _elements(self, g: _Garment, bending: bool) -> tuple:
         """One garment's element arrays in its own vertex numbering: vertex masses (V,) [kg];
-        triangles (colour (F,), dm_inv (F, 2, 2), area (F,) [m^2], compliance (F, 3)); bending
+        triangles (colour (F,), dm_inv (F, 2, 2) in the (warp, weft) frame, area (F,) [m^2],
+        compliance (F, 3): 1/(Y_warp A), 1/(Y_weft A), 1/(G A) [1/(N m)]); bending
         stencils (indices (E, 4), colour (E,), rest angle (E,) [rad], compliance (E,)), or None
         without bending or interior edges. Computed in float64; the per-element values are
         returned as the float32 the model stores (casting before packing is what casting after
         gives, with half the bytes to pack)."""
-        dm_inv, area = triangle_rest_frames(g.vertices, g.faces)
+        dm_inv, area = triangle_rest_frames(g.vertices, g.faces, material_uv=g.material_uv, grain_axis=g.grain_axis)
         vmass = np.zeros(len(g.vertices))
         np.add.at(vmass, g.faces.reshape(-1), np.repeat(area / 3.0, 3) * g.fabric.density)
         bend, tri_colour, bend_colour = self._topology(g.faces)
-        comp = np.stack([1.0 / (g.fabric.stretch_stiffness * area)] * 2
-                        + [1.0 / (g.fabric.shear_stiffness * area)], axis=1)
+        comp = np.stack([1.0 / (g.fabric.warp_stiffness * area), 1.0 / (g.fabric.weft_stretch_stiffness * area),
+                         1.0 / (g.fabric.shear_stiffness * area)], axis=1)
         tri = (tri_colour, dm_inv.astype(np.float32), area.astype(np.float32), comp.astype(np.float32))
         if not (bending and len(bend)):
             return vmass, tri, None
@@ -325,7 +461,7 @@ class ClothBuilder:
         tri_parts, bend_parts = [], []  # per world: (indices global, colours, extra arrays)
         att = []
         offset = 0
-        # garments that share rest geometry, faces and fabric (a dataset batch: ~40 styles in 256
+        # garments that share rest geometry, faces, material frames and fabric (a dataset batch: ~40 styles in 256
         # worlds) share their element arrays, computed once (~35 ms per 7k-vertex t-shirt)
         elements: dict[tuple, tuple] = {}
         for w, g in enumerate(self._garments):

@@ -165,9 +165,9 @@ class ClothModel:
       corners) touching each particle, ascending (a particle's triangle slots come first; the
       self-contact search relies on it), used by the Jacobi gather and mass-spring forces
     * ``tri_indices`` int32 (tri_count, 3), ``tri_dm_inv`` mat22 (tri_count,) inverse rest
-      frame matrix [1/m], ``tri_area`` float [m^2], ``tri_compliance`` vec3 (1/(Y A), 1/(Y A),
-      1/(G A)) [1/N m], ``tri_world`` int32, ``tri_jacobi_scale`` float (1 / most triangles at
-      a corner; the Jacobi multiplier share)
+      frame matrix in the triangle's (warp, weft) frame [1/m], ``tri_area`` float [m^2],
+      ``tri_compliance`` vec3 (1/(Y_warp A), 1/(Y_weft A), 1/(G A)) [1/N m], ``tri_world`` int32,
+      ``tri_jacobi_scale`` float (1 / most triangles at a corner; the Jacobi multiplier share)
     * ``bend_indices`` int32 (bend_count, 4) (opposite 0, opposite 1, edge 0, edge 1),
       ``bend_rest_angle`` float [rad], ``bend_compliance`` float [1/(N m)], ``bend_world`` int32,
       ``bend_jacobi_scale`` float

@@ -12,8 +12,11 @@ def grid_cloth(nx: int, ny: int, size_x: float, size_y: float, *, plane: str = "
                origin: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """Regular triangulated rectangle with ``nx`` x ``ny`` vertices.
 
-    Each quad is split into two triangles whose first edge runs along the first axis, so the
-    triangles' first material direction is the grid's first axis (used by the strip oracle).
+    Each quad is split into two triangles whose first edge runs along the first axis. The
+    triangles' material frames come from the builder's grain (``ClothBuilder.add_garment``:
+    default +y projected into each triangle, x where a triangle is horizontal): on an "xz" grid
+    the warp is the first axis (x), on an "xy" grid it is the second axis (vertical, pointing
+    up). Pass ``grain_axis`` or ``material_uv`` to the builder to cut the cloth another way.
 
     Args:
         nx, ny: vertices along the first and second axis (>= 2).
@@ -201,15 +204,16 @@ def cape_scene(resolution: int = 100, *, width: float = 0.5, length: float = 0.9
             "body_kind": scene["body_kind"], "pinned": np.arange(nx)}
 
 
-def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotton", jitter: float = 0.0,
+def batched_drape(scene: dict, worlds: int, device: str, *, fabric: object = "cotton", jitter: float = 0.0,
                   seed: int = 0, thickness: float = 2.0e-3, features=None, garments: int = 0):
     """Model and collider with ``worlds`` copies of ``scene`` (see :func:`shawl_scene`).
 
     Args:
-        scene: dict from :func:`shawl_scene`.
+        scene: dict from :func:`shawl_scene` (an optional "cloth_uv" (F, 3, 2) entry gives the
+            triangles' material frames, see ``ClothBuilder.add_garment``'s ``material_uv``).
         worlds: number of worlds.
         device: Warp device.
-        fabric: fabric preset for every world.
+        fabric: fabric of every world (a preset name or a Fabric).
         jitter: per-world random sideways (x) shift of the cloth [m] (seeded), so worlds differ.
         seed: RNG seed for the jitter.
         thickness: body contact thickness [m].
@@ -232,7 +236,8 @@ def batched_drape(scene: dict, worlds: int, device: str, *, fabric: str = "cotto
         if jitter > 0.0:
             shift[0] = rng.uniform(-jitter, jitter)
         garment = cloth if garments <= 0 else centre + (cloth - centre) * (1.0 + 1.0e-4 * (w % garments))
-        builder.add_garment(garment + shift, scene["cloth_faces"], fabric=fabric, pinned=scene.get("pinned"))
+        builder.add_garment(garment + shift, scene["cloth_faces"], fabric=fabric, pinned=scene.get("pinned"),
+                            material_uv=scene.get("cloth_uv"))
     model = builder.finalize(device, features=features)
     collider = BodyCollider(scene["body_vertices"], scene["body_faces"], device=device, world_count=worlds,
                             thickness=thickness)

@@ -123,7 +123,7 @@ def drape_canonical(
                              f"{tpl.garment_type} template, got {v.shape}")
         builder.add_garment(v, tpl.faces, fabric=fabric,
                             attached=tpl.attachment if len(tpl.attachment) else None,
-                            skinning_weights=tpl.skinning_weights)
+                            skinning_weights=tpl.skinning_weights, material_uv=tpl.face_uv)
         parts.update(COLLISION_PARTS[tpl.garment_type])
     model = builder.finalize(device)
     posed = body.pose(shp, body.canonical_pose)

@@ -120,6 +120,9 @@ class Scene:
         body_faces: body triangles the cloth can touch, shape (Fb, 3) (indices into the body's vertices).
         body_vertex_count: vertices of the body mesh, Vb.
         canonical_pose: (60,); neutral_shape: (S,); shape_ranges: (S, 2); shape_names: S names.
+        material_uv: pattern UVs per face corner, shape (F, 3, 2) (the garment template's
+            ``face_uv``: the warp runs up each panel), or None (shawl, towel: the builder's
+            grain axis, +y, x where the cloth is horizontal).
     """
 
     name: str
@@ -135,6 +138,7 @@ class Scene:
     shape_ranges: np.ndarray
     shape_names: list[str]
     _pose_fn: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] = field(repr=False)
+    material_uv: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def vertex_count(self) -> int:
@@ -252,6 +256,7 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
         used, faces = np.unique(faces, return_inverse=True)
         faces = faces.reshape(-1, 3)
         rest = start = verts[used]
+        material_uv = None
     else:
         from simulate.garment.style import generate_garment
         from simulate.garment.templates import make_template
@@ -261,6 +266,7 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
         template = make_template(garment, model, resolution=2000 if resolution is None else int(resolution))
         rest = np.asarray(generate_garment(garment, None, model, template=template), np.float64)
         faces = np.asarray(template.faces, np.int64)
+        material_uv = np.asarray(template.face_uv, np.float64)
         # The garment layer's own canonical drape (as the dataset pipeline starts from it).
         draped = drape_canonical([(template, rest)], model, neutral, device=device)
         if draped.status[0] == "EXPLODED" or not np.isfinite(draped.vertices[0]).all():
@@ -271,7 +277,7 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
                  start_vertices=np.asarray(start, np.float64), faces=faces, body_faces=body_faces,
                  body_vertex_count=int(model.vertex_count), canonical_pose=canonical, neutral_shape=neutral,
                  shape_ranges=np.asarray(model.shape_ranges, np.float32), shape_names=list(model.shape_names),
-                 _pose_fn=_anny_pose_fn(model))
+                 _pose_fn=_anny_pose_fn(model), material_uv=material_uv)
 
 
 @dataclass
@@ -332,7 +338,7 @@ def run_worlds(
             raise ValueError(f"paths[{w}] must have shape (T >= 1, {scene.body_vertex_count}, 3) (got {p.shape})")
     builder = ClothBuilder()
     for fab in fabrics:
-        builder.add_garment(scene.rest_vertices, scene.faces, fabric=resolve_fabric(fab))
+        builder.add_garment(scene.rest_vertices, scene.faces, fabric=resolve_fabric(fab), material_uv=scene.material_uv)
     model = builder.finalize(device, features=Features(friction=bool(friction)))
     collider = BodyCollider(np.stack([p[0] for p in paths]), scene.body_faces, device=device, thickness=contact_thickness)
     sim = QuasiStaticSimulator(model, collider, solver=solver, settings=dataclasses.replace(settings))

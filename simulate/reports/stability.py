@@ -90,7 +90,10 @@ class Case:
 
 def _scaled(field: str, scale: float) -> Fabric:
     cotton = FABRICS["cotton"]
-    return dataclasses.replace(cotton, name=f"cotton {field} x{scale:g}", **{field: getattr(cotton, field) * scale})
+    fields = {field: getattr(cotton, field) * scale}
+    if field == "stretch_stiffness" and cotton.weft_stiffness is not None:  # warp and weft scale together
+        fields["weft_stiffness"] = cotton.weft_stiffness * scale
+    return dataclasses.replace(cotton, name=f"cotton {field} x{scale:g}", **fields)
 
 
 def _steps(pose: np.ndarray, start: np.ndarray) -> int:
