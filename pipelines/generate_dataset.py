@@ -146,7 +146,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         style_rest = np.stack([generate_garment(gtype, s, body, template=template) for s in plan.styles]).astype(np.float32)
         # the canonical drape starts from the pattern: it gets its own frame budget, not a pose hold's
         seq = sequence_settings(spec)
-        if spec["simulation"]["contact"]["canonical_self_contact"] and seq.solver == "xpbd":
+        if spec["simulation"]["contact"]["canonical_self_contact"] and seq.solver in ("vbd", "xpbd"):
             seq = dataclasses.replace(seq, self_contact=True)
         style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
                                            poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,

@@ -41,7 +41,8 @@ records and hashes. Schema (every key optional unless marked required)::
       test_train: int                   test pairs x a subset of train poses
       test_test: int                    test pairs x a subset of unseen poses
     simulation:
-      solver: xpbd|mass_spring = xpbd
+      solver: vbd|xpbd|mass_spring = xpbd  vbd: vertex block descent, rests at the model's equilibrium
+                                        (converged stiffness); xpbd: faster, stretches stiff cloth
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
       frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
@@ -93,7 +94,7 @@ records and hashes. Schema (every key optional unless marked required)::
                                         sequence starts and restarts) with self-contact, whatever
                                         self_contact says (without it 7 of the TailorNet spec's
                                         40 drapes started with > 60 garment edges through the
-                                        garment; XPBD only, the mass-spring solver drapes without)
+                                        garment; VBD and XPBD, the mass-spring solver drapes without)
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
       max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
@@ -241,7 +242,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     for split in SPLITS:
         c.integer(f"splits.{split}", 0, allow=("all",))
     sim = "simulation"
-    c.choice(f"{sim}.solver", ("xpbd", "mass_spring"))
+    c.choice(f"{sim}.solver", ("vbd", "xpbd", "mass_spring"))
     device = spec[sim]["device"]
     if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
         c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")

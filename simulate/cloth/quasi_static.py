@@ -165,7 +165,7 @@ class QuasiStaticSimulator:
         Args:
             model: cloth model (one garment per world).
             collider: body collider with ``model.world_count`` worlds, or None (no body).
-            solver: "xpbd" or "mass_spring".
+            solver: "vbd", "xpbd" or "mass_spring".
             settings: stepping and convergence settings.
             solver_options: extra keyword options for the solver class.
         """
@@ -189,6 +189,10 @@ class QuasiStaticSimulator:
             opts.setdefault("bending_mode", s.xpbd_bending_mode)
             opts.setdefault("gs_sweep", s.gs_sweep)
             opts.setdefault("gs_block_dim", s.gs_block_dim)
+            opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
+                                                     "rest_exclusion": s.self_contact_rest_exclusion})
+        elif solver == "vbd":
+            opts.setdefault("iterations", s.iterations)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
                                                      "rest_exclusion": s.self_contact_rest_exclusion})
         self.solver = make_solver(solver, model, **opts)

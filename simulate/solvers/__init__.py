@@ -1,4 +1,4 @@
-"""Cloth solvers on a shared ClothModel: XPBD (Gauss-Seidel or Jacobi) and mass-spring."""
+"""Cloth solvers on a shared ClothModel: VBD (vertex block descent), XPBD (Gauss-Seidel or Jacobi) and mass-spring."""
 
 from __future__ import annotations
 
@@ -6,13 +6,17 @@ from typing import Any
 
 from simulate.cloth.model import ClothModel
 
-__all__ = ["SolverXPBD", "SolverMassSpring", "make_solver", "SOLVERS"]
+__all__ = ["SolverVBD", "SolverXPBD", "SolverMassSpring", "make_solver", "SOLVERS"]
 
-SOLVERS = ("xpbd", "mass_spring")
+SOLVERS = ("vbd", "xpbd", "mass_spring")
 
 
 def make_solver(name: str, model: ClothModel, **options: Any):
-    """Create a solver by name ("xpbd" or "mass_spring") with keyword options of its class."""
+    """Create a solver by name ("vbd", "xpbd" or "mass_spring") with keyword options of its class."""
+    if name == "vbd":
+        from simulate.solvers.vbd import SolverVBD
+
+        return SolverVBD(model, **options)
     if name == "xpbd":
         from simulate.solvers.xpbd import SolverXPBD
 
@@ -26,6 +30,10 @@ def make_solver(name: str, model: ClothModel, **options: Any):
 
 def __getattr__(name: str) -> Any:
     # Lazy, so importing the package does not import every solver's kernels.
+    if name == "SolverVBD":
+        from simulate.solvers.vbd import SolverVBD
+
+        return SolverVBD
     if name == "SolverXPBD":
         from simulate.solvers.xpbd import SolverXPBD
 
