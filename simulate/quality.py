@@ -3,7 +3,13 @@
 - **distortion**: triangle area ratio against the rest garment (seed 001 D.6 drops a
   sample when any triangle shrinks by more than 75 % or grows by more than 100 %);
 - **penetration**: signed distance of each garment vertex along the normal of its
-  nearest body face; below -1 mm counts as a collision (HOOD-style metric);
+  nearest body face; below -1 mm counts as a collision (HOOD-style metric). The nearest face
+  comes from Warp's closest-point query on one mesh per frame; the side is checked against the
+  pseudo-normal of the closest feature (``simulate.contact.closest.point_side``), since the
+  nearest face's normal alone calls points inside off sharp edges and corners of the body
+  surface (beside the head of the closed anny body, 38 mm outside read as 8 mm deep) and past
+  the open cuts of a culled body. Body contact and ``BodyCollider.signed_distance`` measure the
+  Euclidean distance instead (``simulate.contact.closest`` says which query serves what, and why);
 - **self-intersection**: garment edges that pierce non-adjacent garment triangles;
 - non-finite positions.
 
@@ -15,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
+
+from simulate.contact.closest import closest_point_barycentric, face_points, point_side
 
 wp.set_module_options({"enable_backward": False})
 
@@ -36,15 +44,27 @@ def query_body_signed_distance(
     normal_out: wp.array(dtype=wp.vec3),
 ):
     """Signed distance [m] of each point along the normal of its nearest body face (the one
-    implementation of the collision metric, also used by learn.common.collision)."""
+    implementation of the collision metric, also used by learn.common.collision).
+
+    The side is checked against the closest feature's pseudo-normal (``point_side``): where the
+    nearest face's normal puts an outside point inside (a sharp corner of the surface, a point past
+    an open cut) or an inside point outside, the distance is the Euclidean one to the closest
+    point with the pseudo-normal's sign. ``normal_out`` is the nearest face's unit normal."""
     tid = wp.tid()
     mesh_id = mesh_ids[tid // points_per_frame]
     p = points[tid]
     query = wp.mesh_query_point_no_sign(mesh_id, p, max_distance)
     if query.result:
-        closest = wp.mesh_eval_position(mesh_id, query.face, query.u, query.v)
-        normal = wp.mesh_eval_face_normal(mesh_id, query.face)
-        distance_out[tid] = wp.dot(p - closest, normal)
+        zero = wp.vec3(0.0)
+        a, b, c = face_points(mesh_id, query.face, zero)
+        bary = closest_point_barycentric(p, a, b, c)
+        closest = a * bary[0] + b * bary[1] + c * bary[2]
+        normal = wp.normalize(wp.cross(b - a, c - a))
+        along = wp.dot(p - closest, normal)
+        side = point_side(mesh_id, zero, query.face, bary, p, closest)
+        if along * side < 0.0:
+            along = side * wp.length(p - closest)
+        distance_out[tid] = along
         closest_out[tid] = closest
         normal_out[tid] = normal
     else:

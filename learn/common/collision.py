@@ -5,6 +5,13 @@ face is below -1 mm (the HOOD-style metric REFERENCE.md names), i.e. it lies mor
 1 mm inside the body. One kernel launch answers every (frame, vertex) query: each frame
 has its own body ``wp.Mesh`` (the body is posed differently per frame) and the kernel
 picks the mesh of its frame from an array of mesh ids. Runs on CPU and CUDA.
+
+The query is the dataset's penetration filter's (``simulate.quality.query_body_signed_distance``),
+so the learners' collision rate counts what the filter counts, in the unit published rates use:
+the distance along the nearest face's normal, its side checked against the pseudo-normal of the
+closest feature (a point off a sharp edge, or past an open cut of a culled body, is never called
+inside when it is outside). Body contact in the simulator asks differently (Euclidean distance,
+nearest face in world-local coordinates); ``simulate.contact.closest`` says why.
 """
 
 from __future__ import annotations

@@ -1,8 +1,17 @@
-"""Warp kernels for body contact: body interpolation, contact-plane detection, SDF queries."""
+"""Warp kernels for body contact: body interpolation, contact-plane detection, SDF queries.
+
+The contact planes (``detect_body_contacts``) and the collider's signed distance
+(``query_signed_distance``) share :func:`query_body`: the nearest face measured in the world's own
+coordinates and the side from the closest feature's pseudo-normal, a point past an open cut
+counting as outside (``simulate.contact.closest`` says why, and which query the quality metrics
+use instead).
+"""
 
 from __future__ import annotations
 
 import warp as wp
+
+from simulate.contact.closest import face_points, nearest_face, point_side
 
 wp.set_module_options({"enable_backward": False})
 
@@ -28,23 +37,33 @@ def interpolate_body_points(
 @wp.func
 def query_body(
     mesh: wp.uint64,
+    offset: wp.vec3,
     point: wp.vec3,
     max_dist: float,
 ):
-    """Closest body point: returns (found, signed distance [m], outward normal, face, u, v)."""
-    res = wp.mesh_query_point_sign_normal(mesh, point, max_dist)
+    """Closest point of the body in the world cell at ``offset`` to the local ``point`` [m], within
+    ``max_dist`` [m].
+
+    Returns (found, signed distance [m] (negative inside), outward unit normal (from the closest
+    point towards ``point`` outside, away from it inside; the face normal on the surface),
+    closest point [m] in local coordinates, face, barycentric weights (3,) of its corners).
+    The nearest face and every distance are measured in local coordinates, so a body gives the
+    same answer bit for bit in every world cell (``BodyCollider``).
+    """
+    found, face, bary, closest = nearest_face(mesh, offset, point, max_dist)
     normal = wp.vec3(0.0, 1.0, 0.0)
     dist = float(0.0)
-    if res.result:
-        closest = wp.mesh_eval_position(mesh, res.face, res.u, res.v)
+    if found:
+        side = point_side(mesh, offset, face, bary, point, closest)
         delta = point - closest
         length = wp.length(delta)
-        dist = length * res.sign
+        dist = length * side
         if length > 1.0e-7:
-            normal = delta / length * res.sign
+            normal = delta / length * side
         else:
-            normal = wp.mesh_eval_face_normal(mesh, res.face)
-    return res.result, dist, normal, res.face, res.u, res.v
+            a, b, c = face_points(mesh, face, offset)
+            normal = wp.normalize(wp.cross(b - a, c - a))
+    return found, dist, normal, closest, face, bary
 
 
 @wp.kernel
@@ -74,9 +93,11 @@ def detect_body_contacts(
     """Contact plane per particle, found once per substep and reused by every iteration.
 
     The plane is ``dot(n, x) >= offset``: the closest body point lifted by the contact distance
-    (collider thickness + half fabric thickness) along the outward normal.  Particles farther
-    than contact distance + ``margin`` get no plane.  ``contact_motion`` is the body's
-    displacement during this substep at the contact point [m] (for friction).
+    (collider thickness + half fabric thickness) along the outward normal (``query_body``; a
+    particle outside the body is never taken for inside, which would flip its plane and push it
+    through).  Particles farther than contact distance + ``margin`` get no plane.
+    ``contact_motion`` is the body's displacement during this substep at the contact point [m]
+    (for friction).  Planes, offsets and motions are in world-local coordinates.
     """
     i = wp.tid()
     contact_depth_out[i] = 0.0
@@ -88,16 +109,14 @@ def detect_body_contacts(
     p = x[i]
     if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
         return
-    found, dist, normal, face, u, v = query_body(mesh, p + world_offset[w], reach + margin)
+    found, dist, normal, closest, face, bary = query_body(mesh, world_offset[w], p, reach + margin)
     if not found:
         return
     i0 = mesh_indices[face * 3 + 0]
     i1 = mesh_indices[face * 3 + 1]
     i2 = mesh_indices[face * 3 + 2]
-    bw = 1.0 - u - v
-    motion = ((pose_end[i0] - pose_start[i0]) * u + (pose_end[i1] - pose_start[i1]) * v
-              + (pose_end[i2] - pose_start[i2]) * bw) * motion_scale
-    closest = p - normal * dist
+    motion = ((pose_end[i0] - pose_start[i0]) * bary[0] + (pose_end[i1] - pose_start[i1]) * bary[1]
+              + (pose_end[i2] - pose_start[i2]) * bary[2]) * motion_scale
     contact_active_out[i] = 1
     contact_normal_out[i] = normal
     contact_offset_out[i] = wp.dot(normal, closest) + reach
@@ -142,7 +161,7 @@ def query_signed_distance(
 ):
     """Signed distance [m] (negative inside) and outward normal at points; +max_dist if none found."""
     i = wp.tid()
-    found, dist, normal, face, u, v = query_body(mesh, points[i] + world_offset[point_world[i]], max_dist)
+    found, dist, normal, closest, face, bary = query_body(mesh, world_offset[point_world[i]], points[i], max_dist)
     if found:
         dist_out[i] = dist
         normal_out[i] = normal

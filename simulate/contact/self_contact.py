@@ -18,6 +18,7 @@ import warp as wp
 
 from simulate.cloth.model import ClothModel
 from simulate.contact.body_collider import BVH_OPTIONS, world_cell_offsets
+from simulate.contact.closest import closest_point_barycentric, shift_tolerance
 
 wp.set_module_options({"enable_backward": False})
 
@@ -25,44 +26,6 @@ __all__ = ["SelfContact"]
 
 MAX_SWEEP_M = 0.03
 """Largest extra search reach for a fast particle between candidate searches [m]."""
-
-
-@wp.func
-def closest_point_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """Barycentric coordinates of the point of triangle abc closest to p (Ericson 2004)."""
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return wp.vec3(1.0, 0.0, 0.0)
-    bp = p - b
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= 0.0 and d4 <= d3:
-        return wp.vec3(0.0, 1.0, 0.0)
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
-        return wp.vec3(1.0 - v, v, 0.0)
-    cp = p - c
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= 0.0 and d5 <= d6:
-        return wp.vec3(0.0, 0.0, 1.0)
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
-        return wp.vec3(1.0 - w, 0.0, w)
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return wp.vec3(0.0, 1.0 - w, w)
-    denom = 1.0 / (va + vb + vc)
-    v = vb * denom
-    w = vc * denom
-    return wp.vec3(1.0 - v - w, v, w)
 
 
 @wp.kernel
@@ -127,7 +90,9 @@ def detect_self_contacts(
         return
     q = p + world_offset[w]
     reach_i = reach + wp.min(wp.length(v[i]) * horizon, max_sweep)
-    r = wp.vec3(reach_i, reach_i, reach_i)
+    # the box also covers the float32 rounding of the shifted points; distances are local
+    r_box = reach_i + shift_tolerance(world_offset[w])
+    r = wp.vec3(r_box, r_box, r_box)
     query = wp.mesh_query_aabb(mesh, q - r, q + r)
     face = int(0)
     best = reach_i
@@ -147,7 +112,9 @@ def detect_self_contacts(
         bary = closest_point_barycentric(p, xa, xb, xc)
         closest = xa * bary[0] + xb * bary[1] + xc * bary[2]
         d = wp.length(p - closest)
-        if d >= best:
+        # nearer than the best so far (strictly nearer than the reach while there is none); an
+        # equal distance goes to the lower face index, so the BVH's visit order does not matter
+        if d > best or (d == best and (best_face < 0 or face > best_face)):
             continue
         # only a would-be nearest triangle pays for the rest-shape and neighbourhood tests; the
         # rest-shape test first: three loads, and at cloth resolution it already excludes most of
@@ -267,7 +234,8 @@ class SelfContact:
         self.detect_every = int(detect_every)
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
-        offsets = world_cell_offsets(model.world_count, 4.0 * extent + 2.0)
+        centers = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
+        offsets = world_cell_offsets(model.world_count, 4.0 * extent + 2.0, np.tile(centers, (model.world_count, 1)))
         self.world_offset = wp.array(offsets, dtype=wp.vec3, device=dev)
         count = max(model.particle_count, 1)
         # the BVH is built here and only refit later: build it over the points at their world
