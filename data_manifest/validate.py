@@ -355,7 +355,9 @@ def _audit_lines(audit: dict) -> list[str]:
     lines = []
     max_mm, mean_mm = audit.get("max_mm"), audit.get("mean_mm")
     if isinstance(max_mm, dict) and isinstance(mean_mm, dict):
-        lines.append(f"audit: {audit.get('samples', '?')} kept frames re-solved at {audit.get('tolerance_mps', '?')} m/s: "
+        how = (f"re-solved to their static equilibrium ({audit.get('converged', '?')} converged)"
+               if audit.get("reference") == "equilibrium" else f"re-solved at {audit.get('tolerance_mps', '?')} m/s")
+        lines.append(f"audit: {audit.get('samples', '?')} kept frames {how}: "
                      f"vertex error max median {max_mm.get('median', float('nan')):.2f} / p90 {max_mm.get('p90', float('nan')):.2f} mm, "
                      f"mean median {mean_mm.get('median', float('nan')):.2f} / p90 {mean_mm.get('p90', float('nan')):.2f} mm")
     sim = audit.get("simulation")

@@ -153,15 +153,15 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from simulate.cloth.quasi_static import WorldStatus
-    from simulate.reports.accuracy import REFERENCE_SETTINGS, format_table, run_accuracy, sweep_settings
+    from simulate.reports.accuracy import REFERENCE_FRICTION, REFERENCE_SETTINGS, SOLVERS, format_table, run_accuracy, sweep_settings
     from simulate.reports.pareto import plot_error_vs_time
     from simulate.reports.scenes import build_scene
 
     default = production_default()
     solvers = [x.strip() for x in args.solvers.split(",") if x.strip()]
-    bad = [x for x in solvers if x not in ("xpbd", "mass_spring")] or ([] if default.solver in solvers else [default.solver])
+    bad = [x for x in solvers if x not in SOLVERS] or ([] if default.solver in solvers else [default.solver])
     if bad or not solvers:
-        raise ValueError(f"--solvers {args.solvers!r}: expected a comma list of xpbd, mass_spring including the "
+        raise ValueError(f"--solvers {args.solvers!r}: expected a comma list of {', '.join(SOLVERS)} including the "
                          f"production default's solver ({default.solver})")
     device = resolve_device(args.device)
     out = Path(args.out)
@@ -172,13 +172,14 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     settings = [s for s in sweep_settings(args.sweep, default=default) if s.solver in solvers]
     reference = REFERENCE_SETTINGS[args.sweep]
     reference_max_frames = args.reference_max_frames or 4 * args.max_frames
-    sims = len({s.simulation_key() for s in settings}) + 2  # + canonical drape + reference
+    sims = len({s.simulation_key() for s in settings}) + 3  # + canonical drape + reference start + equilibrium
     bar = tqdm(total=sims, desc="accuracy: settings", unit="setting", file=sys.stderr, disable=args.no_progress)
 
     def progress(label: str, run: Any) -> None:
         # One log line per simulation, so a long sweep shows where its time goes even without a bar.
         status = collections.Counter(WorldStatus(int(s)).name.lower() for s in run.status)
-        tqdm.write(f"  {label}: {run.wall_s:.1f} s, frames mean {float(run.frames.mean()):.0f} max "
+        unit = "Newton iterations" if label.startswith("equilibrium") else "frames"  # the reference solve
+        tqdm.write(f"  {label}: {run.wall_s:.1f} s, {unit} mean {float(run.frames.mean()):.0f} max "
                    f"{int(run.frames.max())}, {', '.join(f'{k} {v}' for k, v in sorted(status.items()))}",
                    file=sys.stderr)
         bar.set_postfix_str(label[:40])
@@ -187,8 +188,10 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     rows_path = out / "accuracy_rows.jsonl"
     ref_path = out / "accuracy_reference.npz"
     config = _jsonable({"scene": scene.name, "vertices": scene.vertex_count, "poses": poses, "fabric": args.fabric,
-                        "sweep": args.sweep, "reference": reference.label, "base": dataclasses.asdict(production_base()),
+                        "sweep": args.sweep, "reference": reference.label, "reference_kind": "equilibrium",
+                        "reference_friction": REFERENCE_FRICTION, "base": dataclasses.asdict(production_base()),
                         "max_frames": args.max_frames, "reference_max_frames": reference_max_frames,
+                        "reference_max_iterations": args.reference_max_iterations,
                         "explosion_stretch": args.explosion_stretch, "device": str(device)})
     resume = _load_resume(rows_path, ref_path, config) if args.resume else None
     if resume is None:
@@ -208,13 +211,14 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     def reference_done(summary: dict, positions: np.ndarray, status: np.ndarray) -> None:
         tmp = ref_path.with_name(ref_path.name + ".partial")
         with open(tmp, "wb") as f:
-            np.savez(f, positions=positions.astype(np.float32), status=np.asarray(status, np.int32),
+            np.savez(f, positions=np.asarray(positions, np.float64), status=np.asarray(status, np.int32),
                      summary=json.dumps(_clean(summary), default=_json_default), config=json.dumps(config))
         os.replace(tmp, ref_path)
 
     report = run_accuracy(scene, poses=poses, settings=settings, reference=reference, default=default, device=device,
                           base=production_base(), fabric=args.fabric, max_frames=args.max_frames,
-                          reference_max_frames=reference_max_frames, explosion_stretch=args.explosion_stretch,
+                          reference_max_frames=reference_max_frames, reference_max_iterations=args.reference_max_iterations,
+                          explosion_stretch=args.explosion_stretch,
                           on_progress=progress, on_row=row_done, on_reference=reference_done, resume=resume)
     bar.close()
     report["sweep"] = args.sweep
@@ -290,8 +294,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     rs = p.add_subparsers(dest="report", metavar="REPORT")
     a = rs.add_parser("accuracy", help="error against run time over solver settings",
                       description="Drapes a garment on the default body, moves it to each pose and relaxes it with "
-                      "every setting of the sweep (solver, substeps, iterations, tolerance, float precision); "
-                      "measures wall time per converged frame and the error against a tightly converged reference.")
+                      "every setting of the sweep (solver: xpbd, vbd, mass_spring; substeps, iterations, tolerance, "
+                      "float precision); measures wall time per converged frame and the error against the reference: "
+                      "each pose's static equilibrium of the model's energy (float64 Newton on the CPU) started from "
+                      "a tight XPBD run, with the contacts of that run held (stick).")
     a.add_argument("--garment", default="tshirt",
                    help="tshirt, shirt, pants, shorts, skirt or shawl (default tshirt)")
     a.add_argument("--body", default="anny", choices=["anny", "capsule"], help="body (capsule: tiny CI stand-in)")
@@ -301,13 +307,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "extreme pose of the stability report)")
     a.add_argument("--fabric", default="cotton", help="fabric preset (default cotton)")
     a.add_argument("--sweep", default="small", choices=["small", "full"], help="settings grid (default small)")
-    a.add_argument("--solvers", default="xpbd,mass_spring",
-                   help="solvers swept (comma list; mass-spring's explicit substeps are the slowest rows: ~87 s per "
-                        "setting on an H200, far more on CPU)")
+    a.add_argument("--solvers", default="xpbd,vbd,mass_spring",
+                   help="solvers swept (comma list of xpbd, vbd, mass_spring; mass-spring's explicit substeps are the "
+                        "slowest rows: ~87 s per setting on an H200, far more on CPU)")
     a.add_argument("--max-frames", type=int, default=600, help="relaxation frame budget per setting")
     a.add_argument("--reference-max-frames", type=int, default=None,
-                   help="the reference's frame budget (default 4x --max-frames; at 40x100 iterations a GPU frame of "
-                        "4 worlds takes ~0.6 s, so bound it on slow devices)")
+                   help="frame budget of the tight XPBD run that starts the reference equilibrium (default 4x "
+                        "--max-frames; at 40x100 iterations a GPU frame of 4 worlds takes ~0.6 s, so bound it on slow "
+                        "devices)")
+    a.add_argument("--reference-max-iterations", type=int, default=200,
+                   help="Newton iterations per pose at most for the reference equilibrium (CPU, float64; default 200)")
     a.add_argument("--explosion-stretch", type=float, default=None,
                    help="triangle stretch ratio that flags a world EXPLODED (default: the production spec's, 50, as "
                    "the dataset pipeline uses it)")

@@ -31,6 +31,11 @@ TINY_SPEC = {
 }
 
 
+NO_AUDIT = {"audit__samples": 0}
+"""For runs whose test does not read the audit: each audited frame costs a Newton solve to its
+equilibrium (~15 s for the tiny spec's 1.8k-vertex t-shirt on CPU); the ``reference`` run audits."""
+
+
 def _with(**changes) -> dict:
     spec = json.loads(json.dumps(TINY_SPEC))
     for dotted, value in changes.items():
@@ -68,6 +73,18 @@ def test_dataset_is_valid_and_frame_counts_add_up(reference):
     kept = sum(s["frame_count"] for s in manifest["shards"])
     assert manifest["totals"]["frames_kept"] == kept > 0, "the tiny spec must keep frames"
     assert manifest["audit"]["samples"] >= 1 and manifest["audit"]["max_mm"]["max"] >= 0.0
+    # the audit measures against the static equilibrium of each sampled frame (pipelines/audit.py)
+    audit = manifest["audit"]
+    assert audit["reference"] == "equilibrium" and audit["friction"] == "stick", audit
+    assert audit["converged"] + audit["not_converged"] == audit["samples"] == len(audit["frames"]), audit
+    assert audit["converged"] >= 1, f"no audited frame reached its equilibrium in {audit['max_iterations']} iterations"
+    for f in audit["frames"]:
+        assert f["iterations"] <= audit["max_iterations"] and f["max_mm"] >= f["mean_mm"] > 0.0, f
+        if f["converged"]:
+            assert f["residual_n"] <= f["tol_force_n"], f
+    measured = [f for f in audit["frames"] if f["converged"]]
+    assert audit["max_mm"]["max"] == max(f["max_mm"] for f in measured)
+    assert audit["mean_mm"]["median"] == float(np.median([f["mean_mm"] for f in measured]))
     with np.load(reference / "pruned_poses.npz") as pruned:
         assert pruned["reason"].shape == (len(pruned["poses"]),), "every pruned pose says why"
 
@@ -104,7 +121,7 @@ def test_planted_bad_frame_is_dropped_and_counted(tmp_path, monkeypatch):
         return real(*args, on_frames=corrupt, **kwargs)
 
     monkeypatch.setattr(sequence, "run_sequences", planting)
-    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0)
+    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, **NO_AUDIT)
     manifest = generate(spec, tmp_path, progress=False, log=lambda m: None)
     assert manifest.totals["frames_dropped"].get("distortion", 0) >= 1
     # every dropped frame is logged in its shard, with its index in the sequence and its pose
@@ -140,7 +157,7 @@ def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
         return real(*args, on_frames=corrupt, **kwargs)
 
     monkeypatch.setattr(sequence, "run_sequences", planting)
-    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, simulation__restart_after_rejects=1)
+    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, simulation__restart_after_rejects=1, **NO_AUDIT)
     manifest = generate(spec, tmp_path, progress=False, log=lambda m: None)
     assert verdicts[0] == (True, False), verdicts
     assert all(isinstance(v, bool) for _, v in verdicts), verdicts
@@ -184,7 +201,7 @@ def test_kill_then_resume_equals_uninterrupted_run(reference, tmp_path):
     import yaml
 
     spec_path = tmp_path / "tiny.yaml"
-    spec_path.write_text(yaml.safe_dump(_with()))
+    spec_path.write_text(yaml.safe_dump(_with(**NO_AUDIT)))
     out = tmp_path / "killed"
     proc = _run_cli(spec_path, out)
     deadline = time.time() + 600
@@ -213,7 +230,7 @@ def test_shards_written_by_a_worker_process_equal_the_threads(reference, tmp_pat
     from pipelines.generate_dataset import generate
 
     monkeypatch.setenv(MODE_ENV, "process")  # the GPU runs' writer (the CPU default is a thread)
-    manifest = generate(_with(), tmp_path, progress=False, log=lambda m: None)
+    manifest = generate(_with(**NO_AUDIT), tmp_path, progress=False, log=lambda m: None)
     assert _shard_hashes(tmp_path) == _shard_hashes(reference)
     assert all(s["timings"]["wall_s"] > 0 for s in manifest.shards), "the worker sets each shard's wall time"
     assert validate_dataset(tmp_path).ok
@@ -224,7 +241,7 @@ def test_ray_executor_matches_local(reference, tmp_path):
     pytest.importorskip("ray")
     from pipelines.generate_dataset import generate
 
-    generate(_with(), tmp_path, executor="ray", progress=False, log=lambda m: None)
+    generate(_with(**NO_AUDIT), tmp_path, executor="ray", progress=False, log=lambda m: None)
     assert _shard_hashes(tmp_path) == _shard_hashes(reference)
     assert validate_dataset(tmp_path).ok
 
@@ -303,7 +320,7 @@ def test_chunked_tasks_write_one_valid_shard_per_piece(tmp_path):
 
     lines: list[str] = []
     snapshots: list[dict] = []
-    generate(_with(simulation__poses_per_task=1), tmp_path, progress=False, log=lines.append, heartbeat_s=0.0,
+    generate(_with(simulation__poses_per_task=1, **NO_AUDIT), tmp_path, progress=False, log=lines.append, heartbeat_s=0.0,
              on_heartbeat=snapshots.append)
     # headless runs log their progress: the plan, then heartbeats counting up to every target pose,
     # with the simulator's running split of the time
@@ -354,7 +371,7 @@ def test_the_manifest_is_saved_after_each_batch_not_after_each_shard(tmp_path, m
         return save(self, *args, **kwargs)
 
     monkeypatch.setattr(Manifest, "save", spy)
-    manifest = generate(_with(), tmp_path, progress=False, log=lambda m: None, save_every_s=1e9)
+    manifest = generate(_with(**NO_AUDIT), tmp_path, progress=False, log=lambda m: None, save_every_s=1e9)
     # 4 tasks of 2 pairs in one world: a batch per pair (its train and test tasks one after the other),
     # one save per batch, then the finished manifest
     assert listed == [2, 4, 4], listed

@@ -19,7 +19,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 def test_subcommands_parse_with_documented_defaults() -> None:
     a = _parse(["report", "accuracy", "--out", "x"])
     assert (a.garment, a.sweep, a.device, a.poses) == ("tshirt", "small", "auto", "arms-up,arms-forward,twist,lean")
-    assert a.func is report.run_accuracy_command and a.explosion_stretch is None and a.solvers == "xpbd,mass_spring"
+    assert a.func is report.run_accuracy_command and a.explosion_stretch is None and a.solvers == "xpbd,vbd,mass_spring"
     bad = _parse(["report", "accuracy", "--out", "x", "--solvers", "mass_spring"])
     with pytest.raises(ValueError, match="--solvers 'mass_spring'.*production default's solver"):
         report.run_accuracy_command(bad)

@@ -1,17 +1,37 @@
 """Error against run time of the simulator's settings (``drape report accuracy``).
 
-Protocol: the scene's cloth is draped once on the canonical body with the reference settings
-(the *canonical drape*). For each report pose the body then moves from the canonical pose to the
-pose along a slerp path of one frame per 0.1 rad of the largest joint change (the dataset
-pipeline's interpolation threshold) and the cloth relaxes until it converges; all poses run
-together as worlds of one simulator. Every setting runs the same protocol; the *reference* runs
-it with a very tight tolerance and many iterations. Per setting:
+Protocol: the scene's cloth is draped once on the canonical body (the *canonical drape*, with
+``drape_setting``). For each report pose the body then moves from the canonical pose to the pose
+along a slerp path of one frame per 0.1 rad of the largest joint change (the dataset pipeline's
+interpolation threshold) and the cloth relaxes until it converges; all poses run together as worlds
+of one simulator. Every setting runs the same protocol.
+
+The *reference* of a pose is the static equilibrium of the model's own energy on the pose's body
+(:func:`simulate.solvers.reference.solve_equilibrium`: Newton in float64 on the CPU, converged to a
+force residual of 1e-6 of the lightest particle's weight, at least 1e-8 N), started from the pose's
+result of the tightest XPBD run (``reference``: many substeps and iterations, a tolerance 100x below
+the default's) with ``friction="stick"``: the particles touching the body there stay where they touch
+it (they may only move along its normal) and everything else settles. So every setting is measured
+against the exact rest state of the energy it integrates, for the contact state the tight run arrived
+at, and not against another iterative solve that stops at a speed threshold. Friction makes rest
+states a continuum (cloth on a tilted bar can rest anywhere it stops sliding): a setting whose
+contacts come to rest elsewhere than the tight run's is measured by that distance too (on the CI
+capsule's "tilt" pose, 50 vertices, the VBD rows rest 7 mm from the reference started by the "small"
+XPBD setting and 74 mm from the one started by the "ci" setting; the XPBD rows within 8 mm of both).
+
+The report's ``reference`` block gives each pose's residual [N] against its tolerance, the Newton
+iterations, the share of held particles whose grip exceeds Coulomb friction, and how far the tight
+XPBD start was from the equilibrium; ``reference_strip_error`` is the same solver's relative error on
+a hanging strip with an analytic answer (:func:`strip_error`), the accuracy the reference itself is
+known to have.
+
+Per setting:
 
 * ``ms_per_frame``: wall time [ms] of the whole protocol (path frames + relaxation, device
   synchronized, kernels compiled beforehand) divided by the number of poses: the cost of one
   converged frame as a dataset pays it;
-* ``error_max_mm`` / ``error_mean_mm``: max and mean vertex distance to the reference [mm]
-  over all poses (``error_mm`` = ``error_max_mm`` is the value on the Pareto plot);
+* ``error_max_mm`` / ``error_mean_mm``: max and mean vertex distance to the reference equilibrium
+  [mm] over all poses (``error_mm`` = ``error_max_mm`` is the value on the Pareto plot);
 * stretch (max / mean edge length ratio), penetration (deepest vertex [mm], share of vertices
   deeper than 1 mm: :class:`simulate.quality.QualityMeter`), converged share, frames.
 
@@ -31,12 +51,23 @@ from simulate.cloth.quasi_static import SimSettings, WorldStatus
 from simulate.reports.pareto import NEAR_FRONT_ERROR_SLACK, NEAR_FRONT_TIME_FACTOR, front_time_at_error, pareto_front
 from simulate.reports.scenes import Scene, SceneRun, frame_metrics, named_pose, pose_path, round_float16, run_worlds
 
-__all__ = ["Setting", "DEFAULT_SETTING", "PRODUCTION_BASE", "REFERENCE_SETTINGS", "SWEEPS", "sweep_settings", "run_accuracy",
-           "Resume", "summarize", "format_table", "PATH_STEP_RAD"]
+__all__ = ["Setting", "DEFAULT_SETTING", "PRODUCTION_BASE", "REFERENCE_SETTINGS", "SWEEPS", "SOLVERS", "sweep_settings",
+           "run_accuracy", "Resume", "summarize", "format_table", "strip_error", "PATH_STEP_RAD", "CONTACT_THICKNESS",
+           "REFERENCE_FRICTION", "STRIP_ROWS"]
 
 PATH_STEP_RAD = 0.1
 """Largest per-joint rotation between consecutive frames of a pose path [rad] (the dataset's
 ``simulation.interpolation_threshold`` default)."""
+
+CONTACT_THICKNESS = 0.004
+"""Collider thickness of every run and of the reference equilibrium [m] (the production spec's
+``simulation.contact.thickness``)."""
+REFERENCE_FRICTION = "stick"
+"""Contact model of the reference equilibrium (see the module docstring)."""
+STRIP_ROWS = 80
+"""Rows of the hanging strip of :func:`strip_error` (1.25 cm edges on a 1 m strip: the production edge length)."""
+SOLVERS = ("xpbd", "vbd", "mass_spring")
+"""Solvers a :class:`Setting` can name."""
 
 _MODE_SHORT = {"gauss_seidel": "gs", "jacobi": "jac"}
 
@@ -46,10 +77,12 @@ class Setting:
     """One simulator setting of the sweep.
 
     Attributes:
-        solver: "xpbd" or "mass_spring".
-        mode: XPBD sweep, "gauss_seidel" or "jacobi" (ignored by mass-spring).
-        substeps: substeps per 1/60 s frame; None = the solver's choice (mass-spring: stable step).
-        iterations: XPBD iterations per substep (ignored by mass-spring).
+        solver: "xpbd", "vbd" or "mass_spring".
+        mode: XPBD sweep, "gauss_seidel" or "jacobi" (ignored by VBD and mass-spring).
+        substeps: substeps per frame (1/45 s in :data:`PRODUCTION_BASE`); None = the solver's choice
+            (mass-spring: its stable step; not allowed for VBD, which needs >= 15 per 1/45 s frame
+            to gain no energy).
+        iterations: XPBD iterations or VBD sweeps per substep (ignored by mass-spring).
         tolerance: convergence tolerance, max particle speed [m/s].
         precision: "float32" or "float16" (storage rounding relative to the pelvis).
     """
@@ -62,8 +95,10 @@ class Setting:
     precision: str = "float32"
 
     def __post_init__(self) -> None:
-        if self.solver not in ("xpbd", "mass_spring"):
-            raise ValueError(f"Setting.solver must be 'xpbd' or 'mass_spring' (got {self.solver!r})")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"Setting.solver must be one of {', '.join(SOLVERS)} (got {self.solver!r})")
+        if self.solver == "vbd" and self.substeps is None:
+            raise ValueError("Setting.substeps must be a number for solver 'vbd' (it has no stable-step choice)")
         if self.mode not in _MODE_SHORT:
             raise ValueError(f"Setting.mode must be 'gauss_seidel' or 'jacobi' (got {self.mode!r})")
         if self.precision not in ("float32", "float16"):
@@ -71,12 +106,14 @@ class Setting:
 
     @property
     def group(self) -> str:
-        """Solver family for plot colours: "xpbd-gs", "xpbd-jac" or "mass-spring"."""
-        return "mass-spring" if self.solver == "mass_spring" else f"xpbd-{_MODE_SHORT[self.mode]}"
+        """Solver family for plot colours: "xpbd-gs", "xpbd-jac", "vbd" or "mass-spring"."""
+        if self.solver == "xpbd":
+            return f"xpbd-{_MODE_SHORT[self.mode]}"
+        return "mass-spring" if self.solver == "mass_spring" else self.solver
 
     @property
     def label(self) -> str:
-        """Short unique name, e.g. "xpbd-gs s10 i10 tol0.01 f32"."""
+        """Short unique name, e.g. "xpbd-gs s10 i10 tol0.01 f32", "vbd s20 i3 tol0.01 f32"."""
         sub = "auto" if self.substeps is None else str(self.substeps)
         its = "" if self.solver == "mass_spring" else f" i{self.iterations}"
         return f"{self.group} s{sub}{its} tol{self.tolerance:g} {'f16' if self.precision == 'float16' else 'f32'}"
@@ -93,7 +130,7 @@ class Setting:
     def simulation_key(self) -> tuple:
         """Settings that change the simulation (precision does not)."""
         return (self.solver, self.mode if self.solver == "xpbd" else "-", self.substeps,
-                self.iterations if self.solver == "xpbd" else 0, self.tolerance)
+                0 if self.solver == "mass_spring" else self.iterations, self.tolerance)
 
 
 DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 15, 5, 0.05, "float32")
@@ -112,25 +149,29 @@ REFERENCE_SETTINGS: dict[str, Setting] = {
     "small": Setting("xpbd", "gauss_seidel", 20, 50, 1e-4),
     "full": Setting("xpbd", "gauss_seidel", 40, 100, 1e-4),
 }
-"""Reference solve per sweep size: Gauss-Seidel XPBD, many substeps and iterations, a tolerance
-100x or more below the default's, with the base's outlier share (with none, the 1.8k-vertex t-shirt
-never came to rest at 1e-4 m/s: all 4 poses ran 400 frames on CPU, the armpit vertices jitter at
-that level; those positions differ from the production default's by 5-8 mm mean, 16-38 mm max)."""
+"""Start of the reference per sweep size: Gauss-Seidel XPBD with many substeps and iterations and a
+tolerance 100x or more below the default's (with the base's outlier share; with none, the 1.8k-vertex
+t-shirt never came to rest at 1e-4 m/s on CPU, its armpit vertices jitter at that level). Its
+result fixes each pose's contact state; the reference is the equilibrium Newton finds from there."""
 
 
 def sweep_settings(size: str, *, default: Setting = DEFAULT_SETTING) -> list[Setting]:
-    """The settings of a sweep size ("small" or "full"), the default first, no duplicates."""
+    """The settings of a sweep size ("small" or "full"), the default first, no duplicates: XPBD
+    (Gauss-Seidel and Jacobi), VBD (>= 15 substeps per 1/45 s frame) and mass-spring rows."""
     gs, jac = "gauss_seidel", "jacobi"
     if size == "small":
         grid = [Setting("xpbd", gs, s, i, 0.01) for s, i in ((5, 5), (5, 10), (10, 5), (20, 10), (10, 20), (20, 20))]
         grid += [Setting("xpbd", gs, 10, 10, t) for t in (0.05, 0.01, 0.002)]
         grid += [Setting("xpbd", jac, 10, i, 0.01) for i in (10, 20)]
+        grid += [Setting("vbd", gs, s, i, 0.01) for s, i in ((15, 5), (20, 3), (30, 5))]
         grid += [Setting("mass_spring", gs, None, 1, 0.01)]
         grid += [dataclasses.replace(default, precision="float16")]
     elif size == "full":
         grid = [Setting("xpbd", gs, s, i, 0.01) for s in (5, 10, 20, 40) for i in (5, 10, 20, 40)]
         grid += [Setting("xpbd", gs, s, i, t) for s, i in ((10, 10), (20, 20)) for t in (0.05, 0.02, 0.005, 0.002, 0.001)]
         grid += [Setting("xpbd", jac, s, i, 0.01) for s in (10, 20) for i in (10, 20, 40)]
+        grid += [Setting("vbd", gs, s, i, 0.01) for s in (15, 20, 30, 40) for i in (2, 3, 5, 10)]
+        grid += [Setting("vbd", gs, 20, 3, t) for t in (0.05, 0.02, 0.005, 0.002)]
         grid += [Setting("mass_spring", gs, None, 1, t) for t in (0.01, 0.002)]
         grid += [dataclasses.replace(g, precision="float16") for g in list(grid) if g.group == "xpbd-gs"]
     else:
@@ -152,8 +193,9 @@ class Resume:
 
     Attributes:
         reference: the reference summary (``report["reference"]``).
-        reference_positions: the reference's final cloth positions of every requested pose [m], (W, V, 3).
-        reference_status: its per-pose :class:`WorldStatus` values, (W,).
+        reference_positions: the reference equilibrium of every requested pose [m], (W, V, 3) (a pose
+            whose XPBD start exploded keeps that start's positions; it is dropped again).
+        reference_status: the XPBD start's per-pose :class:`WorldStatus` values, (W,).
         rows: finished rows by setting label.
     """
 
@@ -191,6 +233,58 @@ def summarize(rows: Sequence[dict[str, Any]], default_label: str) -> dict[str, A
     return out
 
 
+def strip_error(fabric: str = "cotton", *, rows: int = STRIP_ROWS) -> dict[str, Any]:
+    """The reference solver on a problem with an analytic answer: a 1 m x 5 cm strip of ``fabric``
+    (bending off) pinned at its top edge stretches under its own weight by rho g L^2 / (2 Y) (strain
+    rho g (L - s) / Y at height s; Poisson 0, as the triangle energy; exact for lumped masses at any
+    row count).
+
+    Returns:
+        {"fabric", "rows", "extension_mm" (mean drop of the bottom edge), "analytic_mm",
+        "relative_error" (|extension - analytic| / analytic [-]), "residual_n", "tol_force_n", "converged"}.
+    """
+    from simulate.cloth import ClothBuilder, Features
+    from simulate.cloth.fabric import resolve_fabric
+    from simulate.cloth.scenes import grid_cloth
+    from simulate.solvers.reference import solve_equilibrium
+
+    fab = dataclasses.replace(resolve_fabric(fabric), bending_stiffness=0.0)
+    length = 1.0
+    verts, faces = grid_cloth(2, rows + 1, 0.05, length, plane="xy", origin=(0.0, 1.0, 0.0))
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric=fab, pinned=[0, 1])
+    model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
+    x, result = solve_equilibrium(model, 0, verts)
+    extension = float((verts[-2:, 1] - x[-2:, 1]).mean())
+    analytic = fab.density * float(np.linalg.norm(model.gravity)) * length ** 2 / (2.0 * fab.stretch_stiffness)
+    return {"fabric": fab.name, "rows": int(rows),
+            "extension_mm": 1e3 * extension, "analytic_mm": 1e3 * analytic,
+            "relative_error": abs(extension - analytic) / analytic, "residual_n": float(result.residual),
+            "tol_force_n": float(result.tol_force), "converged": bool(result.converged)}
+
+
+def _equilibria(scene: Scene, fabric: str, starts: np.ndarray, bodies: np.ndarray, max_iterations: int
+                ) -> tuple[np.ndarray, list[Any]]:
+    """The reference equilibrium of each pose (module docstring): positions [m] (W, V, 3) float64 and
+    one :class:`~simulate.solvers.reference.ReferenceResult` per pose, from ``starts`` (W, V, 3) [m] on
+    ``bodies`` (W, Vb, 3) [m]."""
+    from simulate.cloth import ClothBuilder, Features
+    from simulate.cloth.fabric import resolve_fabric
+    from simulate.solvers.reference import solve_equilibrium
+
+    builder = ClothBuilder()
+    for _ in range(len(starts)):
+        builder.add_garment(scene.rest_vertices, scene.faces, fabric=resolve_fabric(fabric), material_uv=scene.material_uv)
+    model = builder.finalize("cpu", features=Features())
+    out, results = np.empty((len(starts), scene.vertex_count, 3)), []
+    for w in range(len(starts)):
+        out[w], result = solve_equilibrium(model, w, starts[w], body_vertices=np.asarray(bodies[w], np.float64),
+                                           body_faces=scene.body_faces, contact_thickness=CONTACT_THICKNESS,
+                                           friction=REFERENCE_FRICTION, max_iterations=max_iterations)
+        results.append(result)
+    return out, results
+
+
 def _path_steps(pose: np.ndarray, canonical: np.ndarray) -> int:
     from simulate.poses import joint_angle_change
 
@@ -208,6 +302,7 @@ def run_accuracy(
     fabric: str = "cotton",
     max_frames: int = 600,
     reference_max_frames: int = 3000,
+    reference_max_iterations: int = 200,
     drape_setting: Setting | None = None,
     base: SimSettings | None = None,
     explosion_stretch: float | None = None,
@@ -222,26 +317,30 @@ def run_accuracy(
         scene: report scene.
         poses: pose names (``simulate.reports.scenes.ACCURACY_POSES`` or ``EXTREME_POSES``); one world each.
         settings: the sweep (precision variants share one simulation).
-        reference: the tight reference setting.
+        reference: the tight XPBD setting whose result starts the reference equilibrium.
         default: the production default (must be among ``settings``).
-        max_frames: relaxation frame budget per setting; reference_max_frames: the reference's.
+        max_frames: relaxation frame budget per setting; reference_max_frames: the reference start's.
+        reference_max_iterations: Newton iterations per pose at most for the reference equilibrium
+            (a pose that does not converge is kept and reported with ``converged`` false).
         drape_setting: setting of the canonical drape, the common start of all runs (default: ``default``;
             every run, the reference included, then relaxes each pose with its own setting).
         base: the settings not swept (damping, explosion limits, outlier share, patience), default
             :data:`PRODUCTION_BASE`.
         explosion_stretch: triangle stretch ratio that marks a world EXPLODED, for every run (None: the base's).
         on_progress: called with a setting label and its :class:`~simulate.reports.scenes.SceneRun` after each
-            simulation (progress bars, per-setting log lines).
+            simulation (progress bars, per-setting log lines); for the reference equilibrium the run's
+            ``frames`` are Newton iterations, ``wall_s`` the Newton time and ``status`` CONVERGED or MAX_STEPS.
         on_row: called with the reference's summary and then with each finished row, as soon as it is
             measured (the CLI appends them to a JSON-lines file, so a sweep cut short keeps its rows).
             Settings that share a simulation (precision variants) are measured one after the other.
-        on_reference: called with the reference's summary, final positions (W, V, 3) and statuses (W,)
-            once it is solved (the CLI saves them, so ``--resume`` can skip it).
+        on_reference: called with the reference's summary, equilibrium positions (W, V, 3) and the XPBD
+            start's statuses (W,) once it is solved (the CLI saves them, so ``--resume`` can skip it).
         resume: an earlier run's reference and rows: the reference is not solved again and settings
             whose rows are all there are not simulated again (neither is passed to ``on_row``).
     Returns:
-        {"scene", "device", "poses", "poses_dropped" (reference exploded), "reference", "rows", "default",
-        "resumed_rows", and :func:`summarize`'s fronts and ratios} (see the module docstring for row fields).
+        {"scene", "device", "poses", "poses_dropped" (reference start exploded), "reference",
+        "reference_strip_error", "rows", "default", "resumed_rows", and :func:`summarize`'s fronts and
+        ratios} (see the module docstring for the row and reference fields).
     """
     if not poses:
         raise ValueError("poses must name at least one pose")
@@ -264,7 +363,7 @@ def run_accuracy(
     def simulate(s: Setting, frames: int, start: np.ndarray, use_paths: list[np.ndarray]):
         return run_worlds(scene, start=start, paths=use_paths, fabrics=[fabric] * len(use_paths),
                           settings=s.sim_settings(max_frames=frames, base=base, explosion_stretch=explosion_stretch),
-                          solver=s.solver, device=device)
+                          solver=s.solver, device=device, contact_thickness=CONTACT_THICKNESS)
 
     # Compile and load every kernel variant before anything is timed.
     for key in sorted({(s.solver, s.mode) for s in [*settings, reference]}):
@@ -280,18 +379,18 @@ def run_accuracy(
     if resume is None:
         ref = simulate(reference, reference_max_frames, start, paths)
         if on_progress:
-            on_progress(reference.label + " (reference)", ref)
+            on_progress(reference.label + " (reference start)", ref)
     else:
         if resume.reference_positions.shape != (w, scene.vertex_count, 3) or len(resume.reference_status) != w:
             raise ValueError(f"resume: the saved reference has positions {resume.reference_positions.shape} and "
                              f"{len(resume.reference_status)} statuses; expected ({w}, {scene.vertex_count}, 3) and {w}")
         # only positions and status are read from a resumed reference (its summary comes saved)
-        ref = SceneRun(positions=np.asarray(resume.reference_positions, np.float32),
+        ref = SceneRun(positions=np.asarray(resume.reference_positions, np.float64),
                        status=np.asarray(resume.reference_status), frames=np.zeros(w, np.int64), wall_s=0.0,
                        substeps=0, dt=0.0)
-    ref_all_positions, ref_all_status = ref.positions, ref.status
-    # A pose whose reference exploded has no reference: drop it (worlds are independent, so the
-    # other worlds' reference results stand) and say so in the report.
+    ref_all_start, ref_all_status = ref.positions, ref.status
+    # A pose whose reference start exploded has no reference: drop it (worlds are independent, so the
+    # other worlds' results stand) and say so in the report.
     keep = (ref.status != WorldStatus.EXPLODED) & np.isfinite(ref.positions).all(axis=(1, 2))
     dropped = [p for p, k in zip(poses, keep) if not k]
     if not keep.any():
@@ -304,15 +403,37 @@ def run_accuracy(
         ref = dataclasses.replace(ref, positions=ref.positions[idx], status=ref.status[idx], frames=ref.frames[idx])
         w = len(poses)
     if resume is None:
-        ref_metrics = frame_metrics(scene, ref.positions, finals_arr, device=device)
+        eq_positions, eq_results = _equilibria(scene, fabric, ref.positions, finals_arr, reference_max_iterations)
+        newton_s = float(sum(r.seconds for r in eq_results))
+        if on_progress:
+            on_progress("equilibrium (reference)", SceneRun(
+                positions=eq_positions, frames=np.array([r.iterations for r in eq_results], np.int64), wall_s=newton_s,
+                status=np.array([WorldStatus.CONVERGED if r.converged else WorldStatus.MAX_STEPS for r in eq_results]),
+                substeps=0, dt=0.0))
+        start_mm = 1e3 * np.linalg.norm(ref.positions - eq_positions, axis=-1)  # (W, V)
+        ref_metrics = frame_metrics(scene, eq_positions, finals_arr, device=device)
         reference_out = {
-            "setting": dataclasses.asdict(reference), "label": reference.label, "wall_s": ref.wall_s,
-            "ms_per_frame": 1e3 * ref.wall_s / w, "status": [WorldStatus(int(s)).name for s in ref.status],
-            "frames": ref.frames.tolist(), "stretch_max": max(m["stretch_max"] for m in ref_metrics),
+            "kind": "equilibrium", "friction": REFERENCE_FRICTION, "label": f"equilibrium from {reference.label}",
+            "converged": [bool(r.converged) for r in eq_results],
+            "residual_n": [float(r.residual) for r in eq_results], "tol_force_n": [float(r.tol_force) for r in eq_results],
+            "iterations": [int(r.iterations) for r in eq_results], "newton_s": newton_s,
+            "friction_violation_share": [float(r.friction_violation_share) for r in eq_results],
+            "stick_count": [int(r.stick_count) for r in eq_results],
+            "max_iterations": int(reference_max_iterations),
+            "start_error_max_mm": [float(d.max()) for d in start_mm],
+            "start_error_mean_mm": [float(d.mean()) for d in start_mm],
+            "stretch_max": max(m["stretch_max"] for m in ref_metrics),
             "penetration_max_mm": max(m["penetration_max_mm"] for m in ref_metrics),
+            "start": {"setting": dataclasses.asdict(reference), "label": reference.label, "wall_s": ref.wall_s,
+                      "ms_per_frame": 1e3 * ref.wall_s / w, "status": [WorldStatus(int(s)).name for s in ref.status],
+                      "frames": ref.frames.tolist()},
+            "strip": strip_error(fabric),
             "canonical_drape_setting": drape_setting.label,
             "canonical_drape_status": WorldStatus(int(drape.status[0])).name, "canonical_drape_frames": int(drape.frames[0]),
         }
+        ref = dataclasses.replace(ref, positions=eq_positions)
+        ref_all_positions = np.array(ref_all_start, np.float64)
+        ref_all_positions[keep] = eq_positions
         if on_row:
             on_row({"reference": reference_out})
         if on_reference:
@@ -352,6 +473,7 @@ def run_accuracy(
         "poses": [{"name": p, "path_frames": int(len(b) - 1)} for p, b in zip(poses, paths)],
         "poses_dropped": dropped,
         "reference": reference_out,
+        "reference_strip_error": reference_out.get("strip", {}).get("relative_error", float("nan")),
         "rows": rows,
         "default": default.label,
         **summarize(rows, default.label),
@@ -400,6 +522,11 @@ def format_table(report: dict[str, Any]) -> str:
                      f"{r['stretch_max']:>9.4f}{r['penetration_max_mm']:>8.2f}{100 * r['converged']:>6.0f}"
                      f"{r['frames_mean']:>8.1f}")
     ref = report["reference"]
-    lines.append(f"reference {ref['label']}: {ref['ms_per_frame']:.1f} ms/frame, status {', '.join(ref['status'])}")
+    conv = ref.get("converged", [])
+    lines.append(f"reference: {ref['label']} ({ref.get('friction', '?')} contact), converged {sum(conv)}/{len(conv)} poses, "
+                 f"residual max {max(ref.get('residual_n', [float('nan')])):.2g} N (tolerance "
+                 f"{min(ref.get('tol_force_n', [float('nan')])):.2g} N), {max(ref.get('iterations', [0]))} Newton iterations "
+                 f"at most; its start was {max(ref.get('start_error_max_mm', [float('nan')])):.2f} mm (max) from it; "
+                 f"hanging-strip error {100 * report.get('reference_strip_error', float('nan')):.4f} %")
     lines.append("* = on the Pareto front of max error vs time, + = on the mean error's, < = production default")
     return "\n".join(lines)
