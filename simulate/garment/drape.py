@@ -16,10 +16,9 @@ import numpy as np
 from simulate.garment.templates import GarmentTemplate
 
 #: Body parts in a garment's collider, per garment type: the parts it can touch plus those
-#: beyond its openings (legs below a top's hem, head above its collar, hands past long sleeves).
-#: A cloth point near an open cut of the culled body gets a flipped contact normal and is
-#: thrown through the body: at 7k vertices a t-shirt on torso+arms alone exploded (12x area)
-#: within 8 frames of its canonical drape, and rests in 16 frames with the legs and head kept.
+#: beyond its openings (legs below a top's hem, head above its collar, hands past long sleeves),
+#: so a garment's openings never meet an open cut of the culled body (a point nearest a cut
+#: counts as outside, ``simulate.contact.closest``, and gets no push from it).
 #: Used by the canonical drape, the dataset pipeline and the reports.
 COLLISION_PARTS: dict[str, tuple[str, ...]] = {
     "tshirt": ("torso", "arms", "legs", "head"),
