@@ -185,7 +185,7 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
                            xpbd_bending_mode="jacobi" if solver == "ours_xpbd_gs_jb" else None,
                            gs_relaxation=args.sor if solver == "ours_xpbd_gs_sor" else 1.0, damping=args.damping,
                            tolerance=tolerance, patience=args.patience, max_frames=max_frames)
-    sim = QuasiStaticSimulator(model, collider, settings=settings)
+    sim = QuasiStaticSimulator(model, collider, settings=settings, solver="vbd" if solver == "ours_vbd" else "xpbd")
     wp.synchronize_device(model.device)
 
     def step() -> str | None:
@@ -261,7 +261,9 @@ def equal_error_speedup(ours_rows: list[dict], peer_rows: list[dict]) -> dict | 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda:0" if wp.get_cuda_device_count() else "cpu")
-    parser.add_argument("--scene", default="cape", choices=["cape", "shawl"])
+    parser.add_argument("--scene", default="cape", choices=["cape", "shawl", "tshirt"],
+                        help="tshirt: the dataset's t-shirt (--resolution vertices) from its rest geometry on the "
+                             "neutral body in the canonical pose")
     parser.add_argument("--resolution", type=int, default=135,
                         help="cape: vertices along its length (135 -> 10k); shawl: per side (100 -> 10k)")
     parser.add_argument("--worlds", type=int, default=1)
@@ -270,7 +272,7 @@ def main() -> None:
     parser.add_argument("--solvers", nargs="+",
                         default=["ours_xpbd_gs", "ours_xpbd_gs_sor", "ours_xpbd_gs_jb", "ours_xpbd_jacobi", "newton_vbd",
                                  "newton_xpbd"],
-                        choices=["ours_xpbd_gs", "ours_xpbd_gs_sor", "ours_xpbd_gs_jb", "ours_xpbd_jacobi", "newton_vbd",
+                        choices=["ours_vbd", "ours_xpbd_gs", "ours_xpbd_gs_sor", "ours_xpbd_gs_jb", "ours_xpbd_jacobi", "newton_vbd",
                                  "newton_xpbd"],
                         help="ours_xpbd_gs_jb: Gauss-Seidel triangles, Jacobi bending (2 launches per iteration "
                              "instead of one per bending colour)")
@@ -315,7 +317,14 @@ def main() -> None:
         emit({"bench": "sim_newton", "skipped": "newton", "reason": f"import newton failed: {exc}; "
               "install the 'peers' extra (pip install -e .[peers])"})
     fabric = resolve_fabric(args.fabric)
-    scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
+    if args.scene == "tshirt":
+        from bench_solver_front import tshirt_on_body
+
+        rest, faces, _, body_v, body_f = tshirt_on_body(args.resolution)
+        scene = {"cloth_vertices": rest, "cloth_faces": faces, "body_vertices": body_v, "body_faces": body_f,
+                 "body_kind": "anny"}
+    else:
+        scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
     base = {"bench": "sim_newton", "device": str(wp.get_device(args.device)), "worlds": args.worlds,
             "vertices": int(len(scene["cloth_vertices"])), "body": scene["body_kind"], "scene": args.scene,
             "fabric": fabric.name,
@@ -369,7 +378,7 @@ def main() -> None:
                         best is None or wall < best["wall_s"]):
                     best = row
         summary[solver] = best
-    ours = references.get("ours_xpbd_gs")
+    ours = references.get("ours_xpbd_gs", references.get("ours_vbd"))
     for solver, best in summary.items():
         record = {**base, "solver": solver, "config": "summary", "target_error_mm": args.target_error_mm,
                   "best_wall_s": None if best is None else best["wall_s"],
