@@ -30,6 +30,7 @@ not converge within it are listed with ``converged: false`` and left out of the 
 """
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -75,6 +76,38 @@ def solve_reference(model, start: np.ndarray, body_vertices: np.ndarray, body_fa
     return solve_equilibrium(model, world, np.asarray(start, np.float64), body_vertices=np.asarray(body_vertices, np.float64),
                              body_faces=np.asarray(body_faces), contact_thickness=float(contact_thickness),
                              friction=AUDIT_FRICTION, max_iterations=int(max_iterations))
+
+
+def reference_job(job: tuple) -> tuple[np.ndarray, Any]:
+    """One audited frame from plain arrays (a process pool's unit of work): builds the frame's
+    one-world CPU model (:func:`reference_model`) and solves it (:func:`solve_reference`).
+
+    ``job`` = (rest_vertices (V, 3), faces (F, 3), fabric, material_uv (F, 3, 2) or None, start (V, 3),
+    body_vertices (Vb, 3), body_faces (Fb, 3), contact_thickness [m], max_iterations)."""
+    rest, faces, fabric, uv, start, body, body_faces, thickness, max_iterations = job
+    model = reference_model(rest, faces, fabric=fabric, material_uv=uv)
+    return solve_reference(model, start, body, body_faces, contact_thickness=thickness, max_iterations=max_iterations)
+
+
+def solve_references(jobs: list[tuple], *, workers: int) -> list[tuple[np.ndarray, Any]]:
+    """:func:`reference_job` for every job, in order; with ``workers`` > 1 in that many spawned
+    processes (each frame's Newton solve is single-threaded and independent of the others, so
+    the result is the same either way; a 7k-vertex frame takes minutes of one core)."""
+    if workers <= 1 or len(jobs) <= 1:
+        return [reference_job(job) for job in jobs]
+    import concurrent.futures
+    import multiprocessing
+
+    with concurrent.futures.ProcessPoolExecutor(max_workers=min(workers, len(jobs)),
+                                                mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(pool.map(reference_job, jobs))
+
+
+def audit_workers() -> int:
+    """Processes the audit solves its frames in: the machine's cores less one for the writer and
+    the host, one on machines of 2 cores or fewer (the spawn start-up would cost more than it saves)."""
+    cores = os.cpu_count() or 1
+    return 1 if cores <= 2 else cores - 1
 
 
 def frame_record(recorded: np.ndarray, reference: np.ndarray, result) -> dict[str, Any]:
@@ -133,17 +166,12 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
     thickness = float(spec["simulation"]["contact"]["thickness"])
     fabric = spec["garment"]["fabric"]
     bodies = np.asarray(ctx.body.pose(np.stack([f["shape"] for f in frames]), np.stack([f["pose"] for f in frames])).vertices)
-    models: dict[int, Any] = {}
-    records = []
-    for (split, index), f, body in zip(picks, frames, bodies):
-        style = tasks[f["task_id"]].style_index
-        if style not in models:
-            models[style] = reference_model(ctx.style_rest[style], ctx.template.faces, fabric=fabric,
-                                            material_uv=ctx.template.face_uv)
-        x, result = solve_reference(models[style], f["posed_vertices"], body, ctx.body_faces, contact_thickness=thickness,
-                                    max_iterations=max_iterations)
-        records.append({"split": split, "index": int(index), "task_id": f["task_id"],
-                        **frame_record(f["posed_vertices"], x, result)})
+    jobs = [(np.asarray(ctx.style_rest[tasks[f["task_id"]].style_index]), np.asarray(ctx.template.faces), fabric,
+             ctx.template.face_uv, np.asarray(f["posed_vertices"]), np.asarray(body), np.asarray(ctx.body_faces),
+             thickness, max_iterations) for f, body in zip(frames, bodies)]
+    solved = solve_references(jobs, workers=audit_workers())
+    records = [{"split": split, "index": int(index), "task_id": f["task_id"], **frame_record(f["posed_vertices"], x, result)}
+               for (split, index), f, (x, result) in zip(picks, frames, solved)]
     result = {"reference": "equilibrium", "friction": AUDIT_FRICTION, "samples": want, "max_iterations": max_iterations,
               "contact_thickness_m": thickness, "frames": records, **summarize_frames(records),
               "seconds": round(time.perf_counter() - t0, 3)}
