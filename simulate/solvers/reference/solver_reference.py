@@ -58,7 +58,6 @@ import warp as wp
 
 from simulate.cloth.model import ClothControl, ClothModel
 from simulate.contact.body_collider import BVH_OPTIONS
-from simulate.contact.closest import nearest_face, point_side
 
 __all__ = ["ReferenceResult", "solve_equilibrium", "world_energy", "TOL_FORCE_FRACTION", "TOL_FORCE_CONTACT_FLOOR",
            "CONTACT_STIFFNESS"]
@@ -315,17 +314,13 @@ def world_energy(model: ClothModel, world: int, positions: np.ndarray, *,
 @wp.kernel(enable_backward=False)
 def _closest_face(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), max_dist: wp.array(dtype=float),
                   face_out: wp.array(dtype=wp.int32), sign_out: wp.array(dtype=float)):
-    """Closest body face within max_dist (-1 if none) and the inside/outside sign of the point, by
-    the collider's rule (``simulate.contact.closest``: the closest feature's pseudo-normal; a point
-    nearest an open cut of a culled part is outside)."""
+    """Closest body face within max_dist (-1 if none) and the inside/outside sign of the point."""
     i = wp.tid()
-    p = points[i]
-    origin = wp.vec3(0.0)
-    found, face, bary, closest = nearest_face(mesh, origin, p, max_dist[i])
+    res = wp.mesh_query_point_sign_normal(mesh, points[i], max_dist[i])
     face_out[i] = -1
-    if found:
-        face_out[i] = face
-        sign_out[i] = point_side(mesh, origin, face, bary, p, closest)
+    if res.result:
+        face_out[i] = res.face
+        sign_out[i] = res.sign
 
 
 def _closest_points(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
