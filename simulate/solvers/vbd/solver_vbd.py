@@ -53,7 +53,8 @@ class SolverVBD(SolverBase):
 
     Each substep minimizes the implicit-Euler incremental potential (inertia + triangle stretch
     and shear + dihedral bending + attachment springs) by ``iterations`` sweeps of per-vertex
-    Newton steps, colour by colour, starting from ``x + dt v``.  Body contact is a hard plane per
+    Newton steps, colour by colour, starting from ``x + dt v`` plus the share of ``dt^2 g`` the
+    particle fell by in its last substep (VBD's adaptive initialization; 0 below half of g).  Body contact is a hard plane per
     particle (found once per substep at the inertial target, as in XPBD) applied after each
     vertex step; Coulomb friction acts on the substep's displacement with a budget from the
     normal force the plane carries (``SolverBase.finalize_substep``).
