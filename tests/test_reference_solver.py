@@ -15,7 +15,7 @@ from scipy.optimize import brentq
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.fabric import FABRICS
 from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import grid_cloth, icosphere
+from simulate.cloth.scenes import grid_cloth, hanging_strip, icosphere
 from simulate.contact import BodyCollider
 from simulate.solvers.reference import solve_equilibrium, world_energy
 
@@ -61,10 +61,7 @@ def test_hanging_strip_extension(fabric: str, rows: int) -> None:
     edges, the production edge length)."""
     fab = _no_bending(fabric)
     length = 1.0
-    verts, faces = grid_cloth(2, rows + 1, 0.05, length, plane="xy", origin=(0.0, 1.0, 0.0))
-    builder = ClothBuilder()
-    builder.add_garment(verts, faces, fabric=fab, pinned=[0, 1])
-    model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
+    verts, model = hanging_strip(rows, fab, length=length)
     x, result = solve_equilibrium(model, 0, verts)
     assert result.converged and result.residual <= result.tol_force, result
     extension = (verts[-2:, 1] - x[-2:, 1]).mean()

@@ -11,7 +11,7 @@ import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
 from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import grid_cloth
+from simulate.cloth.scenes import grid_cloth, hanging_strip
 from simulate.solvers.vbd.solver_vbd import colour_vertices
 
 wp.init()
@@ -36,11 +36,7 @@ def strip_fabric(stiffness: float, density: float) -> Fabric:
 
 def hang_strip(rows: int, fabric: Fabric, device: str, *, roll: int = 0, **settings) -> tuple[float, int]:
     """Bottom extension [m] of a 1 m x 5 cm strip pinned along its top edge, and its status."""
-    verts, faces = grid_cloth(2, rows + 1, STRIP_WIDTH_M, STRIP_LENGTH_M, plane="xy", origin=(0.0, 1.0, 0.0))
-    faces = np.roll(faces, roll, axis=1)
-    builder = ClothBuilder()
-    builder.add_garment(verts, faces, fabric=fabric, pinned=[0, 1])
-    model = builder.finalize(device, features=Features(body_contact=False, bending=False))
+    verts, model = hanging_strip(rows, fabric, device, length=STRIP_LENGTH_M, width=STRIP_WIDTH_M, roll=roll)
     sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(
         **{**PRODUCTION, "tolerance": STRIP_TOLERANCE_MPS, "max_frames": 1500, **settings}))
     status = sim.relax()

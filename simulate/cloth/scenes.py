@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-__all__ = ["grid_cloth", "tube_cloth", "icosphere", "capsule_body"]
+__all__ = ["grid_cloth", "hanging_strip", "tube_cloth", "icosphere", "capsule_body"]
 
 
 def grid_cloth(nx: int, ny: int, size_x: float, size_y: float, *, plane: str = "xz",
@@ -47,6 +47,26 @@ def grid_cloth(nx: int, ny: int, size_x: float, size_y: float, *, plane: str = "
     p11 = p10 + 1
     faces = np.concatenate([np.stack([p00, p01, p11], 1), np.stack([p11, p10, p00], 1)])
     return verts, faces
+
+
+def hanging_strip(rows: int, fabric, device: str = "cpu", *, length: float = 1.0, width: float = 0.05,
+                  roll: int = 0):
+    """The hanging-strip oracle's scene: a vertical strip of ``rows`` rows (two vertices across),
+    its top edge pinned at y = 1 m, stretch and shear only (no body, no bending). Under its own
+    weight its bottom sinks by rho g L^2 / (2 Y) (lumped masses give the continuous answer).
+
+    Args:
+        rows: rows of triangles pairs along the length; fabric: a Fabric or preset name.
+        length, width: strip size [m]; roll: each face's corners rolled by this many places.
+    Returns:
+        (rest vertices (2 (rows + 1), 3) [m], one-world ClothModel on ``device``).
+    """
+    from simulate.cloth import ClothBuilder, Features
+
+    verts, faces = grid_cloth(2, rows + 1, width, length, plane="xy", origin=(0.0, 1.0, 0.0))
+    builder = ClothBuilder()
+    builder.add_garment(verts, np.roll(faces, roll, axis=1), fabric=fabric, pinned=[0, 1])
+    return verts, builder.finalize(device, features=Features(body_contact=False, bending=False))
 
 
 def tube_cloth(n_around: int, n_along: int, radius: float, length: float, *,

@@ -243,17 +243,13 @@ def strip_error(fabric: str = "cotton", *, rows: int = STRIP_ROWS) -> dict[str, 
         {"fabric", "rows", "extension_mm" (mean drop of the bottom edge), "analytic_mm",
         "relative_error" (|extension - analytic| / analytic [-]), "residual_n", "tol_force_n", "converged"}.
     """
-    from simulate.cloth import ClothBuilder, Features
     from simulate.cloth.fabric import resolve_fabric
-    from simulate.cloth.scenes import grid_cloth
+    from simulate.cloth.scenes import hanging_strip
     from simulate.solvers.reference import solve_equilibrium
 
     fab = dataclasses.replace(resolve_fabric(fabric), bending_stiffness=0.0)
     length = 1.0
-    verts, faces = grid_cloth(2, rows + 1, 0.05, length, plane="xy", origin=(0.0, 1.0, 0.0))
-    builder = ClothBuilder()
-    builder.add_garment(verts, faces, fabric=fab, pinned=[0, 1])
-    model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
+    verts, model = hanging_strip(rows, fab, length=length)
     x, result = solve_equilibrium(model, 0, verts)
     extension = float((verts[-2:, 1] - x[-2:, 1]).mean())
     analytic = fab.density * float(np.linalg.norm(model.gravity)) * length ** 2 / (2.0 * fab.stretch_stiffness)

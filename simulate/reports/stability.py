@@ -349,8 +349,8 @@ SUPPORTED: dict[str, dict[str, tuple[bool, str]]] = {
 _MARGINAL = "marginal: the shawl's longest edge sits at 1.247x in the canonical drape, so the 1.25 bound " \
             "decides on one edge; "
 CUDA_EXCEPTIONS: dict[str, dict[str, str]] = {
-    # Cells supported on CPU that failed in H200 runs (small matrix in session 1, full matrix in
-    # session 3; float rounding differs from the CPU's and frictional sliding amplifies it).
+    # Cells supported on CPU that fail on an H200 (small and full matrix): float rounding differs
+    # from the CPU's and frictional sliding amplifies it.
     "shawl@anny": {
         "bending/x10": _MARGINAL + "1.255 (full matrix)",
         "bending/x1000": _MARGINAL + "1.261 (full matrix)",

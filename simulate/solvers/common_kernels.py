@@ -259,6 +259,37 @@ def make_particle_constraints_kernel(jacobi: bool, body_contact: bool, attachmen
     return solve_particle_constraints
 
 
+def tile_writer(dtype, tile_particles: int):
+    """A ``wp.func`` ``tile_write(t, i, v)``: ``t[i] = v`` on a shared tile of ``tile_particles``
+    values of ``dtype``, without the block barrier Warp's tile item assignment ends with. Lanes of
+    a world block write their own entries and meet at one barrier per colour (a barrier inside a
+    lane's own loop would deadlock the block). One function per (dtype, size): the tile's shape is
+    part of its type."""
+    key = (dtype, int(tile_particles))
+    if key not in _TILE_WRITERS:
+        def tile_write(t, i, v):
+            ...
+
+        tile_write.__annotations__ = {"t": wp.tile[dtype, int(tile_particles)], "i": int, "v": dtype}
+        _TILE_WRITERS[key] = wp.func_native("t.data(wp::tile_coord(i)) = v;")(tile_write)
+    return _TILE_WRITERS[key]
+
+
+_TILE_WRITERS: dict[tuple, object] = {}
+
+
+@wp.func
+def friction_cancel(rel: wp.vec3, n: wp.vec3, limit: float):
+    """Coulomb friction at the position level: the part of a particle's displacement ``rel`` relative
+    to the body [m] that friction cancels: its tangential part (normal ``n``), up to ``limit`` [m]
+    (mu times the normal displacement the contact imposed)."""
+    tangent = rel - n * wp.dot(n, rel)
+    slip = wp.length(tangent)
+    if slip <= limit:
+        return tangent
+    return tangent * (limit / slip)
+
+
 _PARTICLE_KERNELS: dict[tuple, wp.Kernel] = {}
 _FINALIZE_KERNELS: dict[tuple, wp.Kernel] = {}
 
@@ -306,15 +337,8 @@ def make_finalize_kernel(friction: bool):
             if contact_active[i] != 0 and depth > 0.0:
                 # Coulomb: the tangential slip (relative to the body) this substep is cancelled
                 # up to mu times the normal displacement the contact imposed.
-                n = contact_normal[i]
-                rel = p - x_prev[i] - contact_motion[i]
-                tangent = rel - n * wp.dot(n, rel)
-                slip = wp.length(tangent)
-                limit = world_friction[w] * depth
-                if slip <= limit:
-                    p = p - tangent
-                else:
-                    p = p - tangent * (limit / slip)
+                p = p - friction_cancel(p - x_prev[i] - contact_motion[i], contact_normal[i],
+                                        world_friction[w] * depth)
                 x[i] = p
         vel = (p - x_prev[i]) / dt
         decay = wp.max(1.0 - (world_damping[w] + extra_damping) * dt, 0.0)

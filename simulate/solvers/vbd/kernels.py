@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from simulate.solvers.common_kernels import bending_angle_grad, triangle_coefficients
+from simulate.solvers.common_kernels import bending_angle_grad, friction_cancel, tile_writer, triangle_coefficients
 from simulate.solvers.xpbd.kernels import block_sync
 
 wp.set_module_options({"enable_backward": False})
@@ -162,13 +162,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     tile_n = max(tile_particles, 1)
     tile_type = wp.tile[wp.vec3d, tile_n]
 
-    def tile_write(t, i, v):
-        """``t[i] = v`` without the block barrier of Warp's tile item assignment: a lane writes only
-        its own vertex and the block meets once per colour at ``block_sync``."""
-        ...
-
-    tile_write.__annotations__ = {"t": tile_type, "i": int, "v": wp.vec3d}
-    tile_write = wp.func_native("t.data(wp::tile_coord(i)) = v;")(tile_write)
+    tile_write = tile_writer(wp.vec3d, tile_n)
 
     def position(xs, x64, j, base):
         """Particle ``j``'s float64 position, from the tile or from global memory."""
@@ -337,14 +331,7 @@ def make_finalize_kernel(friction: bool):
         if wp.static(friction):
             depth = contact_depth[i]
             if contact_active[i] != 0 and depth > 0.0:
-                n = contact_normal[i]
-                rel = disp - contact_motion[i]
-                tangent = rel - n * wp.dot(n, rel)
-                slip = wp.length(tangent)
-                limit = world_friction[w] * depth
-                cancel = tangent
-                if slip > limit:
-                    cancel = tangent * (limit / slip)
+                cancel = friction_cancel(disp - contact_motion[i], contact_normal[i], world_friction[w] * depth)
                 disp = disp - cancel
                 p = p - wp.vec3d(cancel)
                 x64[i] = p

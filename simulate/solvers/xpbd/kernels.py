@@ -16,7 +16,7 @@ import warp as wp
 
 from simulate.contact.self_contact import self_contact_correction
 from simulate.solvers.common_kernels import (bending_angle_grad, project_attachment, project_body_contact,
-                                             triangle_constraint_deltas)
+                                             tile_writer, triangle_constraint_deltas)
 
 wp.set_module_options({"enable_backward": False})
 
@@ -194,15 +194,7 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
     multipliers stay per element. With zero shifts and ``world_data_start`` = each world's own
     start every world reads its own data."""
 
-    def tile_write(t, i, v):
-        """``t[i] = v`` without the block barrier Warp's tile item assignment ends with: lanes write
-        their own elements' corners and meet at ``block_sync`` once per colour (a barrier inside a
-        lane's own element loop would deadlock the block)."""
-        ...
-
-    # The tile's shape is this factory's argument; string annotations could not see it.
-    tile_write.__annotations__ = {"t": wp.tile[wp.vec3, tile_particles], "i": int, "v": wp.vec3}
-    tile_write = wp.func_native("t.data(wp::tile_coord(i)) = v;")(tile_write)
+    tile_write = tile_writer(wp.vec3, tile_particles)
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_elements_gs_shared(
