@@ -43,23 +43,27 @@ AUDIT_FRICTION = "stick"
 """Contact model of the audit's reference (see the module docstring)."""
 
 
-def reference_model(rest_vertices: np.ndarray, faces: np.ndarray, *, fabric: Any, material_uv: np.ndarray | None):
+def reference_model(rest_vertices: np.ndarray, faces: np.ndarray, *, fabric: Any, material_uv: np.ndarray | None,
+                    body_part: np.ndarray | None = None):
     """A one-world CPU :class:`~simulate.cloth.model.ClothModel` of a garment, built as the production
     solver builds it (``simulate.sequence.drape_static``).
 
     Args:
         rest_vertices: rest geometry [m], (V, 3); faces: (F, 3).
         fabric: a Fabric or preset name; material_uv: pattern UVs per face corner (F, 3, 2) or None.
+        body_part: primary collision part per vertex (V,) or None (``simulate.body.collision_parts``).
     """
     from simulate.cloth import ClothBuilder, Features
 
     builder = ClothBuilder()
-    builder.add_garment(np.asarray(rest_vertices, np.float64), np.asarray(faces), fabric=fabric, material_uv=material_uv)
+    builder.add_garment(np.asarray(rest_vertices, np.float64), np.asarray(faces), fabric=fabric, material_uv=material_uv,
+                        body_part=body_part)
     return builder.finalize("cpu", features=Features())
 
 
 def solve_reference(model, start: np.ndarray, body_vertices: np.ndarray, body_faces: np.ndarray, *,
-                    contact_thickness: float, max_iterations: int, world: int = 0):
+                    contact_thickness: float, max_iterations: int, world: int = 0,
+                    body_face_groups: list[np.ndarray] | None = None):
     """The audit's reference of one frame: the static equilibrium of ``model``'s world nearest ``start``
     with stick contact on the body.
 
@@ -68,13 +72,16 @@ def solve_reference(model, start: np.ndarray, body_vertices: np.ndarray, body_fa
         body_vertices: the posed body [m], (Vb, 3); body_faces: the faces the garment can touch, (Fb, 3).
         contact_thickness: collider thickness [m] (the spec's ``simulation.contact.thickness``).
         max_iterations: Newton iterations at most.
+        body_face_groups: primary collision bodies (rows of ``body_faces`` per part; the model's
+            ``particle_body_part`` picks one per particle), or None.
     Returns:
         (positions [m] (V, 3) float64, :class:`~simulate.solvers.reference.ReferenceResult`).
     """
     from simulate.solvers.reference import solve_equilibrium
 
     return solve_equilibrium(model, world, np.asarray(start, np.float64), body_vertices=np.asarray(body_vertices, np.float64),
-                             body_faces=np.asarray(body_faces), contact_thickness=float(contact_thickness),
+                             body_faces=np.asarray(body_faces), body_face_groups=body_face_groups,
+                             contact_thickness=float(contact_thickness),
                              friction=AUDIT_FRICTION, max_iterations=int(max_iterations))
 
 
@@ -83,10 +90,13 @@ def reference_job(job: tuple) -> tuple[np.ndarray, Any]:
     one-world CPU model (:func:`reference_model`) and solves it (:func:`solve_reference`).
 
     ``job`` = (rest_vertices (V, 3), faces (F, 3), fabric, material_uv (F, 3, 2) or None, start (V, 3),
-    body_vertices (Vb, 3), body_faces (Fb, 3), contact_thickness [m], max_iterations)."""
-    rest, faces, fabric, uv, start, body, body_faces, thickness, max_iterations = job
-    model = reference_model(rest, faces, fabric=fabric, material_uv=uv)
-    return solve_reference(model, start, body, body_faces, contact_thickness=thickness, max_iterations=max_iterations)
+    body_vertices (Vb, 3), body_faces (Fb, 3), contact_thickness [m], max_iterations[, body_face_groups,
+    body_part]) (the last two: primary collision bodies, or absent)."""
+    rest, faces, fabric, uv, start, body, body_faces, thickness, max_iterations, *parts = job
+    groups, part = parts if parts else (None, None)
+    model = reference_model(rest, faces, fabric=fabric, material_uv=uv, body_part=part)
+    return solve_reference(model, start, body, body_faces, contact_thickness=thickness, max_iterations=max_iterations,
+                           body_face_groups=groups)
 
 
 def solve_references(jobs: list[tuple], *, workers: int) -> list[tuple[np.ndarray, Any]]:
@@ -168,7 +178,7 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
     bodies = np.asarray(ctx.body.pose(np.stack([f["shape"] for f in frames]), np.stack([f["pose"] for f in frames])).vertices)
     jobs = [(np.asarray(ctx.style_rest[tasks[f["task_id"]].style_index]), np.asarray(ctx.template.faces), fabric,
              ctx.template.face_uv, np.asarray(f["posed_vertices"]), np.asarray(body), np.asarray(ctx.body_faces),
-             thickness, max_iterations) for f, body in zip(frames, bodies)]
+             thickness, max_iterations, ctx.body_face_groups, ctx.body_part) for f, body in zip(frames, bodies)]
     solved = solve_references(jobs, workers=audit_workers())
     records = [{"split": split, "index": int(index), "task_id": f["task_id"], **frame_record(f["posed_vertices"], x, result)}
                for (split, index), f, (x, result) in zip(picks, frames, solved)]

@@ -84,6 +84,8 @@ class Context:
     style_rest: np.ndarray  # (n_styles, V, 3) cloth rest geometry per style
     style_start: np.ndarray  # (n_styles, V, 3) canonical drape per style (neutral body)
     phases: dict = None  # summed run_sequences statistics of the batches simulated in this process
+    body_face_groups: list | None = None  # primary collision bodies: rows of body_faces per part
+    body_part: np.ndarray | None = None  # (V,) primary collision part per garment vertex
 
     @property
     def tasks(self) -> dict:
@@ -138,6 +140,14 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     # one table for every driver: tops keep legs and head so hems and collars never meet an open
     # cut of the culled body (points beyond a cut get flipped contact normals and explode)
     body_faces = body.part_faces(COLLISION_PARTS[gtype])
+    face_groups = garment_part = None
+    if spec["simulation"]["contact"]["primary_bodies"]:
+        from simulate.body.collision_parts import collision_parts
+
+        parts = collision_parts(body, gtype, body_faces)
+        face_groups = parts.face_groups
+        canonical = np.asarray(body.pose(body.shape_default, body.canonical_pose).vertices).reshape(-1, 3)
+        garment_part = parts.garment_vertex_parts(template.vertices, canonical)
     if cache.is_file():
         with np.load(cache) as z:
             style_rest, style_start = z["style_rest"], z["style_start"]
@@ -150,6 +160,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             seq = dataclasses.replace(seq, self_contact=True)
         style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
                                            poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
+                                           body_face_groups=face_groups, body_part=garment_part,
                                            settings=seq, device=device, fabric=spec["garment"]["fabric"],
                                            max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
                                            material_uv=template.face_uv)
@@ -161,7 +172,8 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
     template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
                      "body_vertex_index": template.body_vertex_index, "uv": template.uv}
-    ctx = Context(spec, device, body, template, template_dict, body_faces, plan, style_rest, style_start)
+    ctx = Context(spec, device, body, template, template_dict, body_faces, plan, style_rest, style_start,
+                  body_face_groups=face_groups, body_part=garment_part)
     _CONTEXTS[key] = ctx
     return ctx
 
@@ -319,7 +331,8 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             if ctx.phases is None:
                 ctx.phases = {}
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
-            run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, settings=sequence_settings(spec),
+            run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, body_face_groups=ctx.body_face_groups,
+                          body_part=ctx.body_part, settings=sequence_settings(spec),
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases,
                           worlds=int(spec["simulation"]["worlds"]), material_uv=tmpl.face_uv)
         list_finished(background.close())

@@ -90,11 +90,15 @@ records and hashes. Schema (every key optional unless marked required)::
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
                                         (0, N, 2N, ... of a frame) and move the planes with the body
                                         in between (SimSettings.body_contact_detect_every)
-                canonical_self_contact: bool = true} the canonical style drapes (where every
+                canonical_self_contact: bool = true, the canonical style drapes (where every
                                         sequence starts and restarts) with self-contact, whatever
                                         self_contact says (without it 7 of the TailorNet spec's
                                         40 drapes started with > 60 garment edges through the
                                         garment; VBD and XPBD, the mass-spring solver drapes without)
+                primary_bodies: bool = false}  each garment vertex meets only its primary collision
+                                        body (torso / left arm / right arm for tops, legs for pants;
+                                        seed 001 D.6; simulate/body/collision_parts.py): cloth
+                                        between an arm and the torso is not pushed by the wrong skin
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
       max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
@@ -141,7 +145,7 @@ DEFAULTS: dict[str, Any] = {
         "cross_group_tasks": True, "home_between_targets": False,
         "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
                     "self_contact_rest_exclusion": None,
-                    "body_contact_detect_every": 1, "canonical_self_contact": True},
+                    "body_contact_detect_every": 1, "canonical_self_contact": True, "primary_bodies": False},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
@@ -276,7 +280,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     for flag in ("cross_group_tasks", "home_between_targets"):
         if not isinstance(spec[sim][flag], bool):
             c.fail(f"{sim}.{flag}", "true or false")
-    for flag in ("self_contact", "canonical_self_contact"):
+    for flag in ("self_contact", "canonical_self_contact", "primary_bodies"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
     c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions", "holds"))

@@ -412,6 +412,8 @@ def run_sequences(
     tasks: list[SequenceTask],
     *,
     body_faces: np.ndarray,
+    body_face_groups: list[np.ndarray] | None = None,
+    body_part: np.ndarray | None = None,
     settings: SequenceSettings,
     device: str,
     on_frame: Callable[[RecordedFrame], object] | None = None,
@@ -448,6 +450,9 @@ def run_sequences(
         faces: garment triangles shared by all tasks, (F, 3).
         tasks: the batch.
         body_faces: the body faces the garment can touch (culled), (Fb, 3).
+        body_face_groups, body_part: primary collision bodies (``simulate.body.collision_parts``):
+            per part the rows of ``body_faces`` in its mesh, and each garment vertex's part (V,);
+            None: every vertex meets all of ``body_faces``.
         settings: sequence settings.
         device: Warp device ("cpu", "cuda:0"); the body is posed with torch on it too.
         on_frame: called once per (task, target pose) in visiting order per task; returning
@@ -531,12 +536,14 @@ def run_sequences(
 
     builder = ClothBuilder()
     for t in cur:
-        builder.add_garment(tasks[t].rest_vertices, faces, fabric=tasks[t].fabric, material_uv=material_uv)
+        builder.add_garment(tasks[t].rest_vertices, faces, fabric=tasks[t].fabric, material_uv=material_uv,
+                            body_part=body_part)
     features = Features(self_contact=settings.self_contact, friction=settings.friction != 0.0)
     model = builder.finalize(device, features=features)
     t_model = time.perf_counter()
     start = pose_bodies(np.tile(neutral, (w_count, 1)), np.tile(canonical, (w_count, 1)))
-    collider = BodyCollider(start.vertices.cpu().numpy(), body_faces, device=device, thickness=settings.contact_thickness)
+    collider = BodyCollider(start.vertices.cpu().numpy(), body_faces, device=device, thickness=settings.contact_thickness,
+                            face_groups=body_face_groups)
     sim_settings = SimSettings(**{**settings.sim.__dict__})
     sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=sim_settings)
     for w, t in enumerate(cur):
@@ -917,6 +924,8 @@ def drape_static(
     shapes: np.ndarray,
     poses: np.ndarray,
     body_faces: np.ndarray,
+    body_face_groups: list[np.ndarray] | None = None,
+    body_part: np.ndarray | None = None,
     settings: SequenceSettings,
     device: str,
     fabric: object = "cotton",
@@ -933,6 +942,7 @@ def drape_static(
         max_frames: frame budget (default ``settings.sim.max_frames``).
         material_uv: pattern UVs per face corner, (F, 3, 2) (a template's ``face_uv``; see
             ``ClothBuilder.add_garment``); None: the builder's grain axis (+y).
+        body_face_groups, body_part: primary collision bodies, as for :func:`run_sequences`.
     Returns:
         (positions (W, V, 3) [m], status (W,) WorldStatus values).
     """
@@ -945,9 +955,10 @@ def drape_static(
     body_vertices = posed.vertices.cpu().numpy()
     builder = ClothBuilder()
     for w in range(w_count):
-        builder.add_garment(rest_vertices[w], faces, fabric=fabric, material_uv=material_uv)
+        builder.add_garment(rest_vertices[w], faces, fabric=fabric, material_uv=material_uv, body_part=body_part)
     model = builder.finalize(device, features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0))
-    collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness)
+    collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness,
+                            face_groups=body_face_groups)
     budget = settings.sim.max_frames if max_frames is None else int(max_frames)
     sim = QuasiStaticSimulator(model, collider, solver=settings.solver,
                                settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}))

@@ -76,9 +76,10 @@ def _contact_planes(collider: BodyCollider, points: np.ndarray, world: int, reac
     depth = wp.zeros(n, dtype=float, device=dev)
     world_active = wp.ones(collider.world_count, dtype=wp.int32, device=dev)
     wp.launch(contact_kernels.detect_body_contacts, dim=n,
-              inputs=[collider.mesh.id, collider.mesh_indices, collider.pose_start, collider.pose_end,
+              inputs=[collider.contact_meshes, collider.pose_start, collider.pose_end,
                       collider.world_offset, 0.0, reach, 0.0,
-                      wp.full(n, world, dtype=wp.int32, device=dev), wp.zeros(n, dtype=float, device=dev), world_active,
+                      wp.full(n, world, dtype=wp.int32, device=dev), wp.zeros(n, dtype=wp.int32, device=dev),
+                      wp.zeros(n, dtype=float, device=dev), world_active,
                       wp.array(points, dtype=wp.vec3, device=dev)],
               outputs=[active, normal, offset, motion, depth], device=dev)
     return active.numpy().astype(bool), normal.numpy(), offset.numpy() - reach

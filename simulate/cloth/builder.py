@@ -203,6 +203,7 @@ class _Garment:
     material_uv: np.ndarray | None  # (F, 3, 2) float64 pattern coordinates per face corner
     grain_axis: np.ndarray  # (3,) or (F, 3) float64 warp direction where there is no UV
     digest: bytes  # of vertices, faces, material_uv and grain_axis (_mesh_digest)
+    body_part: np.ndarray | None = None  # (V,) int32 primary collision part per vertex
 
 
 def _index_array(name: str, value: object, count: int) -> np.ndarray:
@@ -260,6 +261,7 @@ class ClothBuilder:
         skinning_weights: np.ndarray | None = None,
         material_uv: np.ndarray | None = None,
         grain_axis: np.ndarray | tuple[float, float, float] = GRAIN_AXIS,
+        body_part: np.ndarray | None = None,
     ) -> int:
         """Add one garment as a new world and return the world index.
 
@@ -278,6 +280,9 @@ class ClothBuilder:
                 ``faces`` (v up the pattern piece; scale free). None: use ``grain_axis``.
             grain_axis: warp direction projected into each triangle where there is no usable UV,
                 shape (3,) or (F, 3) (default +y, the garment's up axis).
+            body_part: primary collision body of each vertex, shape (V,), int in [0, 255]: the
+                index of the collider's face group it meets (``simulate.body.collision_parts``);
+                None: 0 (the whole body for a collider without parts).
         Raises:
             ValueError naming the field, the value received and what was expected.
         """
@@ -347,7 +352,15 @@ class ClothBuilder:
                 raise ValueError(f"skinning_weights must have shape ({vcount}, J) (got {weights.shape})")
             if not np.all(np.isfinite(weights)):
                 raise ValueError("skinning_weights must be finite (got NaN or inf)")
-        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights, uv, grain, digest))
+        part = None
+        if body_part is not None:
+            part = np.asarray(body_part)
+            if part.shape != (vcount,) or not np.issubdtype(part.dtype, np.integer) or \
+                    (vcount and (part.min() < 0 or part.max() > 255)):
+                raise ValueError(f"body_part must be integers in [0, 255] of shape ({vcount},) (got shape {part.shape}, "
+                                 f"dtype {part.dtype})")
+            part = part.astype(np.int32)
+        self._garments.append(_Garment(verts, tris, fab, pinned_idx, attached_idx, weights, uv, grain, digest, part))
         return len(self._garments) - 1
 
     @staticmethod
@@ -457,7 +470,7 @@ class ClothBuilder:
         m.world_count = len(self._garments)
 
         starts, counts = [], []
-        q, mass, inv_mass, pworld, radius = [], [], [], [], []
+        q, mass, inv_mass, pworld, radius, body_part = [], [], [], [], [], []
         tri_parts, bend_parts = [], []  # per world: (indices global, colours, extra arrays)
         att = []
         offset = 0
@@ -479,6 +492,7 @@ class ClothBuilder:
             inv_mass.append(vinv)
             pworld.append(np.full(vcount, w))
             radius.append(np.full(vcount, 0.5 * g.fabric.thickness))
+            body_part.append(np.zeros(vcount, np.int32) if g.body_part is None else g.body_part)
             tri_parts.append((g.faces + offset, *tri, np.full(len(g.faces), w, dtype=np.int32)))
             if bend is not None:
                 bend_parts.append((bend[0] + offset, *bend[1:], np.full(len(bend[0]), w, dtype=np.int32)))
@@ -550,6 +564,7 @@ class ClothBuilder:
         m.particle_world = arr(np.concatenate(pworld).astype(np.int32), wp.int32)
         m.particle_world_np = np.concatenate(pworld).astype(np.int32)
         m.particle_radius = arr(np.concatenate(radius).astype(np.float32), wp.float32)
+        m.particle_body_part = arr(np.concatenate(body_part).astype(np.int32), wp.int32)
         m.particle_attachment = arr(p_att, wp.int32)
         m.particle_adj_start = arr(adj_start.astype(np.int32), wp.int32)
         m.particle_adj_slot = arr(order.astype(np.int32), wp.int32)

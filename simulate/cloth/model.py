@@ -159,6 +159,8 @@ class ClothModel:
     * ``particle_inv_mass`` float (particle_count,) inverse masses [1/kg], 0 for pinned
     * ``particle_world`` int32 (particle_count,) world of each particle
     * ``particle_radius`` float (particle_count,) half fabric thickness [m]
+    * ``particle_body_part`` int32 (particle_count,) primary collision body (the collider's face
+      group the particle meets; 0 without parts)
     * ``particle_attachment`` int32 (particle_count,) attachment index or -1
     * ``particle_adj_start`` int32 (particle_count + 1,), ``particle_adj_slot`` int32: CSR list
       of the element slots (``3 t + k`` for triangle corners, ``3 T + 4 b + k`` for bending
@@ -265,7 +267,7 @@ class ClothModel:
                 for arr in arrays:
                     if k:
                         wp.copy(arr, arr, dest_offset=a, src_offset=b, count=k)
-        for arr in (self.particle_mass, self.particle_inv_mass, self.particle_radius):
+        for arr in (self.particle_mass, self.particle_inv_mass, self.particle_radius, self.particle_body_part):
             wp.copy(arr, arr, dest_offset=d0, src_offset=s0, count=n)
         for arr in (self.world_damping, self.world_friction):
             wp.copy(arr, arr, dest_offset=dst, src_offset=src, count=1)

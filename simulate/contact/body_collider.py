@@ -109,6 +109,7 @@ class BodyCollider:
         thickness: float = 2.0e-3,
         margin: float = 2.0e-2,
         world_count: int | None = None,
+        face_groups: list[np.ndarray] | None = None,
     ) -> None:
         """
         Args:
@@ -121,6 +122,10 @@ class BodyCollider:
             margin: extra search distance beyond the contact distance when contact planes are
                 found once per substep [m]; must exceed how far cloth moves in one substep.
             world_count: number of worlds when ``vertices`` is (Vb, 3) (default 1).
+            face_groups: primary collision bodies (``simulate.body.collision_parts``): per part, the
+                rows of ``faces`` in its collision mesh (may overlap). A particle then meets only the
+                part ``ClothModel.particle_body_part`` names (index into this list). None: one
+                part, the whole of ``faces``.
         """
         verts = np.asarray(vertices, dtype=np.float64)
         if verts.ndim == 2:
@@ -173,6 +178,28 @@ class BodyCollider:
         points = wp.array(flat + np.repeat(self.world_offset_np, self.vertex_count, axis=0),
                           dtype=wp.vec3, device=self.device)
         self.mesh = wp.Mesh(points=points, indices=self.mesh_indices, **BVH_OPTIONS)
+        """All faces of every world: the signed distance's mesh, and the contact mesh without parts."""
+        self.part_meshes: list[wp.Mesh] = []
+        """Per collision part, a mesh of its faces over the same points (empty without ``face_groups``)."""
+        if face_groups is not None:
+            if len(face_groups) < 1:
+                raise ValueError("face_groups must hold at least one group of face rows (got none)")
+            for k, rows in enumerate(face_groups):
+                rows = np.asarray(rows)
+                if rows.ndim != 1 or len(rows) < 1 or not np.issubdtype(rows.dtype, np.integer) or \
+                        rows.min() < 0 or rows.max() >= len(self.faces):
+                    raise ValueError(f"face_groups[{k}] must be a non-empty integer array of rows in [0, {len(self.faces)}) "
+                                     f"(got shape {rows.shape}, dtype {rows.dtype})")
+                part = self.faces[rows]
+                idx = (part[None, :, :] + (w * self.vertex_count)[:, None, None]).astype(np.int32).reshape(-1)
+                self.part_meshes.append(wp.Mesh(points=points, indices=wp.array(idx, dtype=wp.int32, device=self.device),
+                                                **BVH_OPTIONS))
+        self.part_count = max(1, len(self.part_meshes))
+        """Collision parts: 1 without ``face_groups``."""
+        self.contact_meshes = wp.array([m.id for m in (self.part_meshes or [self.mesh])], dtype=wp.uint64,
+                                       device=self.device)
+        """Mesh id per collision part, (part_count,) uint64: the meshes the contact planes come from."""
+        self._full_stale = False
         self.motion_scale = 0.0
         """Fraction of the frame's body motion covered by one substep (set by the driver)."""
 
@@ -269,7 +296,12 @@ class BodyCollider:
         wp.launch(kernels.interpolate_body_points, dim=len(self.pose_start),
                   inputs=[self.pose_start, self.pose_end, self.vertex_world, self.world_offset, float(alpha)],
                   outputs=[self.mesh.points], device=self.device)
-        self.mesh.refit()
+        for mesh in self.part_meshes:
+            mesh.refit()
+        if self.part_meshes:
+            self._full_stale = True  # refit when a signed distance asks for it
+        else:
+            self.mesh.refit()
 
     def finish_frame(self) -> None:
         """The end pose becomes the next frame's start pose."""
@@ -277,7 +309,7 @@ class BodyCollider:
 
     # ---------------------------------------------------------------- queries
     def signed_distance(self, points: np.ndarray | wp.array, point_world: np.ndarray | wp.array, *,
-                        max_dist: float = 1.0) -> np.ndarray:
+                        max_dist: float = 1.0, point_part: np.ndarray | wp.array | None = None) -> np.ndarray:
         """Signed distance [m] of points to their world's body at its current pose.
 
         The Euclidean distance to the nearest face, negative where the closest feature's
@@ -289,6 +321,8 @@ class BodyCollider:
         Args:
             points: (N, 3) [m]; point_world: (N,) world index per point.
             max_dist: search radius [m]; points farther away report ``max_dist``, inside or not.
+            point_part: (N,) collision part per point (``face_groups`` index): the distance to that
+                part only; None: to the whole body.
         Returns:
             (N,) float32, negative inside the body; bit for bit the same in every world cell.
         """
@@ -300,7 +334,19 @@ class BodyCollider:
             raise ValueError(f"points ({len(pts)}) and point_world ({len(pw)}) must have the same length")
         dist = wp.zeros(len(pts), dtype=float, device=self.device)
         normal = wp.zeros(len(pts), dtype=wp.vec3, device=self.device)
+        if point_part is None:
+            if self._full_stale:
+                self.mesh.refit()
+                self._full_stale = False
+            meshes = wp.array([self.mesh.id], dtype=wp.uint64, device=self.device)
+            part = wp.zeros(len(pts), dtype=wp.int32, device=self.device)
+        else:
+            meshes = self.contact_meshes
+            part = point_part if isinstance(point_part, wp.array) else wp.array(
+                np.asarray(point_part, np.int32), dtype=wp.int32, device=self.device)
+            if len(part) != len(pts):
+                raise ValueError(f"points ({len(pts)}) and point_part ({len(part)}) must have the same length")
         wp.launch(kernels.query_signed_distance, dim=len(pts),
-                  inputs=[self.mesh.id, self.world_offset, pts, pw, float(max_dist)], outputs=[dist, normal],
+                  inputs=[meshes, self.world_offset, pts, pw, part, float(max_dist)], outputs=[dist, normal],
                   device=self.device)
         return dist.numpy()

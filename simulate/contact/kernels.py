@@ -69,8 +69,7 @@ def query_body(
 @wp.kernel
 def detect_body_contacts(
     # Body:
-    mesh: wp.uint64,
-    mesh_indices: wp.array(dtype=wp.int32),
+    meshes: wp.array(dtype=wp.uint64),
     pose_start: wp.array(dtype=wp.vec3),
     pose_end: wp.array(dtype=wp.vec3),
     world_offset: wp.array(dtype=wp.vec3),
@@ -79,6 +78,7 @@ def detect_body_contacts(
     margin: float,
     # Model:
     particle_world: wp.array(dtype=wp.int32),
+    particle_part: wp.array(dtype=wp.int32),
     particle_radius: wp.array(dtype=float),
     world_active: wp.array(dtype=wp.int32),
     # State in (predicted positions):
@@ -98,6 +98,9 @@ def detect_body_contacts(
     through).  Particles farther than contact distance + ``margin`` get no plane.
     ``contact_motion`` is the body's displacement during this substep at the contact point [m]
     (for friction).  Planes, offsets and motions are in world-local coordinates.
+
+    ``meshes`` holds one mesh per collision part over the same points (``BodyCollider``); a
+    particle meets the part ``particle_part`` names (the first where that is out of range).
     """
     i = wp.tid()
     contact_depth_out[i] = 0.0
@@ -109,12 +112,17 @@ def detect_body_contacts(
     p = x[i]
     if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
         return
+    g = particle_part[i]
+    if g < 0 or g >= meshes.shape[0]:
+        g = 0
+    mesh = meshes[g]
     found, dist, normal, closest, face, bary = query_body(mesh, world_offset[w], p, reach + margin)
     if not found:
         return
-    i0 = mesh_indices[face * 3 + 0]
-    i1 = mesh_indices[face * 3 + 1]
-    i2 = mesh_indices[face * 3 + 2]
+    indices = wp.mesh_get(mesh).indices
+    i0 = indices[face * 3 + 0]
+    i1 = indices[face * 3 + 1]
+    i2 = indices[face * 3 + 2]
     motion = ((pose_end[i0] - pose_start[i0]) * bary[0] + (pose_end[i1] - pose_start[i1]) * bary[1]
               + (pose_end[i2] - pose_start[i2]) * bary[2]) * motion_scale
     contact_active_out[i] = 1
@@ -150,18 +158,23 @@ def advance_body_contacts(
 
 @wp.kernel
 def query_signed_distance(
-    mesh: wp.uint64,
+    meshes: wp.array(dtype=wp.uint64),
     world_offset: wp.array(dtype=wp.vec3),
     points: wp.array(dtype=wp.vec3),
     point_world: wp.array(dtype=wp.int32),
+    point_part: wp.array(dtype=wp.int32),
     max_dist: float,
     # Out:
     dist_out: wp.array(dtype=float),
     normal_out: wp.array(dtype=wp.vec3),
 ):
-    """Signed distance [m] (negative inside) and outward normal at points; +max_dist if none found."""
+    """Signed distance [m] (negative inside) and outward normal at points to the collision part
+    ``point_part`` names (``meshes``, as ``detect_body_contacts``); +max_dist if none found."""
     i = wp.tid()
-    found, dist, normal, closest, face, bary = query_body(mesh, world_offset[point_world[i]], points[i], max_dist)
+    g = point_part[i]
+    if g < 0 or g >= meshes.shape[0]:
+        g = 0
+    found, dist, normal, closest, face, bary = query_body(meshes[g], world_offset[point_world[i]], points[i], max_dist)
     if found:
         dist_out[i] = dist
         normal_out[i] = normal

@@ -93,9 +93,9 @@ class SolverBase:
                       outputs=[self.contact_offset, self.contact_depth], device=self.device)
             return
         wp.launch(contact_kernels.detect_body_contacts, dim=m.particle_count,
-                  inputs=[col.mesh.id, col.mesh_indices, col.pose_start, col.pose_end, col.world_offset,
+                  inputs=[col.contact_meshes, col.pose_start, col.pose_end, col.world_offset,
                           float(col.motion_scale), float(col.thickness), float(col.margin),
-                          m.particle_world, m.particle_radius, control.world_active, x],
+                          m.particle_world, m.particle_body_part, m.particle_radius, control.world_active, x],
                   outputs=[self.contact_active, self.contact_normal, self.contact_offset, self.contact_motion,
                            self.contact_depth], device=self.device)
 

@@ -350,17 +350,25 @@ def _closest_points(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) 
 
 
 class _Body:
-    """A body mesh: float64 contact planes of particles from a Warp BVH query (CPU)."""
+    """A body mesh: float64 contact planes of particles from a Warp BVH query (CPU).
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, reach: np.ndarray, margin: float) -> None:
+    With ``face_groups`` (primary collision bodies, ``BodyCollider``), particle i meets only the
+    faces of group ``part[i]``."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, reach: np.ndarray, margin: float,
+                 face_groups: list[np.ndarray] | None = None, part: np.ndarray | None = None) -> None:
         self.vertices = np.asarray(vertices, np.float64)
         self.faces = np.asarray(faces, np.int64)
         self.reach = reach
         self.device = wp.get_device("cpu")
-        self.mesh = wp.Mesh(points=wp.array(self.vertices.astype(np.float32), dtype=wp.vec3, device=self.device),
-                            indices=wp.array(self.faces.reshape(-1).astype(np.int32), dtype=wp.int32,
-                                             device=self.device), **BVH_OPTIONS)
-        self.max_dist = wp.array((reach + margin).astype(np.float32), dtype=float, device=self.device)
+        groups = [np.arange(len(self.faces))] if face_groups is None else [np.asarray(g, np.int64) for g in face_groups]
+        self.groups = groups
+        self.part = np.zeros(len(reach), np.int64) if part is None or face_groups is None else \
+            np.where((np.asarray(part) >= 0) & (np.asarray(part) < len(groups)), np.asarray(part), 0).astype(np.int64)
+        points = wp.array(self.vertices.astype(np.float32), dtype=wp.vec3, device=self.device)
+        self.meshes = [wp.Mesh(points=points, indices=wp.array(self.faces[g].reshape(-1).astype(np.int32), dtype=wp.int32,
+                                                                device=self.device), **BVH_OPTIONS) for g in groups]
+        self.max_dist = (reach + margin).astype(np.float32)
         tri = self.vertices[self.faces]
         normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.face_normal = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
@@ -369,12 +377,20 @@ class _Body:
         """Contact planes ``n . x >= offset`` of particles at ``x`` (V, 3) [m]: active (V,) bool
         (a body face within reach + margin), outward unit normal (V, 3), offset (V,) [m]."""
         count = len(x)
-        face = wp.zeros(count, dtype=wp.int32, device=self.device)
-        sign = wp.zeros(count, dtype=float, device=self.device)
-        wp.launch(_closest_face, dim=count, device=self.device,
-                  inputs=[self.mesh.id, wp.array(x.astype(np.float32), dtype=wp.vec3, device=self.device),
-                          self.max_dist], outputs=[face, sign])
-        face, sign = face.numpy(), sign.numpy().astype(np.float64)
+        face = np.full(count, -1, np.int64)
+        sign = np.zeros(count)
+        for g, (rows, mesh) in enumerate(zip(self.groups, self.meshes)):
+            sel = np.nonzero(self.part == g)[0]
+            if not len(sel):
+                continue
+            f_g = wp.zeros(len(sel), dtype=wp.int32, device=self.device)
+            s_g = wp.zeros(len(sel), dtype=float, device=self.device)
+            wp.launch(_closest_face, dim=len(sel), device=self.device,
+                      inputs=[mesh.id, wp.array(x[sel].astype(np.float32), dtype=wp.vec3, device=self.device),
+                              wp.array(self.max_dist[sel], dtype=float, device=self.device)], outputs=[f_g, s_g])
+            local = f_g.numpy()
+            face[sel] = np.where(local >= 0, rows[np.maximum(local, 0)], -1)
+            sign[sel] = s_g.numpy()
         active = face >= 0
         normal = np.zeros((count, 3))
         offset = np.zeros(count)
@@ -479,6 +495,7 @@ def solve_equilibrium(
     control: ClothControl | None = None,
     body_vertices: np.ndarray | None = None,
     body_faces: np.ndarray | None = None,
+    body_face_groups: list[np.ndarray] | None = None,
     contact_thickness: float = 2.0e-3,
     friction: str | None = None,
     contact_tolerance: float = 1.0e-4,
@@ -498,6 +515,8 @@ def solve_equilibrium(
         control: attachment targets / stiffness / switch (see :func:`world_energy`).
         body_vertices, body_faces: the body mesh [m], (Vb, 3) and (Fb, 3), or None (no contact).
             Faces must be outward-wound; unreferenced vertices are ignored.
+        body_face_groups: primary collision bodies: per part, rows of ``body_faces``; particle i
+            meets the part ``model.particle_body_part`` names (as ``BodyCollider``). None: all faces.
         contact_thickness: collider thickness [m]; particle i keeps contact_thickness + its
             radius (half the fabric thickness) from the body, as ``BodyCollider`` does.
         friction: "stick" (default with a body): particles within ``contact_tolerance`` of their
@@ -540,7 +559,8 @@ def solve_equilibrium(
         if friction not in ("stick", "none"):
             raise ValueError(f"friction must be 'stick' or 'none' (got {friction!r})")
         radius = model.particle_radius.numpy()[model.world_slice(world)].astype(np.float64)
-        body = _Body(body_vertices, body_faces, contact_thickness + radius, 2.0 * max_step)
+        part = model.particle_body_part.numpy()[model.world_slice(world)]
+        body = _Body(body_vertices, body_faces, contact_thickness + radius, 2.0 * max_step, body_face_groups, part)
     if tol_force is None:
         weight = float(terms.mass[terms.free].min()) * (float(np.linalg.norm(terms.gravity)) or 9.81)
         tol_force = max(TOL_FORCE_FRACTION * weight, TOL_FORCE_CONTACT_FLOOR if body is not None else 0.0)
