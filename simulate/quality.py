@@ -30,6 +30,11 @@ wp.set_module_options({"enable_backward": False})
 COLLISION_DEPTH_M = 1e-3
 
 
+@wp.func
+def as_vec3d(p: wp.vec3) -> wp.vec3d:
+    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+
+
 @wp.kernel
 def query_body_signed_distance(
     # Body: one mesh per frame
@@ -75,26 +80,46 @@ def query_body_signed_distance(
 
 
 @wp.func
+def orient3d(a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d) -> wp.float64:
+    """Six times the signed volume of the tetrahedron abcd: > 0 where d lies on the side of the
+    plane abc that the counter-clockwise normal points to."""
+    return wp.dot(wp.cross(b - a, c - a), d - a)
+
+
+@wp.func
 def segment_hits_triangle(p: wp.vec3, q: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> bool:
-    # Moller-Trumbore on the segment p->q (parameter in [0, 1])
-    d = q - p
-    e1 = b - a
-    e2 = c - a
-    h = wp.cross(d, e2)
-    det = wp.dot(e1, h)
-    if wp.abs(det) < 1.0e-14:
+    """Whether the segment pq crosses the triangle abc: p and q strictly on opposite sides of its
+    plane, and the line pq through the closed triangle (the three orientations of pq against the
+    triangle's edges agree in sign). Orientation predicates in float64 on the float32 points:
+    no tolerance to tune, and a crossing is a crossing however thin the triangle."""
+    p64 = as_vec3d(p)
+    q64 = as_vec3d(q)
+    a64 = as_vec3d(a)
+    b64 = as_vec3d(b)
+    c64 = as_vec3d(c)
+    sp = orient3d(a64, b64, c64, p64)
+    sq = orient3d(a64, b64, c64, q64)
+    if sp == wp.float64(0.0) or sq == wp.float64(0.0) or (sp > wp.float64(0.0)) == (sq > wp.float64(0.0)):
         return False
-    inv = 1.0 / det
-    s = p - a
-    u = inv * wp.dot(s, h)
-    if u < 0.0 or u > 1.0:
+    u = orient3d(p64, q64, a64, b64)
+    v = orient3d(p64, q64, b64, c64)
+    w = orient3d(p64, q64, c64, a64)
+    zero = wp.float64(0.0)
+    if u >= zero and v >= zero and w >= zero:
+        return True
+    return u <= zero and v <= zero and w <= zero
+
+
+@wp.func
+def edge_triangle_crossing(mesh_id: wp.uint64, i0: int, i1: int, face: int) -> bool:
+    """Whether garment edge (i0, i1) crosses garment triangle ``face`` that it does not touch."""
+    mesh = wp.mesh_get(mesh_id)
+    j0 = mesh.indices[face * 3 + 0]
+    j1 = mesh.indices[face * 3 + 1]
+    j2 = mesh.indices[face * 3 + 2]
+    if j0 == i0 or j0 == i1 or j1 == i0 or j1 == i1 or j2 == i0 or j2 == i1:
         return False
-    qv = wp.cross(s, e1)
-    v = inv * wp.dot(d, qv)
-    if v < 0.0 or u + v > 1.0:
-        return False
-    t = inv * wp.dot(e2, qv)
-    return t > 0.0 and t < 1.0
+    return segment_hits_triangle(mesh.points[i0], mesh.points[i1], mesh.points[j0], mesh.points[j1], mesh.points[j2])
 
 
 @wp.kernel
@@ -103,10 +128,10 @@ def count_edge_triangle_intersections(
     mesh_ids: wp.array(dtype=wp.uint64),
     edges: wp.array(dtype=wp.vec2i),
     edge_count: int,
-    # Out: piercings per frame (zeroed by the caller)
+    # Out: crossings per frame (zeroed by the caller)
     hits_out: wp.array(dtype=int),
 ):
-    """Counts (edge, triangle) piercings among non-adjacent elements, frames x edges threads."""
+    """Counts (edge, triangle) crossings among non-adjacent elements, frames x edges threads."""
     tid = wp.tid()
     frame = tid // edge_count
     e = tid - frame * edge_count
@@ -116,26 +141,104 @@ def count_edge_triangle_intersections(
     i1 = edges[e][1]
     p = mesh.points[i0]
     q = mesh.points[i1]
-    lower = wp.min(p, q)
-    upper = wp.max(p, q)
-    query = wp.mesh_query_aabb(mesh_id, lower, upper)
+    query = wp.mesh_query_aabb(mesh_id, wp.min(p, q), wp.max(p, q))
     face = int(0)
     count = int(0)
     while wp.mesh_query_aabb_next(query, face):
-        j0 = mesh.indices[face * 3 + 0]
-        j1 = mesh.indices[face * 3 + 1]
-        j2 = mesh.indices[face * 3 + 2]
-        if j0 == i0 or j0 == i1 or j1 == i0 or j1 == i1 or j2 == i0 or j2 == i1:
-            continue
-        if segment_hits_triangle(p, q, mesh.points[j0], mesh.points[j1], mesh.points[j2]):
+        if edge_triangle_crossing(mesh_id, i0, i1, face):
             count += 1
     if count > 0:
         wp.atomic_add(hits_out, frame, count)
 
 
-@wp.func
-def as_vec3d(p: wp.vec3) -> wp.vec3d:
-    return wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+@wp.kernel
+def list_edge_triangle_intersections(
+    mesh_ids: wp.array(dtype=wp.uint64),
+    edges: wp.array(dtype=wp.vec2i),
+    edge_count: int,
+    frames: wp.array(dtype=wp.int32),
+    capacity: int,
+    # Out:
+    counter: wp.array(dtype=wp.int32),
+    events_out: wp.array(dtype=wp.vec3i),
+):
+    """The crossings themselves, (frame, edge, face) per row in any order, for the frames listed in
+    ``frames`` (threads: len(frames) x edges); rows past ``capacity`` are counted, not written."""
+    tid = wp.tid()
+    k = tid // edge_count
+    e = tid - k * edge_count
+    frame = frames[k]
+    mesh_id = mesh_ids[frame]
+    mesh = wp.mesh_get(mesh_id)
+    i0 = edges[e][0]
+    i1 = edges[e][1]
+    p = mesh.points[i0]
+    q = mesh.points[i1]
+    query = wp.mesh_query_aabb(mesh_id, wp.min(p, q), wp.max(p, q))
+    face = int(0)
+    while wp.mesh_query_aabb_next(query, face):
+        if edge_triangle_crossing(mesh_id, i0, i1, face):
+            slot = wp.atomic_add(counter, 0, 1)
+            if slot < capacity:
+                events_out[slot] = wp.vec3i(frame, e, face)
+
+
+def intersection_contours(events: np.ndarray, edge_faces: np.ndarray) -> int:
+    """Number of intersection contours among (edge, face) crossings of one frame.
+
+    Where the garment passes through itself, the triangles of the two sheets intersect pairwise
+    along a chain of segments (a contour: a closed loop, or a curve from boundary to boundary);
+    each segment is the intersection of one triangle pair (f, g) and ends at crossings of an edge
+    of f through g or of an edge of g through f. Crossings that end segments of the same triangle
+    pair belong to one contour; the contours are the connected components.
+
+    Args:
+        events: (K, 2) int (edge index, face index) of the crossings.
+        edge_faces: (E, 2) int, the faces beside each edge (-1 where there is one).
+    Returns:
+        the number of contours (0 when there is no crossing).
+    """
+    ev = np.asarray(events, np.int64).reshape(-1, 2)
+    if not len(ev):
+        return 0
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    owner = np.asarray(edge_faces, np.int64)[ev[:, 0]]  # (K, 2) faces beside each crossing edge
+    base = max(int(ev[:, 1].max()), int(owner.max())) + 1
+    rows, keys = [], []
+    for side in range(2):  # the crossing ends a segment of the pair (face beside the edge, pierced face)
+        f = owner[:, side]
+        ok = f >= 0
+        rows.append(np.nonzero(ok)[0])
+        keys.append(np.minimum(f[ok], ev[ok, 1]) * base + np.maximum(f[ok], ev[ok, 1]))
+    rows = np.concatenate(rows)
+    keys = np.concatenate(keys)
+    _, pair = np.unique(keys, return_inverse=True)
+    k = len(ev)
+    graph = coo_matrix((np.ones(len(rows)), (rows, k + pair)), shape=(k + pair.max() + 1, k + pair.max() + 1))
+    _, label = connected_components(graph, directed=False)
+    return int(len(np.unique(label[:k])))
+
+
+def edge_face_table(faces: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E, 2) int64 faces beside each edge of ``edges`` ((E, 2) sorted pairs), -1 where one."""
+    f = np.asarray(faces, np.int64)
+    n = int(f.max()) + 1
+    corner = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    key = np.sort(corner, axis=1) @ np.array([n, 1])
+    face = np.tile(np.arange(len(f)), 3)
+    order = np.argsort(key, kind="stable")
+    key, face = key[order], face[order]
+    ekey = np.asarray(edges, np.int64) @ np.array([n, 1])
+    first = np.searchsorted(key, ekey, side="left")
+    last = np.searchsorted(key, ekey, side="right")
+    out = np.full((len(ekey), 2), -1, np.int64)
+    out[:, 0] = face[first]
+    two = last - first > 1
+    out[two, 1] = face[first[two] + 1]
+    return out
+
 
 
 @wp.kernel
@@ -207,6 +310,10 @@ class _MeshSlots:
                 self._points.append(points)
                 self._meshes.append(wp.Mesh(points, self._indices))
                 self._ids = None
+        return self.load_ids(count)
+
+    def load_ids(self, count: int) -> wp.array:
+        """Mesh ids of the first ``count`` slots as they are, (count,) uint64."""
         if self._ids is None:
             self._ids = wp.array(np.array([m.id for m in self._meshes], dtype=np.uint64), dtype=wp.uint64,
                                  device=self.device)
@@ -236,7 +343,9 @@ class QualityMeter:
         self.vertex_count = len(rest_vertices)
         self._body_vertex_count = int(body_vertex_count)
         self._faces = wp.array(self.faces.ravel(), dtype=wp.int32, device=device)
-        self._edges = wp.array(unique_edges(self.faces).astype(np.int32), dtype=wp.vec2i, device=device)
+        edges = unique_edges(self.faces)
+        self._edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=device)
+        self._edge_faces = edge_face_table(self.faces, edges)
         self._garments = _MeshSlots(self.faces, self.vertex_count, device)
         self._bodies = _MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
         self._buffers: dict[str, wp.array] = {}
@@ -303,6 +412,34 @@ class QualityMeter:
                   inputs=[ids, self._edges, e], outputs=[hits])
         return hits
 
+    def _contours(self, ids: wp.array, frames: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """Intersection contours of the listed frames (slots of ``ids`` already loaded), whose
+        crossing counts are ``counts``: (len(frames),) int64."""
+        out = np.zeros(len(frames), np.int64)
+        if not len(frames):
+            return out
+        capacity = int(counts.sum())
+        events = self._buffer("events", capacity, wp.vec3i)
+        counter = wp.zeros(1, dtype=wp.int32, device=self.device)
+        e = self._edges.shape[0]
+        wp.launch(list_edge_triangle_intersections, dim=len(frames) * e, device=self.device,
+                  inputs=[ids, self._edges, e, wp.array(np.asarray(frames, np.int32), dtype=wp.int32, device=self.device),
+                          capacity], outputs=[counter, events])
+        rows = events.numpy()[:min(int(counter.numpy()[0]), capacity)]
+        for j, f in enumerate(frames):
+            out[j] = intersection_contours(rows[rows[:, 0] == f][:, 1:], self._edge_faces)
+        return out
+
+    def self_intersection_contours(self, garment_vertices: np.ndarray) -> np.ndarray:
+        """Intersection contours per frame (:func:`intersection_contours`): (n, V, 3) -> (n,)."""
+        points, n = self._garment_points(garment_vertices)
+        counts = self._self_intersection_counts(points, n)
+        ids = self._garments.load_ids(n)
+        hit = np.nonzero(counts > 0)[0]
+        out = np.zeros(n, np.int64)
+        out[hit] = self._contours(ids, hit, counts[hit])
+        return out
+
     def area_ratios(self, garment_vertices: np.ndarray, rest_areas: np.ndarray | None = None) -> np.ndarray:
         """Triangle area ratios against the rest areas (F,) or per frame (n, F): (n, V, 3) -> (n, F)."""
         points, n = self._garment_points(garment_vertices)
@@ -360,8 +497,10 @@ class QualityMeter:
             one dict per frame, with ``finite`` (1/0), ``area_ratio_min``, ``area_ratio_max``,
             ``distorted_fraction`` (share of triangles whose area ratio is outside ``area_bounds``),
             ``penetration_fraction`` (share of vertices deeper than ``collision_depth``),
-            ``penetration_max_m`` (deepest vertex, >= 0), ``self_intersections`` (count, -1 if
-            skipped). A frame with a non-finite coordinate gets ``finite`` 0 and NaN elsewhere;
+            ``penetration_max_m`` (deepest vertex, >= 0), ``self_intersections`` (garment edges
+            crossing garment triangles they do not touch, -1 if skipped) and
+            ``self_intersection_contours`` (the closed or boundary-to-boundary curves those
+            crossings lie on, :func:`intersection_contours`; -1 if skipped). A frame with a non-finite coordinate gets ``finite`` 0 and NaN elsewhere;
             it does not reach the device, so the other frames' metrics are those they would have alone.
         """
         x = np.asarray(garment_vertices, np.float64)
@@ -379,7 +518,8 @@ class QualityMeter:
         finite = np.isfinite(x).all(axis=(1, 2))
         nan = float("nan")
         out = [{"finite": 0.0, "area_ratio_min": nan, "area_ratio_max": nan, "distorted_fraction": nan,
-                "penetration_fraction": nan, "penetration_max_m": nan, "self_intersections": -1.0} for _ in range(n)]
+                "penetration_fraction": nan, "penetration_max_m": nan, "self_intersections": -1.0,
+                "self_intersection_contours": -1.0} for _ in range(n)]
         good = np.nonzero(finite)[0]
         if len(good) == 0:
             return out
@@ -393,6 +533,12 @@ class QualityMeter:
         ratio = ratio_d.numpy().reshape(m, len(self.faces))
         d = d_d.numpy().reshape(m, self.vertex_count)
         hits = hits_d.numpy().astype(np.int64) if hits_d is not None else np.full(m, -1)
+        contours = np.full(m, -1, np.int64)
+        if hits_d is not None:
+            contours[:] = 0
+            hit = np.nonzero(hits > 0)[0]
+            if len(hit):  # the meshes of this batch are still in their slots
+                contours[hit] = self._contours(self._garments.load_ids(m), hit, hits[hit])
         distorted = ((ratio < area_bounds[0]) | (ratio > area_bounds[1])).mean(axis=1)
         deep = (d < -collision_depth).mean(axis=1)
         deepest = np.maximum(0.0, -d.min(axis=1).astype(np.float64))
@@ -405,5 +551,6 @@ class QualityMeter:
                 "penetration_fraction": float(deep[j]),
                 "penetration_max_m": float(deepest[j]),
                 "self_intersections": float(hits[j]),
+                "self_intersection_contours": float(contours[j]),
             }
         return out
