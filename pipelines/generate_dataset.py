@@ -234,7 +234,11 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     spec = ctx.spec
     tasks = [ctx.tasks[t] for t in task_ids]
     tmpl = ctx.template
-    meter = QualityMeter(tmpl.faces, tmpl.vertices, ctx.body.faces, ctx.body.vertex_count, device=ctx.device)
+    if ctx.body_face_groups is None:
+        meter = QualityMeter(tmpl.faces, tmpl.vertices, ctx.body.faces, ctx.body.vertex_count, device=ctx.device)
+    else:  # penetration as the simulation's contact sees it: each vertex against its own body part
+        meter = QualityMeter(tmpl.faces, tmpl.vertices, ctx.body_faces, ctx.body.vertex_count, device=ctx.device,
+                             body_face_groups=ctx.body_face_groups, garment_part=ctx.body_part)
     index = tmpl.body_vertex_index
     on_body = index >= 0
     records = []

@@ -332,10 +332,15 @@ class QualityMeter:
         body_vertex_count: Vb, vertices of the body meshes passed in.
         device: Warp device.
         max_distance: [m] garment vertices farther than this from the body count as this far.
+        body_face_groups, garment_part: primary collision bodies (``simulate.body.collision_parts``):
+            per part the rows of ``body_faces`` in its mesh, and the part of each garment vertex
+            (V,); each vertex's signed distance is then to its own part, as the simulation's
+            contact sees it. None: to all of ``body_faces``.
     """
 
     def __init__(self, garment_faces: np.ndarray, rest_vertices: np.ndarray, body_faces: np.ndarray, body_vertex_count: int,
-                 *, device: str = "cpu", max_distance: float = 0.5) -> None:
+                 *, device: str = "cpu", max_distance: float = 0.5, body_face_groups: list[np.ndarray] | None = None,
+                 garment_part: np.ndarray | None = None) -> None:
         self.device = device
         self.faces = np.asarray(garment_faces, dtype=np.int32)
         self.rest_areas = triangle_areas(rest_vertices, self.faces)
@@ -349,6 +354,19 @@ class QualityMeter:
         self._garments = _MeshSlots(self.faces, self.vertex_count, device)
         self._bodies = _MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
         self._buffers: dict[str, wp.array] = {}
+        self._parts: list[tuple[np.ndarray, _MeshSlots]] = []
+        if (body_face_groups is None) != (garment_part is None):
+            raise ValueError("body_face_groups and garment_part go together (both or neither)")
+        if body_face_groups is not None:
+            part = np.asarray(garment_part)
+            if part.shape != (self.vertex_count,) or part.min() < 0 or part.max() >= len(body_face_groups):
+                raise ValueError(f"garment_part must be ({self.vertex_count},) indices into body_face_groups "
+                                 f"({len(body_face_groups)} groups) (got shape {part.shape})")
+            bf = np.asarray(body_faces, np.int32)
+            for g, rows in enumerate(body_face_groups):
+                members = np.nonzero(part == g)[0]
+                if len(members):
+                    self._parts.append((members, _MeshSlots(bf[np.asarray(rows)], self._body_vertex_count, device)))
 
     def _buffer(self, name: str, size: int, dtype) -> wp.array:
         """A device array of at least ``size`` elements, reused across batches; returns its first ``size``."""
@@ -373,6 +391,15 @@ class QualityMeter:
     def signed_distances(self, garment_vertices: np.ndarray, body_vertices: np.ndarray) -> np.ndarray:
         """Per-vertex signed distance [m] along the nearest body face normal: (n, V, 3) garments
         against (n, Vb, 3) bodies -> (n, V)."""
+        if self._parts:
+            x = np.asarray(garment_vertices, np.float32)
+            if x.ndim != 3 or x.shape[1:] != (self.vertex_count, 3):
+                raise ValueError(f"garment_vertices must have shape (frames, {self.vertex_count}, 3) (got {x.shape})")
+            body = np.asarray(body_vertices, np.float32)
+            if body.shape != (len(x), self._body_vertex_count, 3):
+                raise ValueError(f"body_vertices must have shape ({len(x)}, {self._body_vertex_count}, 3), one body per "
+                                 f"garment frame (got {body.shape})")
+            return self._part_signed_distances(x, body)
         points, n = self._garment_points(garment_vertices)
         return self._signed_distances(points, n, body_vertices)
 
@@ -393,6 +420,23 @@ class QualityMeter:
         wp.launch(query_body_signed_distance, dim=n * v, device=self.device,
                   inputs=[ids, points, v, self.max_distance], outputs=[distance, closest, normal])
         return distance
+
+    def _part_signed_distances(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
+        """Signed distances (n, V) [m] of garments (n, V, 3) to their vertices' own parts of bodies (n, Vb, 3)."""
+        n = len(x)
+        out = np.empty((n, self.vertex_count), np.float32)
+        flat_body = self._upload("body", np.asarray(body, np.float32).reshape(-1, 3), wp.vec3)
+        for g, (members, slots) in enumerate(self._parts):
+            ids = slots.load(flat_body, n)
+            pts = self._upload(f"part_points_{g}", np.asarray(x[:, members], np.float32).reshape(-1, 3), wp.vec3)
+            k = len(members)
+            distance = self._buffer(f"part_distance_{g}", n * k, float)
+            closest = self._buffer(f"part_closest_{g}", n * k, wp.vec3)
+            normal = self._buffer(f"part_normal_{g}", n * k, wp.vec3)
+            wp.launch(query_body_signed_distance, dim=n * k, device=self.device,
+                      inputs=[ids, pts, k, self.max_distance], outputs=[distance, closest, normal])
+            out[:, members] = distance.numpy().reshape(n, k)
+        return out
 
     def self_intersection_counts(self, garment_vertices: np.ndarray) -> np.ndarray:
         """(edge, triangle) piercings among non-adjacent garment elements per frame: (n, V, 3) -> (n,)."""
@@ -528,10 +572,10 @@ class QualityMeter:
         # dataset driver measures while a simulator frame runs, which the waits queue behind)
         points, m = self._garment_points(x[good])
         ratio_d = self._launch_area_ratios(points, m, rest[good])
-        d_d = self._launch_signed_distances(points, m, body[good])
+        d_d = None if self._parts else self._launch_signed_distances(points, m, body[good])
         hits_d = self._launch_self_intersection_counts(points, m) if self_intersection else None
         ratio = ratio_d.numpy().reshape(m, len(self.faces))
-        d = d_d.numpy().reshape(m, self.vertex_count)
+        d = self._part_signed_distances(x[good], body[good]) if self._parts else d_d.numpy().reshape(m, self.vertex_count)
         hits = hits_d.numpy().astype(np.int64) if hits_d is not None else np.full(m, -1)
         contours = np.full(m, -1, np.int64)
         if hits_d is not None:

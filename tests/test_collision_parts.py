@@ -110,3 +110,22 @@ def test_anny_parts_for_a_tshirt(anny_body) -> None:
     assert (garment[template.boundary("right_sleeve")] == 2).all()
     assert set(np.unique(garment)) == {0, 1, 2}
     assert COLLISION_PART_NAMES[0] == "torso"
+
+
+def test_quality_meter_measures_penetration_against_the_vertex_part() -> None:
+    from simulate.quality import QualityMeter
+
+    verts, faces, groups = _two_part_body()
+    cloth_v, cloth_f = grid_cloth(3, 3, 0.02, 0.02, plane="xz", origin=(-0.01, TORSO_R + 0.02, -0.01))  # in the arm
+    whole = QualityMeter(cloth_f, cloth_v, faces, len(verts))
+    torso = QualityMeter(cloth_f, cloth_v, faces, len(verts), body_face_groups=groups,
+                         garment_part=np.zeros(len(cloth_v), np.int32))
+    arm = QualityMeter(cloth_f, cloth_v, faces, len(verts), body_face_groups=groups,
+                       garment_part=np.ones(len(cloth_v), np.int32))
+    assert whole.measure(cloth_v, verts)["penetration_fraction"] == 1.0
+    assert torso.measure(cloth_v, verts)["penetration_fraction"] == 0.0
+    assert arm.measure(cloth_v, verts)["penetration_fraction"] == 1.0
+    d = torso.signed_distances(cloth_v[None], verts[None])[0]
+    assert np.allclose(d, 0.02, atol=2e-3), d
+    with pytest.raises(ValueError, match="garment_part"):
+        QualityMeter(cloth_f, cloth_v, faces, len(verts), body_face_groups=groups, garment_part=np.full(len(cloth_v), 2))

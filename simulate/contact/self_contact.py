@@ -9,6 +9,17 @@ iteration the particle is then pushed part of the way (``relaxation``) back to `
 that side (one-sided: the particle moves, each triangle's corners are pushed by their own
 queries), written to a per-particle delta so results stay deterministic.  None of this runs unless
 ``Features.self_contact`` is on.
+
+**Displacement bounds** (conservative, as in VBD's and Offset Geometric Contact's cloth contact):
+at each search, every particle also gets ``d_min``, the smallest distance from it to any
+vertex-triangle or edge-edge pair it belongs to (as the vertex or as a triangle's corner, as an
+edge's end) within the reach, the reach itself where there is none. Until the next search a
+solver keeps each particle within ``bound_fraction`` (< 1/2) of its ``d_min`` of where it was
+searched (``SolverVBD``'s sweep). Two primitives then close by less than the distance between
+them, so none passes through another one that was not excluded (the 2-ring and pairs close at
+rest, as for the pushes): new intersections cannot form, whatever the pushes and the elastic
+forces do. The bounds also win over body contact: where a body part presses two layers together
+(an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
 """
 
 from __future__ import annotations
@@ -26,6 +37,10 @@ __all__ = ["SelfContact"]
 
 MAX_SWEEP_M = 0.03
 """Largest extra search reach for a fast particle between candidate searches [m]."""
+
+BOUND_FRACTION = 0.45
+"""Share of its smallest pair distance a particle may move between searches (< 1/2: two
+primitives moving toward each other then close by at most 90 % of their distance)."""
 
 
 @wp.kernel
@@ -191,11 +206,177 @@ def project_self_contacts(
                                            side[i], thickness, relaxation)
 
 
+@wp.func
+def in_two_ring(i: int, a: int, b: int, c: int, adj_start: wp.array(dtype=wp.int32), adj_slot: wp.array(dtype=wp.int32),
+                tri_slots: int, tri_indices: wp.array2d(dtype=wp.int32)) -> bool:
+    """Whether triangle (a, b, c) shares a vertex with a triangle incident to particle i."""
+    for s in range(adj_start[i], adj_start[i + 1]):
+        slot = adj_slot[s]
+        if slot >= tri_slots:
+            break
+        t = slot // 3
+        u0 = tri_indices[t, 0]
+        u1 = tri_indices[t, 1]
+        u2 = tri_indices[t, 2]
+        if u0 == a or u0 == b or u0 == c or u1 == a or u1 == b or u1 == c or u2 == a or u2 == b or u2 == c:
+            return True
+    return False
+
+
+@wp.func
+def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> float:
+    """Distance [m] between segments p1q1 and p2q2 (Ericson 2004, 5.1.9)."""
+    d1 = q1 - p1
+    d2 = q2 - p2
+    r = p1 - p2
+    a = wp.dot(d1, d1)
+    e = wp.dot(d2, d2)
+    f = wp.dot(d2, r)
+    s = float(0.0)
+    t = float(0.0)
+    eps = 1.0e-20
+    if a <= eps and e <= eps:
+        return wp.length(r)
+    if a <= eps:
+        t = wp.clamp(f / e, 0.0, 1.0)
+    else:
+        c = wp.dot(d1, r)
+        if e <= eps:
+            s = wp.clamp(-c / a, 0.0, 1.0)
+        else:
+            b = wp.dot(d1, d2)
+            denom = a * e - b * b
+            if denom > eps * a * e:
+                s = wp.clamp((b * f - c * e) / denom, 0.0, 1.0)
+            t = (b * s + f) / e
+            if t < 0.0:
+                t = 0.0
+                s = wp.clamp(-c / a, 0.0, 1.0)
+            elif t > 1.0:
+                t = 1.0
+                s = wp.clamp((b - c) / a, 0.0, 1.0)
+    return wp.length((p1 + d1 * s) - (p2 + d2 * t))
+
+
+@wp.kernel
+def vertex_triangle_bounds(
+    mesh: wp.uint64,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_slot: wp.array(dtype=wp.int32),
+    tri_slots: int,
+    x_rest: wp.array(dtype=wp.vec3),
+    rest_exclusion: float,
+    reach: float,
+    # In/out (filled with ``reach`` by the caller):
+    d_min: wp.array(dtype=float),
+):
+    """Smallest distance [m] of every vertex-triangle pair within ``reach``, to the vertex and to
+    the triangle's three corners (float atomic min: the result does not depend on the order)."""
+    i = wp.tid()
+    w = particle_world[i]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+        return
+    q = p + world_offset[w]
+    r_box = reach + shift_tolerance(world_offset[w])
+    r = wp.vec3(r_box, r_box, r_box)
+    query = wp.mesh_query_aabb(mesh, q - r, q + r)
+    face = int(0)
+    best = reach
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        a = tri_indices[face, 0]
+        b = tri_indices[face, 1]
+        c = tri_indices[face, 2]
+        if a == i or b == i or c == i:
+            continue
+        bary = closest_point_barycentric(p, x[a], x[b], x[c])
+        d = wp.length(p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2]))
+        if d >= reach:
+            continue
+        pr = x_rest[i]
+        rb = closest_point_barycentric(pr, x_rest[a], x_rest[b], x_rest[c])
+        if wp.length(pr - (x_rest[a] * rb[0] + x_rest[b] * rb[1] + x_rest[c] * rb[2])) < rest_exclusion:
+            continue
+        if in_two_ring(i, a, b, c, adj_start, adj_slot, tri_slots, tri_indices):
+            continue
+        best = wp.min(best, d)
+        wp.atomic_min(d_min, a, d)
+        wp.atomic_min(d_min, b, d)
+        wp.atomic_min(d_min, c, d)
+    wp.atomic_min(d_min, i, best)
+
+
+@wp.kernel
+def edge_edge_bounds(
+    mesh: wp.uint64,
+    edges: wp.array(dtype=wp.vec2i),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    x_rest: wp.array(dtype=wp.vec3),
+    rest_exclusion: float,
+    reach: float,
+    # In/out:
+    d_min: wp.array(dtype=float),
+):
+    """Smallest distance [m] from each cloth edge to the edges of triangles within ``reach`` that
+    share no vertex with it and were not closer than ``rest_exclusion`` at rest, to both ends."""
+    e = wp.tid()
+    i0 = edges[e][0]
+    i1 = edges[e][1]
+    w = particle_world[i0]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i0]
+    q = x[i1]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]) and wp.isfinite(q[0]) and wp.isfinite(q[1])
+            and wp.isfinite(q[2])):
+        return
+    off = world_offset[w]
+    r_box = reach + shift_tolerance(off)
+    r = wp.vec3(r_box, r_box, r_box)
+    query = wp.mesh_query_aabb(mesh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
+    face = int(0)
+    best = reach
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        for k in range(3):
+            a = tri_indices[face, k]
+            b = tri_indices[face, (k + 1) % 3]
+            if a == i0 or a == i1 or b == i0 or b == i1:
+                continue
+            d = segment_distance(p, q, x[a], x[b])
+            if d >= best:
+                continue
+            if segment_distance(x_rest[i0], x_rest[i1], x_rest[a], x_rest[b]) < rest_exclusion:
+                continue
+            best = d
+    wp.atomic_min(d_min, i0, best)
+    wp.atomic_min(d_min, i1, best)
+
+
 class SelfContact:
     """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
 
     def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3,
-                 rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1) -> None:
+                 rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
+                 bounds: bool = True, bound_fraction: float = BOUND_FRACTION) -> None:
         """
         Args:
             model: cloth model.
@@ -213,6 +394,10 @@ class SelfContact:
                 further by the particle's own travel until the next search (speed x the substeps
                 in between, at most ``MAX_SWEEP_M``); a layer moving toward a slow particle must
                 stay within ``margin``. Detection is the costly part (a BVH query per particle).
+            bounds: also find each particle's displacement bound at every search (module
+                docstring; ``d_min``, ``x_searched``), for solvers that keep to it (``SolverVBD``).
+            bound_fraction: share of its smallest pair distance a particle may move between
+                searches, in (0, 0.5).
         """
         self.model = model
         dev = model.device
@@ -232,6 +417,10 @@ class SelfContact:
         if int(detect_every) != detect_every or detect_every < 1:
             raise ValueError(f"self-contact detect_every must be an integer >= 1 (got {detect_every!r})")
         self.detect_every = int(detect_every)
+        if not (np.isfinite(bound_fraction) and 0.0 < bound_fraction < 0.5):
+            raise ValueError(f"self-contact bound_fraction must be in (0, 0.5) (got {bound_fraction!r})")
+        self.bounds = bool(bounds)
+        self.bound_fraction = float(bound_fraction)
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
         centers = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
@@ -250,6 +439,16 @@ class SelfContact:
         self.side = wp.ones(count, dtype=float, device=dev)
         self.delta = wp.zeros(count, dtype=wp.vec3, device=dev)
         """Per-particle self-contact correction of the current iteration [m]."""
+        self.d_min = wp.full(count, 1.0e30, dtype=float, device=dev)
+        """Smallest pair distance of each particle at the last search [m] (module docstring); 1e30
+        (no bound) without ``bounds``."""
+        self.x_searched = wp.zeros(count, dtype=wp.vec3, device=dev)
+        """Positions at the last search [m]: the centres of the displacement bounds."""
+        if self.bounds:
+            tris = np.asarray(model.tri_indices_np, np.int64).reshape(-1, 3)
+            pairs = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+            edges = np.unique(pairs, axis=0) if len(pairs) else np.zeros((1, 2), np.int64)
+            self.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
 
     def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
                world_self_contact: wp.array | None = None) -> None:
@@ -270,6 +469,20 @@ class SelfContact:
                           self.rest, self.rest_exclusion, self.thickness + self.margin,
                           x if v is None else v, 0.0 if v is None else float(dt) * (self.detect_every - 1), MAX_SWEEP_M],
                   outputs=[self.candidate, self.side], device=m.device)
+        if self.bounds:
+            reach = self.thickness + self.margin
+            active_sc = world_active if world_self_contact is None else world_self_contact
+            self.d_min.fill_(reach)
+            wp.copy(self.x_searched, x)
+            wp.launch(vertex_triangle_bounds, dim=m.particle_count,
+                      inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
+                              self.world_offset, x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
+                              self.rest, self.rest_exclusion, reach],
+                      outputs=[self.d_min], device=m.device)
+            wp.launch(edge_edge_bounds, dim=self.edges.shape[0],
+                      inputs=[self.mesh.id, self.edges, m.tri_indices, m.tri_world, m.particle_world, world_active,
+                              active_sc, self.world_offset, x, self.rest, self.rest_exclusion, reach],
+                      outputs=[self.d_min], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:
         """Corrections for the current positions into ``delta`` (applied by the particle pass)."""

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from simulate.contact.closest import closest_point_barycentric
 from simulate.solvers.common_kernels import bending_angle_grad, friction_cancel, tile_writer, triangle_coefficients
 from simulate.solvers.xpbd.kernels import block_sync
 
@@ -145,7 +146,32 @@ def bending_vertex_terms(x1: wp.vec3, x2: wp.vec3, x3: wp.vec3, x4: wp.vec3, cor
     return d * (-k * (theta - rest)), wp.outer(d, d) * k
 
 
-def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool, body_contact: bool):
+@wp.func
+def self_contact_terms(xi: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, side: float, thickness: float,
+                       stiffness: float):
+    """Penalty force [N] and Hessian block [N/m] of a particle at ``xi`` held ``thickness`` [m] off
+    triangle abc on its ``side`` (+1/-1 along the counter-clockwise normal): stiffness (thickness -
+    gap) n while the gap is short, with the triangle held where it is; positions relative to the
+    particle, so float32 is exact enough."""
+    pa = wp.vec3(a - xi)
+    pb = wp.vec3(b - xi)
+    pc = wp.vec3(c - xi)
+    n = wp.cross(pb - pa, pc - pa)
+    n_len = wp.length(n)
+    if n_len < 1.0e-12:
+        return wp.vec3(0.0), wp.mat33(0.0)
+    n = n / n_len * side
+    origin = wp.vec3(0.0)
+    bary = closest_point_barycentric(origin, pa, pb, pc)
+    closest = pa * bary[0] + pb * bary[1] + pc * bary[2]
+    gap = -wp.dot(closest, n)
+    if gap >= thickness:
+        return wp.vec3(0.0), wp.mat33(0.0)
+    return n * (stiffness * (thickness - gap)), wp.outer(n, n) * stiffness
+
+
+def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool, body_contact: bool,
+                          self_contact: bool = False):
     """Kernel running ``iterations`` VBD sweeps of every colour of a world, one thread block per world.
 
     ``vertex_world_offsets[c, w]`` .. ``[c, w + 1]`` index ``vertex_order``, the particles of colour
@@ -157,7 +183,13 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     small and exact.  With ``tile_particles`` > 0 (CUDA) the world's positions sit in a
     shared-memory tile of that many particles for the whole launch (loaded and stored once); with
     0 they are read and written in global memory.  One kernel per flag set: the flags remove what
-    a scene does not have at compile time."""
+    a scene does not have at compile time.
+
+    With ``self_contact``, each particle's Newton step also carries the penalty of its self-contact
+    candidate triangle (``SelfContact``: found at the search, on the side it was found on), and the
+    step is then kept within the particle's displacement bound of where it was searched, after the
+    body-contact plane: where a body part presses two layers together, the layers do not cross and
+    the body (whose skin is soft in reality) is what gives."""
     shared = tile_particles > 0
     tile_n = max(tile_particles, 1)
     tile_type = wp.tile[wp.vec3d, tile_n]
@@ -206,6 +238,15 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         # Substep start:
         x64_prev: wp.array(dtype=wp.vec3d),
         target: wp.array(dtype=wp.vec3),
+        # Self-contact (SelfContact's last search):
+        sc_candidate: wp.array(dtype=wp.int32),
+        sc_side: wp.array(dtype=float),
+        sc_thickness: float,
+        sc_stiffness: float,
+        sc_x_searched: wp.array(dtype=wp.vec3),
+        sc_d_min: wp.array(dtype=float),
+        sc_fraction: float,
+        world_self_contact: wp.array(dtype=wp.int32),
         # Out:
         contact_depth: wp.array(dtype=float),
         # In/out:
@@ -259,6 +300,17 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                                 ka = world_attachment_stiffness[w]
                                 force = force + (attachment_target[a] - wp.vec3(xi)) * ka
                                 hess = hess + wp.identity(n=3, dtype=float) * ka
+                    sc_on = int(0)
+                    if wp.static(self_contact):
+                        sc_on = world_self_contact[w]
+                        tc = sc_candidate[i]
+                        if sc_on != 0 and tc >= 0:
+                            fc, hc = self_contact_terms(xi, position(xs, x64, tri_indices[tc, 0], base),
+                                                        position(xs, x64, tri_indices[tc, 1], base),
+                                                        position(xs, x64, tri_indices[tc, 2], base), sc_side[i],
+                                                        sc_thickness, sc_stiffness)
+                            force = force + fc
+                            hess = hess + hc
                     p = xi
                     if wp.abs(wp.determinant(hess)) > 1.0e-30:
                         p = xi + wp.vec3d(wp.inverse(hess) * force)
@@ -273,6 +325,16 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                                 contact_depth[i] = wp.max(-wp.dot(force, n), 0.0) * im / inv_dt2
                             else:
                                 contact_depth[i] = 0.0
+                    # cloth-cloth bounds win over the body plane: where an arm presses a sleeve against
+                    # the torso layer, the skin (soft in reality) gives, not the layers
+                    if wp.static(self_contact):
+                        if sc_on != 0:
+                            start = wp.vec3d(sc_x_searched[i])
+                            step = p - start
+                            length = wp.length(step)
+                            bound = wp.float64(sc_fraction * sc_d_min[i])
+                            if length > bound:
+                                p = start + step * (bound / length)
                     if wp.static(shared):
                         tile_write(xs, i - base, p)
                     else:
@@ -347,21 +409,3 @@ def make_finalize_kernel(friction: bool):
             gravity_share_out[i] = wp.clamp(2.0 * wp.dot(accel, gravity) / g2 - 1.0, 0.0, 1.0)
 
     return finalize_particles_vbd
-
-
-@wp.kernel
-def round_positions(particle_world: wp.array(dtype=wp.int32), world_active: wp.array(dtype=wp.int32),
-                    x64: wp.array(dtype=wp.vec3d), x_out: wp.array(dtype=wp.vec3)):
-    """The state's float32 positions from the solver's float64 ones (active worlds)."""
-    i = wp.tid()
-    if world_active[particle_world[i]] != 0:
-        x_out[i] = wp.vec3(x64[i])
-
-
-@wp.kernel
-def apply_pushes(particle_world: wp.array(dtype=wp.int32), world_active: wp.array(dtype=wp.int32),
-                 inv_mass: wp.array(dtype=float), delta: wp.array(dtype=wp.vec3), x64: wp.array(dtype=wp.vec3d)):
-    """Adds each particle's self-contact push [m] to its float64 position (free particles of active worlds)."""
-    i = wp.tid()
-    if world_active[particle_world[i]] != 0 and inv_mass[i] != 0.0:
-        x64[i] = x64[i] + wp.vec3d(delta[i])

@@ -66,7 +66,7 @@ class SolverVBD(SolverBase):
     holds their float32 rounding): a stiff vertex's step near rest is below float32's resolution.
     A substep is three launches: the prediction, one sweep kernel for all colours of every world
     (one thread block per world, a barrier between colours) and the velocity update; with
-    self-contact, the sweep launches once per iteration, each followed by the self-contact pushes.
+    self-contact, the search (every ``detect_every`` substeps) comes before the sweep.
     """
 
     def __init__(
@@ -81,6 +81,7 @@ class SolverVBD(SolverBase):
         contact_detect_every: int = 1,
         self_contact: bool | None = None,
         self_contact_options: dict | None = None,
+        self_contact_stiffness: float = 1.0e4,
     ) -> None:
         """
         Args:
@@ -93,12 +94,16 @@ class SolverVBD(SolverBase):
                 (False); None = on CUDA when the largest world fits ``SHARED_TILE_MAX_BYTES``.  Same
                 result either way.
             contact_detect_every: body queries on every N-th substep of a frame (see ``SolverBase``).
-            self_contact: vertex-triangle self-contact (default from model.features): after every
-                sweep, the pushes of :class:`~simulate.contact.self_contact.SelfContact` (candidates
-                found at the substep's start) move the particles out of the layers they approach;
-                the sweep then runs one launch per iteration.
+            self_contact: cloth self-contact (default from model.features): each particle's Newton
+                step carries a penalty holding it ``thickness`` off its candidate triangle
+                (:class:`~simulate.contact.self_contact.SelfContact`, searched at the substep's
+                start), and is kept within its displacement bound (vertex-triangle and edge-edge
+                distances at the search), so no new intersection forms.
             self_contact_options: keyword options of ``SelfContact`` (thickness, margin,
-                rest_exclusion, relaxation, detect_every).
+                rest_exclusion, detect_every, bounds, bound_fraction).
+            self_contact_stiffness: penalty stiffness [N/m] holding a particle ``thickness`` off
+                its self-contact triangle (in each Newton step; 1e4 N/m: a vertex pressed by 1 mN
+                gives 0.1 um).
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping,
                          contact_detect_every=contact_detect_every)
@@ -106,6 +111,9 @@ class SolverVBD(SolverBase):
             raise ValueError(f"iterations must be an integer >= 1 (got {iterations!r})")
         if int(block_dim) != block_dim or not 32 <= block_dim <= 1024 or block_dim % 32:
             raise ValueError(f"block_dim must be a multiple of 32 in [32, 1024] (got {block_dim!r})")
+        if not (np.isfinite(self_contact_stiffness) and self_contact_stiffness > 0.0):
+            raise ValueError(f"self_contact_stiffness must be > 0 [N/m] (got {self_contact_stiffness!r})")
+        self.self_contact_stiffness = float(self_contact_stiffness)
         use_self = model.features.self_contact if self_contact is None else bool(self_contact)
         self.self_contact = None
         if use_self:
@@ -150,7 +158,11 @@ class SolverVBD(SolverBase):
             shared = dev.is_cuda and 24 * tile <= SHARED_TILE_MAX_BYTES
         self.shared = bool(shared)
         """Whether the sweep keeps each world's positions in shared memory."""
-        self._kernel = _sweep_kernel(tile if self.shared else 0, bending, self.attachments, self.body_contact)
+        self._kernel = _sweep_kernel(tile if self.shared else 0, bending, self.attachments, self.body_contact,
+                                     self.self_contact is not None)
+        if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
+            self._sc_args = [wp.full(1, -1, dtype=wp.int32, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0,
+                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0]
         self._finalize_vbd = _finalize_kernel(self.friction)
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
@@ -178,28 +190,24 @@ class SolverVBD(SolverBase):
                   outputs=[self._x64_prev, self._target, self._predicted, state_out.particle_q], device=dev)
         self.detect_contacts(self._predicted, control, substep)
         sc = self.self_contact
-        if sc is not None and substep % sc.detect_every == 0:
-            sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
-                      world_self_contact=control.world_self_contact)
-        for _ in range(self.iterations if sc is not None else 1):
-            wp.launch_tiled(self._kernel, dim=[m.world_count],
-                            inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
-                                    m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count), m.tri_indices,
-                                    m.tri_dm_inv, m.tri_compliance, m.bend_indices, m.bend_rest_angle,
-                                    m.bend_compliance, control.world_active, 1.0 / (dt * dt),
-                                    1 if sc is not None else self.iterations, m.particle_attachment,
-                                    control.attachment_target, control.world_attachment_stiffness,
-                                    control.world_attachment_enabled, self.contact_active, self.contact_normal,
-                                    self.contact_offset, self._x64_prev, self._target, self.contact_depth, self.x64],
-                            block_dim=self.block_dim, device=dev)
-            if sc is not None:
-                wp.launch(kernels.round_positions, dim=m.particle_count,
-                          inputs=[m.particle_world, control.world_active, self.x64], outputs=[state_out.particle_q],
-                          device=dev)
-                sc.project(state_out.particle_q, control.world_active)
-                wp.launch(kernels.apply_pushes, dim=m.particle_count,
-                          inputs=[m.particle_world, control.world_active, m.particle_inv_mass, sc.delta, self.x64],
-                          device=dev)
+        if sc is not None:
+            if substep % sc.detect_every == 0:
+                sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
+                          world_self_contact=control.world_self_contact)
+            sc_args = [sc.candidate, sc.side, sc.thickness, self.self_contact_stiffness, sc.x_searched, sc.d_min,
+                       sc.bound_fraction]
+        else:
+            sc_args = self._sc_args
+        wp.launch_tiled(self._kernel, dim=[m.world_count],
+                        inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
+                                m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count), m.tri_indices,
+                                m.tri_dm_inv, m.tri_compliance, m.bend_indices, m.bend_rest_angle,
+                                m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
+                                m.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
+                                control.world_attachment_enabled, self.contact_active, self.contact_normal,
+                                self.contact_offset, self._x64_prev, self._target, *sc_args, control.world_self_contact,
+                                self.contact_depth, self.x64],
+                        block_dim=self.block_dim, device=dev)
         wp.launch(self._finalize_vbd, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
                           m.world_friction, self.extra_damping, self.gravity, float(dt), self.contact_active,

@@ -213,7 +213,7 @@ class SolverXPBD(SolverBase):
         if use_self:
             from simulate.contact.self_contact import SelfContact
 
-            self.self_contact = SelfContact(model, **dict(self_contact_options or {}))
+            self.self_contact = SelfContact(model, **{"bounds": False, **dict(self_contact_options or {})})  # pushes only
         self.self_delta = self.self_contact.delta if self.self_contact else wp.zeros(1, dtype=wp.vec3, device=dev)
         self._no_candidates = wp.full(1, -1, dtype=wp.int32, device=dev)  # the tiled kernel's arguments
         self._no_side = wp.ones(1, dtype=float, device=dev)  # without self-contact
