@@ -25,10 +25,10 @@ import numpy as np
 import torch
 
 from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
-from learn.collision_aware.fields import DiffusedBody, canonical_body, field_targets, fit_fields, new_diffused_body
+from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
 from learn.collision_aware.regressor import LatentRegressor, input_normalisation
-from learn.collision_aware.sdf import BodySDF, fit_body_sdf, new_body_sdf, sdf_targets
+from learn.collision_aware.sdf import fit_body_sdf, new_body_sdf, sdf_targets
 from learn.collision_aware.vae import LATENT_SIZE, GarmentVAE, vae_loss
 from learn.common.mesh import uniform_laplacian_torch
 from learn.tailornet.train import (
