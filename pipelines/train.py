@@ -9,6 +9,10 @@ Several GPUs: launch with ``torchrun --nproc-per-node N -m pipelines.cli train .
 stages are spread over the ranks (the K prototypes are independent networks, so
 stage parallelism scales better here than data-parallel DDP on one small MLP) and
 rank 0 assembles the model.
+
+``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
+the canonical body's SDF, the canonical projection of the training frames (cached per shard under
+``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
 """
 from __future__ import annotations
 
