@@ -1,7 +1,7 @@
 """``drape evaluate RUN --data DIR``: predicted against simulated drapes.
 
 For every test split (train_test, test_train, test_test) and every model in RUN
-(tailornet, baseline): mean per-vertex error in mm on unposed displacements (as
+(tailornet, baseline, collision_aware): mean per-vertex error in mm on unposed displacements (as
 TailorNet reports) and on posed vertices, the collision rate (share of garment vertices
 deeper than 1 mm inside the body along the nearest face normal) without and with the
 Laplacian-preserving post-process, and inference ms/frame at batch 1 and batched on
@@ -25,15 +25,16 @@ TEST_SPLITS = ("train_test", "test_train", "test_test")
 
 
 def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
-    from learn.tailornet.train import load_learner
+    from learn.registry import LEARNERS
 
     models = {}
-    for name, file in (("tailornet", "tailornet_model.pt"), ("baseline", "baseline_model.pt")):
-        if (run_dir / file).is_file():
-            models[name] = load_learner(run_dir / file, fingerprint=fingerprint, require_same_manifest=False, device=device)
+    for name, entry in LEARNERS.items():
+        if (run_dir / entry.model_file).is_file():
+            models[name] = entry.load(run_dir / entry.model_file, fingerprint=fingerprint, require_same_manifest=False,
+                                      device=device)
     if not models:
-        raise FileNotFoundError(f"no trained model in {run_dir} (expected tailornet_model.pt or baseline_model.pt; "
-                                "run drape train first)")
+        files = " or ".join(entry.model_file for entry in LEARNERS.values())
+        raise FileNotFoundError(f"no trained model in {run_dir} (expected {files}; run drape train first)")
     return models
 
 

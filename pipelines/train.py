@@ -9,6 +9,10 @@ Several GPUs: launch with ``torchrun --nproc-per-node N -m pipelines.cli train .
 stages are spread over the ranks (the K prototypes are independent networks, so
 stage parallelism scales better here than data-parallel DDP on one small MLP) and
 rank 0 assembles the model.
+
+``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
+the canonical body's SDF, the canonical projection of the training frames (cached per shard under
+``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
 """
 from __future__ import annotations
 
@@ -24,7 +28,7 @@ import yaml
 TRAIN_SPLITS = ("train_train", "train")
 
 
-def _overrides(args: argparse.Namespace) -> dict:
+def _overrides(args: argparse.Namespace, epoch_stages: tuple[str, ...] = ("lf", "hf", "shape_style", "baseline")) -> dict:
     hyper: dict = {}
     if args.config:
         path = Path(args.config)
@@ -36,9 +40,11 @@ def _overrides(args: argparse.Namespace) -> dict:
     if args.epochs is not None:
         if args.epochs < 1:
             raise ValueError(f"--epochs must be >= 1 (got {args.epochs})")
-        for stage in ("lf", "hf", "shape_style", "baseline"):
+        for stage in epoch_stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
     if args.prototypes is not None:
+        if args.learner != "tailornet":
+            raise ValueError(f"--prototypes applies to tailornet only, not {args.learner}")
         hyper.setdefault("model", {})["prototype_count"] = int(args.prototypes)
     return hyper
 
@@ -55,18 +61,19 @@ def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu
 def run(args: argparse.Namespace) -> int:
     from data_manifest.reader import DatasetReader
     from learn.data import DrapeDataset
+    from learn.registry import get_learner
     from learn.tailornet.train import (dataset_fingerprint, fit_baseline, fit_tailornet, frame_arrays_from_dataset,
                                        garment_pose_indices, stages_for_rank)
     from simulate.body import load_body_model
 
-    if args.learner not in ("tailornet", "baseline"):
-        raise ValueError(f"unknown learner {args.learner!r}; expected one of tailornet, baseline")
+    entry = get_learner(args.learner)
+    args.learner = entry.name
     reader = DatasetReader(args.data)
     split = next((s for s in TRAIN_SPLITS if s in reader.splits and reader.num_frames(s) > 0), None)
     if split is None:
         raise ValueError(f"dataset {args.data} has no frames in a training split ({', '.join(TRAIN_SPLITS)}); "
                          f"its splits: {', '.join(f'{s} ({reader.num_frames(s)})' for s in reader.splits)}")
-    hyper = _overrides(args)
+    hyper = _overrides(args, entry.epoch_stages)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     template = reader.template
@@ -77,14 +84,16 @@ def run(args: argparse.Namespace) -> int:
                                         posable_joints=body.pose_joint_indices)
     fingerprint = dataset_fingerprint(args.data, template)
     t0 = time.perf_counter()
-    data = frame_arrays_from_dataset(DrapeDataset(args.data, split))
+    dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet")
+    data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
     hyper.setdefault("model", {})
     # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
     # phenotype vector and our style the CLOTH3D-like parameters, where no prefix is "the most
     # important", so every component is an input unless the config says otherwise.
-    hyper["model"].setdefault("shape_components", int(data.shape.shape[1]))
-    hyper["model"].setdefault("style_components", int(data.style.shape[1]))
+    if args.learner in ("tailornet", "baseline"):
+        hyper["model"].setdefault("shape_components", int(data.shape.shape[1]))
+        hyper["model"].setdefault("style_components", int(data.style.shape[1]))
     if args.learner == "tailornet":
         requested = int(hyper["model"].get("prototype_count", 20))
         if requested > pairs:
@@ -101,8 +110,12 @@ def run(args: argparse.Namespace) -> int:
             fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0, **common)
         if stages is None or "baseline" in stages:
             fit_baseline(data, template["faces"], **common)
-    else:
+    elif args.learner == "baseline":
         fit_baseline(data, template["faces"], **common)
+    else:
+        context = {"body": body, "body_spec": {"backend": body.name, "path": body_spec.get("path")}, "template": template,
+                   "dataset": dataset}
+        entry.fit(data, template["faces"], **common, **{k: context[k] for k in entry.context})
     if rank == 0:
         info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "frames": data.frame_count,
                 "pairs": pairs, "dataset_manifest_sha256": fingerprint.dataset_manifest_sha256,
@@ -115,9 +128,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train a learner (tailornet, baseline) on a dataset",
+    p = sub.add_parser("train", help="train a learner (tailornet, baseline, collision_aware) on a dataset",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("learner", choices=["tailornet", "baseline"], help="what to train (tailornet also trains the baseline)")
+    p.add_argument("learner", choices=["tailornet", "baseline", "collision_aware", "collision-aware"],
+                   help="what to train (tailornet also trains the baseline; collision_aware: seed 002)")
     p.add_argument("--data", required=True, help="dataset directory (from drape generate-dataset)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")

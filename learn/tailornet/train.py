@@ -270,9 +270,13 @@ def add_low_frequency(
     return data
 
 
-def merged_hyperparameters(overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
-    """Defaults updated stage by stage from ``overrides`` (unknown keys raise)."""
-    merged = copy.deepcopy(DEFAULT_HYPERPARAMETERS)
+def merged_hyperparameters(
+    overrides: Mapping[str, Mapping[str, Any]] | None = None,
+    defaults: Mapping[str, Mapping[str, Any]] = DEFAULT_HYPERPARAMETERS,
+) -> dict[str, dict[str, Any]]:
+    """``defaults`` (TailorNet's unless given) updated stage by stage from ``overrides``
+    (unknown stages or keys raise)."""
+    merged = copy.deepcopy(dict(defaults))
     for stage, values in (overrides or {}).items():
         if stage not in merged:
             raise ValueError(f"unknown training stage '{stage}' in overrides; expected one of {sorted(merged)}")

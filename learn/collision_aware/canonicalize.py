@@ -1,0 +1,270 @@
+"""Projection of simulated frames into the canonical space (seed 002, Sec. 4.3, Eq. 9-12).
+
+For a simulated garment M (posed, shape beta, pose theta) the canonical X minimises
+
+    E_rec + w_strain E_strain + w_collision E_collision
+
+- E_rec = mean_v |M_G(X, beta, theta) - M|^2 [m^2] (Eq. 10, :mod:`learn.collision_aware.garment_model`);
+- E_strain = area-weighted mean over triangles of |E|_F^2, E = 1/2 (F^T F - I) the Green-Lagrange
+  strain of the deshaped garment T_G = X + B~s(X, beta) (Eq. 11). Its reference state is the
+  simulated frame itself: the unposing should be as close to an isometry as it can be. A dataset
+  garment has one rest state per style, so the frame is the one reference that is right for
+  every style; it also makes the term zero for a perfect rigid unposing;
+- E_collision = mean_v max(epsilon - SDF(X), 0)^2 [m^2] (Eq. 12 squared, so that it is measured
+  in the same unit as E_rec and its gradient vanishes smoothly at the margin), SDF the canonical
+  body's :class:`learn.collision_aware.sdf.BodySDF`.
+
+Frames are solved as a batch: each step of :func:`project_sequences` takes frame t of every
+sequence (shard) at once. A frame starts from the previous frame's X (the first from the garment
+template), is brought close to E_rec = 0 by the fixed-point unposing
+(:func:`learn.collision_aware.garment_model.unpose_garment`), then refined by Adam on the full
+objective. :func:`project_split` caches the result per shard, keyed by the shard's sha256 and a
+hash of the fields, the SDF and the settings, so a regenerated shard or retrained fields never
+reuse a stale projection.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from learn.collision_aware.fields import DiffusedBody
+from learn.collision_aware.garment_model import pose_garment, unpose_garment
+from learn.collision_aware.sdf import BodySDF, collision_penalty
+
+
+@dataclass(frozen=True)
+class ProjectionSettings:
+    """Settings of the canonical projection.
+
+    steps: Adam steps per frame after the fixed-point start.
+    lr: Adam's initial step [m], decayed geometrically to ``lr * final_lr_fraction``.
+    strain_weight: w_strain (E_strain is dimensionless, E_rec in m^2).
+    collision_weight: w_collision (both in m^2).
+    epsilon_m: collision margin epsilon [m] kept between X and the canonical body.
+    fixed_point_iterations: unposing iterations before the refinement.
+    """
+
+    steps: int = 60
+    lr: float = 1.0e-3
+    final_lr_fraction: float = 0.02
+    strain_weight: float = 1.0e-5
+    collision_weight: float = 10.0
+    epsilon_m: float = 3.0e-3
+    fixed_point_iterations: int = 5
+
+    def __post_init__(self) -> None:
+        for name in ("steps", "fixed_point_iterations"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"projection {name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr", "final_lr_fraction"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"projection {name} must be > 0, got {getattr(self, name)}")
+        for name in ("strain_weight", "collision_weight", "epsilon_m"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"projection {name} must be >= 0, got {getattr(self, name)}")
+
+
+def triangle_reference(reference: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse 2D edge matrices (B, F, 2, 2) and areas [m^2] (B, F) of the reference triangles
+    (B, V, 3) [m], each expressed in an orthonormal frame of its own plane."""
+    a, b, c = (reference[:, faces[:, k]] for k in range(3))  # (B, F, 3) each
+    e1, e2 = b - a, c - a
+    normal = torch.cross(e1, e2, dim=-1)
+    area = 0.5 * torch.linalg.vector_norm(normal, dim=-1)
+    u = e1 / torch.linalg.vector_norm(e1, dim=-1, keepdim=True).clamp_min(1e-12)
+    v = torch.cross(normal, u, dim=-1)
+    v = v / torch.linalg.vector_norm(v, dim=-1, keepdim=True).clamp_min(1e-12)
+    dm = torch.stack([torch.stack([(e1 * u).sum(-1), (e2 * u).sum(-1)], -1),
+                      torch.stack([(e1 * v).sum(-1), (e2 * v).sum(-1)], -1)], -2)  # (B, F, 2, 2)
+    degenerate = area < 1e-14
+    dm = torch.where(degenerate[..., None, None], torch.eye(2, dtype=dm.dtype, device=dm.device), dm)
+    return torch.linalg.inv(dm), torch.where(degenerate, torch.zeros_like(area), area)
+
+
+def green_lagrange_energy(vertices: torch.Tensor, faces: torch.Tensor, dm_inverse: torch.Tensor,
+                          area: torch.Tensor) -> torch.Tensor:
+    """Area-weighted mean of |1/2 (F^T F - I)|_F^2 per frame, (B,); vertices [m] (B, V, 3)."""
+    a, b, c = (vertices[:, faces[:, k]] for k in range(3))
+    ds = torch.stack([b - a, c - a], dim=-1)  # (B, F, 3, 2)
+    deformation = ds @ dm_inverse  # (B, F, 3, 2)
+    strain = 0.5 * (deformation.transpose(-1, -2) @ deformation - torch.eye(2, dtype=ds.dtype, device=ds.device))
+    per_face = (strain ** 2).sum((-1, -2))  # (B, F)
+    return (per_face * area).sum(-1) / area.sum(-1).clamp_min(1e-12)
+
+
+def projection_terms(canonical: torch.Tensor, target: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor,
+                     fields: DiffusedBody, sdf: BodySDF, faces: torch.Tensor, reference: tuple[torch.Tensor, torch.Tensor],
+                     settings: ProjectionSettings) -> dict[str, torch.Tensor]:
+    """Per-frame terms (B,) of the objective: ``reconstruction`` [m^2], ``strain`` (dimensionless),
+    ``collision`` [m^2] and their weighted sum ``objective``."""
+    posed = pose_garment(fields, canonical, shape, transforms)
+    reconstruction = ((posed - target) ** 2).sum(-1).mean(-1)
+    shaped = canonical + fields.shape_offset(canonical, shape)
+    strain = green_lagrange_energy(shaped, faces, *reference)
+    collision = (collision_penalty(sdf(canonical), settings.epsilon_m) ** 2).mean(-1)
+    objective = reconstruction + settings.strain_weight * strain + settings.collision_weight * collision
+    return {"reconstruction": reconstruction, "strain": strain, "collision": collision, "objective": objective}
+
+
+def project_frames(target: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor, *, fields: DiffusedBody,
+                   sdf: BodySDF, faces: torch.Tensor, initial: torch.Tensor,
+                   settings: ProjectionSettings = ProjectionSettings()) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Canonical X of a batch of frames.
+
+    target: simulated garments [m] (B, V, 3) (without any root translation); shape (B, S);
+    transforms: the body's skinning transforms (B, J, 4, 4); initial: starting X [m] (B, V, 3).
+    Returns X (B, V, 3) and the terms of :func:`projection_terms` at the start (``*_start``, after
+    the fixed point) and at the end, each (B,).
+    """
+    frozen = [p for p in (*fields.parameters(), *sdf.parameters()) if p.requires_grad]
+    for p in frozen:
+        p.requires_grad_(False)
+    try:
+        with torch.no_grad():
+            x0 = unpose_garment(fields, target, shape, transforms, initial=initial,
+                                iterations=settings.fixed_point_iterations)
+            reference = triangle_reference(target, faces)
+        x = x0.clone().requires_grad_(True)
+        optimizer = torch.optim.Adam([x], lr=settings.lr)
+        decay = settings.final_lr_fraction ** (1.0 / max(settings.steps, 1))
+        scheduler = torch.optim.lr_scheduler.ExponentialLR(optimizer, decay)
+        start = None
+        for _ in range(settings.steps):
+            terms = projection_terms(x, target, shape, transforms, fields, sdf, faces, reference, settings)
+            if start is None:
+                start = {k: v.detach() for k, v in terms.items()}
+            optimizer.zero_grad(set_to_none=True)
+            terms["objective"].sum().backward()  # frames are independent: the sum's gradient is each frame's
+            optimizer.step()
+            scheduler.step()
+        with torch.no_grad():
+            end = projection_terms(x, target, shape, transforms, fields, sdf, faces, reference, settings)
+        start = start or end
+    finally:
+        for p in frozen:
+            p.requires_grad_(True)
+    info = {f"{k}_start": v for k, v in start.items()}
+    info.update({k: v.detach() for k, v in end.items()})
+    return x.detach(), info
+
+
+def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fields: DiffusedBody, sdf: BodySDF,
+                      faces: np.ndarray, template: np.ndarray, settings: ProjectionSettings = ProjectionSettings(),
+                      device: str = "cpu") -> tuple[list[np.ndarray], dict[str, float]]:
+    """Canonical X of every frame of several sequences, the sequences batched together.
+
+    sequences: each ``{"target": (F_i, V, 3) [m], "pose": (F_i, P), "shape": (S,)}``, frames in
+    visiting order; template: the garment's rest vertices [m] (V, 3), the first frame's start.
+    Returns X per sequence (F_i, V, 3) float32 and the mean terms over all frames (start and end).
+    """
+    if not sequences:
+        return [], {}
+    faces_t = torch.as_tensor(np.asarray(faces, np.int64), device=device)
+    body_on = body.on_device(device)
+    out = [np.empty_like(np.asarray(s["target"], np.float32)) for s in sequences]
+    previous = torch.as_tensor(np.asarray(template, np.float32), device=device)[None].repeat(len(sequences), 1, 1)
+    totals: dict[str, float] = {}
+    frames_done = 0
+    for t in range(max(len(s["target"]) for s in sequences)):
+        live = [i for i, s in enumerate(sequences) if t < len(s["target"])]
+        target = torch.as_tensor(np.stack([sequences[i]["target"][t] for i in live]), dtype=torch.float32, device=device)
+        pose = torch.as_tensor(np.stack([sequences[i]["pose"][t] for i in live]), dtype=torch.float32, device=device)
+        shape = torch.as_tensor(np.stack([sequences[i]["shape"] for i in live]), dtype=torch.float32, device=device)
+        with torch.no_grad():
+            transforms = body_on.pose_torch(shape, pose).skinning_transforms.to(device)
+        x, info = project_frames(target, shape, transforms, fields=fields, sdf=sdf, faces=faces_t,
+                                 initial=previous[live], settings=settings)
+        previous[live] = x
+        for row, i in enumerate(live):
+            out[i][t] = x[row].cpu().numpy()
+        for key, value in info.items():
+            totals[key] = totals.get(key, 0.0) + float(value.sum())
+        frames_done += len(live)
+    return out, {k: v / frames_done for k, v in totals.items()}
+
+
+def projection_key(fields: DiffusedBody, sdf: BodySDF, template: np.ndarray, settings: ProjectionSettings) -> str:
+    """sha256 of what a projection depends on besides the shard: the fields' and the SDF's
+    weights, the garment template's rest vertices and the settings."""
+    digest = hashlib.sha256()
+    for module in (fields, sdf):
+        buffer = io.BytesIO()
+        for name, value in sorted(module.state_dict().items()):
+            buffer.write(name.encode())
+            buffer.write(value.detach().cpu().contiguous().numpy().tobytes())
+        digest.update(buffer.getvalue())
+    digest.update(np.ascontiguousarray(template, np.float32).tobytes())
+    digest.update(json.dumps(asdict(settings), sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def _save_atomic(path: Path, array: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as handle:
+        np.save(handle, array)
+    os.replace(tmp, path)
+
+
+def project_split(reader: Any, split: str, frames: Any, *, body: Any, fields: DiffusedBody, sdf: BodySDF,
+                  template: dict[str, np.ndarray], settings: ProjectionSettings = ProjectionSettings(),
+                  cache_dir: str | Path | None = None, batch_sequences: int = 64, device: str = "cpu",
+                  log: Any = None) -> tuple[np.ndarray, dict[str, float]]:
+    """Canonical X (N, V, 3) of every frame of ``split``, in ``reader.index(split)`` order.
+
+    frames: the split's ``FrameArrays`` (posed vertices, pose, shape, optional translation).
+    Each shard (a task: one shape and style through its poses, rows in visiting order) is one
+    sequence; projections are read from and written to
+    ``<cache_dir or reader.root/cache/canonical>/<task>-<shard sha256[:16]>-<key[:16]>.npy``.
+    Returns X and the mean projection terms of the shards computed in this call (empty when all
+    came from the cache).
+    """
+    if frames.posed_vertices is None:
+        raise ValueError(f"split {split!r} frames carry no posed_vertices; the projection needs the simulated garments")
+    index = reader.index(split)  # (N, 2): shard number, row
+    if index.shape[0] != frames.frame_count:
+        raise ValueError(f"split {split!r} has {index.shape[0]} frames in the reader but {frames.frame_count} given")
+    cache_dir = Path(cache_dir) if cache_dir is not None else Path(reader.root) / "cache" / "canonical"
+    key = projection_key(fields, sdf, template["rest_vertices"], settings)[:16]
+    out = np.empty(frames.displacements.shape, np.float32)
+    pending: list[tuple[Path, np.ndarray]] = []
+    for shard_no in np.unique(index[:, 0]):
+        entry = reader.shard_entries[int(shard_no)]
+        rows = np.flatnonzero(index[:, 0] == shard_no)
+        rows = rows[np.argsort(index[rows, 1], kind="stable")]
+        path = cache_dir / f"{entry['task_id']}-{entry['sha256'][:16]}-{key}.npy"
+        if path.is_file():
+            out[rows] = np.load(path)
+        else:
+            pending.append((path, rows))
+    totals: dict[str, float] = {}
+    done = 0
+    for begin in range(0, len(pending), batch_sequences):
+        group = pending[begin:begin + batch_sequences]
+        sequences = []
+        for _, rows in group:
+            target = frames.posed_vertices[rows]
+            if frames.translation is not None:
+                target = target - frames.translation[rows][:, None, :]
+            sequences.append({"target": target, "pose": frames.pose[rows], "shape": frames.shape[rows[0]]})
+        results, info = project_sequences(sequences, body=body, fields=fields, sdf=sdf, faces=template["faces"],
+                                          template=template["rest_vertices"], settings=settings, device=device)
+        count = sum(len(rows) for _, rows in group)
+        for (path, rows), x in zip(group, results):
+            out[rows] = x
+            _save_atomic(path, x)
+        for k, v in info.items():
+            totals[k] = totals.get(k, 0.0) + v * count
+        done += count
+        if log is not None:
+            log(f"projected {begin + len(group)}/{len(pending)} shards to the canonical space")
+    return out, {k: v / done for k, v in totals.items()} if done else {}

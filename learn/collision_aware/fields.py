@@ -1,0 +1,164 @@
+"""The diffused body model of seed 002 (Sec. 4.1): skinning weights W~(p) and shape blendshape
+offsets B~s(p, beta) defined at any point p of the canonical space, distilled into small MLPs.
+
+Targets come from :mod:`learn.collision_aware.diffusion` at points around the canonical body
+(``beta`` = the body model's default shape, ``pose`` = 0): the diffused body skinning weights, and
+for random shapes the diffused offset ``rest(beta) - rest(beta_0)`` of the shaped rest body. The
+shape field is conditioned on beta rather than split into linear blendshapes because anny's shape
+parameters (phenotypes) reach the vertices through a non-linear blend of its own blendshapes; a
+linear backend (SMPL) is covered the same way.
+
+Pose blendshapes: anny has no pose correctives (``BodyModel._pose_correctives`` is None), so its
+diffused pose field B~p is identically zero and there is nothing to distil. The consequence for
+the canonical garment: every pose-dependent deformation that linear blend skinning with the
+diffused weights does not explain (wrinkles at the elbow, bulges under the arm) stays in the
+canonical garment X and the regressor learns it as a function of pose, where with SMPL part of it
+would be carried by the body's correctives. A backend with correctives would add a third field
+B~p(p, pose) distilled from ``D @ correctives(pose)`` like the shape field; not built here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from learn.collision_aware.body_samples import points_near_body
+from learn.collision_aware.diffusion import DEFAULT_SAMPLES, diffusion_operator
+from learn.collision_aware.field_mlp import FieldMLP
+
+
+class DiffusedBody(nn.Module):
+    """Distilled diffused fields of one body model.
+
+    Args:
+        joint_count: J, skinning weights per point.
+        shape_default: the canonical shape beta_0, (S,).
+        shape_scale: scale of each shape parameter for the network input, (S,) (half its range).
+        hidden_size, layers, frequencies: of each :class:`FieldMLP`.
+        center, scale: region of interest [m] (the canonical body's bounding box).
+    """
+
+    def __init__(self, joint_count: int, shape_default: list[float], shape_scale: list[float], *,
+                 hidden_size: int = 128, layers: int = 3, frequencies: int = 4,
+                 center: list[float] = (0.0, 0.0, 0.0), scale: float = 1.0) -> None:
+        super().__init__()
+        if len(shape_default) != len(shape_scale):
+            raise ValueError(f"shape_default ({len(shape_default)}) and shape_scale ({len(shape_scale)}) differ in length")
+        self.config: dict[str, Any] = {
+            "joint_count": int(joint_count), "shape_default": [float(x) for x in shape_default],
+            "shape_scale": [float(x) for x in shape_scale], "hidden_size": int(hidden_size), "layers": int(layers),
+            "frequencies": int(frequencies), "center": [float(c) for c in center], "scale": float(scale),
+        }
+        net = dict(hidden_size=hidden_size, layers=layers, frequencies=frequencies, center=center, scale=scale)
+        self.weights_net = FieldMLP(int(joint_count), **net)
+        self.shape_net = FieldMLP(3, extra_features=len(shape_default), **net)
+        self.register_buffer("shape_default", torch.tensor(self.config["shape_default"], dtype=torch.float32))
+        self.register_buffer("shape_scale", torch.tensor(self.config["shape_scale"], dtype=torch.float32))
+
+    @property
+    def shape_size(self) -> int:
+        return len(self.config["shape_default"])
+
+    def skinning_weights(self, points: torch.Tensor) -> torch.Tensor:
+        """W~(p): points [m] (..., 3) -> weights (..., J), non-negative, summing to 1."""
+        return torch.softmax(self.weights_net(points), dim=-1)
+
+    def shape_offset(self, points: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        """B~s(p, beta): points [m] (B, N, 3), shape (B, S) -> offsets [m] (B, N, 3); zero at beta_0."""
+        if shape.ndim != 2 or shape.shape[-1] != self.shape_size:
+            raise ValueError(f"shape must have shape (B, {self.shape_size}), got {tuple(shape.shape)}")
+        code = ((shape - self.shape_default) / self.shape_scale)[:, None, :]  # (B, 1, S)
+        neutral = torch.zeros_like(code)
+        return self.shape_net(points, code) - self.shape_net(points, neutral)
+
+
+@dataclass
+class FieldTargets:
+    """Distillation data: points [m] (N, 3); diffused skinning weights (N, J); shapes (K, S) and
+    diffused shape offsets [m] (K, N, 3) of each."""
+
+    points: np.ndarray
+    weights: np.ndarray
+    shapes: np.ndarray
+    offsets: np.ndarray
+
+
+def canonical_body(body: Any) -> np.ndarray:
+    """Rest vertices [m] of the canonical body (default shape, pose 0), (Vb, 3)."""
+    vertices, _ = body.rest(np.asarray(body.shape_default, np.float32))
+    return vertices[0]
+
+
+def field_targets(body: Any, *, point_count: int = 20000, shape_count: int = 32, samples: int = DEFAULT_SAMPLES,
+                  spread: float = 1.0, extra_points: np.ndarray | None = None, seed: int = 0,
+                  warp_device: str | None = None) -> FieldTargets:
+    """Diffused skinning weights and shape offsets at points around the canonical body.
+
+    ``extra_points`` [m] (M, 3) (e.g. the garment template) are added to the sampled points;
+    shapes are drawn uniformly within the body model's shape ranges.
+    """
+    rest = canonical_body(body)
+    points = points_near_body(rest, body.faces, point_count, seed=seed)
+    if extra_points is not None:
+        points = np.concatenate([points, np.asarray(extra_points, np.float32).reshape(-1, 3)])
+    operator = diffusion_operator(points, rest, body.faces, samples=samples, spread=spread, seed=seed + 1,
+                                  device=warp_device)  # (N, Vb)
+    weights = operator @ np.asarray(body.skinning_weights, np.float64)  # (N, J)
+    rng = np.random.default_rng(seed + 2)
+    ranges = np.asarray(body.shape_ranges, np.float64)
+    shapes = rng.uniform(ranges[:, 0], ranges[:, 1], size=(shape_count, ranges.shape[0])).astype(np.float32)
+    shaped, _ = body.rest(shapes)  # (K, Vb, 3)
+    offsets = np.stack([operator @ (shaped[k].astype(np.float64) - rest) for k in range(shape_count)])  # (K, N, 3)
+    return FieldTargets(points.astype(np.float32), weights.astype(np.float32), shapes, offsets.astype(np.float32))
+
+
+def new_diffused_body(body: Any, *, hidden_size: int, layers: int, frequencies: int) -> DiffusedBody:
+    """Untrained fields sized and scaled for ``body``'s canonical rest mesh."""
+    rest = canonical_body(body)
+    low, high = rest.min(0), rest.max(0)
+    ranges = np.asarray(body.shape_ranges, np.float64)
+    return DiffusedBody(body.joint_count, np.asarray(body.shape_default).tolist(),
+                        np.maximum(0.5 * (ranges[:, 1] - ranges[:, 0]), 1e-6).tolist(), hidden_size=hidden_size,
+                        layers=layers, frequencies=frequencies, center=(0.5 * (low + high)).tolist(),
+                        scale=float(0.5 * (high - low).max()) + 0.2)
+
+
+def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Path,
+               hyperparameters: dict[str, Any], fingerprint: Any = None, device: str = "cpu", seed: int = 0,
+               progress: bool = True) -> DiffusedBody:
+    """Distil ``targets`` into ``fields`` (stage ``fields``): per batch of points, L1 of the
+    weights (summed over joints) plus L1 of the shape offset [m] for one random shape per point."""
+    from learn.tailornet.train import run_epochs
+
+    points = torch.as_tensor(targets.points, device=device)
+    weights = torch.as_tensor(targets.weights, device=device)
+    shapes = torch.as_tensor(targets.shapes, device=device)
+    offsets = torch.as_tensor(targets.offsets, device=device)
+    count = points.shape[0]
+    batch_size = int(hyperparameters["batch_size"])
+
+    def epoch_fn(net: DiffusedBody, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        order = torch.randperm(count, generator=generator).to(device)
+        which = torch.randint(shapes.shape[0], (count,), generator=generator).to(device)
+        total = torch.zeros((), device=device)
+        for begin in range(0, count, batch_size):
+            batch = order[begin:begin + batch_size]
+            k = which[begin:begin + batch_size]
+            p = points[batch][None]  # (1, b, 3)
+            weight_loss = (net.skinning_weights(p)[0] - weights[batch]).abs().sum(-1).mean()
+            predicted = net.shape_offset(p.transpose(0, 1), shapes[k])[:, 0]  # (b, 3): one shape per point
+            offset_loss = (predicted - offsets[k, batch]).abs().sum(-1).mean()
+            loss = weight_loss + offset_loss
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += loss.detach() * batch.numel()
+        return float(total) / count
+
+    return run_epochs("fields", fields, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters,
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)

@@ -1,0 +1,275 @@
+"""Training of the collision-aware learner (``drape train collision_aware``), stage by stage.
+
+1. ``fields``: diffused skinning weights and shape offsets around the canonical body, distilled
+   (:mod:`learn.collision_aware.fields`);
+2. ``sdf``: the canonical body's signed-distance MLP (:mod:`learn.collision_aware.sdf`);
+3. ``projection``: every training frame projected to the canonical space, cached per shard
+   (:mod:`learn.collision_aware.canonicalize`); mean objective terms go to ``projection.json``;
+4. ``vae``: the garment VAE with the self-supervised collision loss (:mod:`learn.collision_aware.vae`);
+5. ``regressor``: (pose, shape, style) -> latent mean of each training frame.
+
+Each network stage runs through ``learn.tailornet.train.run_epochs`` (resumable checkpoints,
+``<stage>_loss.csv``, dataset fingerprint checks); a finished stage is loaded, not retrained.
+The assembled model is saved as ``collision_aware_model.pt``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import fields as dataclass_fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
+from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
+from learn.collision_aware.model import CollisionAwareModel
+from learn.collision_aware.regressor import LatentRegressor, input_normalisation
+from learn.collision_aware.sdf import fit_body_sdf, new_body_sdf, sdf_targets
+from learn.collision_aware.vae import LATENT_SIZE, GarmentVAE, vae_loss
+from learn.common.mesh import uniform_laplacian_torch
+from learn.tailornet.train import (
+    DatasetFingerprint,
+    FrameArrays,
+    check_fingerprint,
+    load_checkpoint,
+    merged_hyperparameters,
+    run_epochs,
+    save_learner,
+)
+
+MODEL_FILE = "collision_aware_model.pt"
+LEARNER = "collision_aware"
+#: Stages whose ``epochs`` ``drape train --epochs`` sets.
+EPOCH_STAGES = ("fields", "sdf", "vae", "regressor")
+
+_PROJECTION_DEFAULTS = {f.name: f.default for f in dataclass_fields(ProjectionSettings)}
+
+DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    "fields": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
+               "frequencies": 4, "points": 50000, "shapes": 32, "samples": 64, "spread": 1.0},
+    "sdf": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
+            "frequencies": 6, "points": 100000, "near_weight": 4.0},
+    "projection": {**_PROJECTION_DEFAULTS, "batch_sequences": 64},
+    "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
+            "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 10.0, "random_collision": 1.0, "kl": 1e-4,
+            "epsilon_m": 2e-3, "random_samples": 32},
+    "regressor": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300, "hidden_size": 256,
+                  "dropout": 0.0},
+    "model": {"checkpoint_interval_s": 60.0},
+}
+
+
+def _epoch_settings(stage: Mapping[str, Any], model: Mapping[str, Any]) -> dict[str, Any]:
+    return {**dict(stage), "checkpoint_interval_s": float(model["checkpoint_interval_s"])}
+
+
+def _finished(module: torch.nn.Module, run_dir: Path, stage: str, fingerprint: DatasetFingerprint | None,
+              device: str) -> bool:
+    """Load a stage finished in an earlier call into ``module``; False when it has to be trained."""
+    if not (run_dir / f"{stage}.done").is_file() or not (run_dir / f"{stage}.pt").is_file():
+        return False
+    checkpoint = load_checkpoint(run_dir / f"{stage}.pt", map_location=device)
+    check_fingerprint(checkpoint.get("fingerprint"), fingerprint, source=str(run_dir / f"{stage}.pt"))
+    if checkpoint["model_config"] != module.config:
+        raise ValueError(f"{run_dir / (stage + '.pt')} holds a {stage} configured as {checkpoint['model_config']}, "
+                         f"not {module.config}: use a new run directory for a new configuration")
+    module.load_state_dict(checkpoint["model_state"])
+    module.to(device).eval()
+    return True
+
+
+def _frozen(module: torch.nn.Module) -> torch.nn.Module:
+    for p in module.parameters():
+        p.requires_grad_(False)
+    return module.eval()
+
+
+def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: str | Path,
+              hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None, device: str = "cpu",
+              seed: int = 0, progress: bool = True, checkpoint_interval_s: float = 60.0) -> GarmentVAE:
+    """Fit the garment VAE (stage ``vae``) to canonical garments [m] (N, V, 3) on ``faces``;
+    ``sdf``: points (..., 3) -> signed distance of the canonical body [m] (frozen)."""
+    hyper = dict(hyperparameters)
+    x = torch.as_tensor(np.asarray(canonical, np.float32), device=device)
+    if x.ndim != 3 or x.shape[0] == 0:
+        raise ValueError(f"canonical garments must have shape (N, V, 3) with N >= 1, got {tuple(x.shape)}")
+    mean = x.mean(0)
+    scale = float((x - mean).std()) or 1e-3
+    torch.manual_seed(seed)
+    vae = GarmentVAE(x.shape[1], mean.cpu().numpy(), max(scale, 1e-3), latent_size=int(hyper["latent_size"]),
+                     hidden_size=int(hyper["hidden_size"]))
+    laplacian = uniform_laplacian_torch(faces, x.shape[1], boundary_aware=False, device=device)
+    weights = {k: float(hyper[k]) for k in ("laplacian", "collision", "random_collision", "kl")}
+    batch_size = int(hyper["batch_size"])
+    log_rows: list[dict[str, float]] = []
+
+    def epoch_fn(net: GarmentVAE, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        order = torch.randperm(x.shape[0], generator=generator).to(device)
+        sums: dict[str, float] = {}
+        for begin in range(0, x.shape[0], batch_size):
+            batch = order[begin:begin + batch_size]
+            terms = vae_loss(net, x[batch], laplacian=laplacian, sdf=sdf, weights=weights,
+                             epsilon_m=float(hyper["epsilon_m"]), random_samples=int(hyper["random_samples"]))
+            optimizer.zero_grad(set_to_none=True)
+            terms["loss"].backward()
+            optimizer.step()
+            for k, v in terms.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach()) * batch.numel()
+        log_rows.append({k: v / x.shape[0] for k, v in sums.items()})
+        return log_rows[-1]["reconstruction"]
+
+    vae = run_epochs("vae", vae, epoch_fn, run_dir=run_dir,
+                     hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
+                     fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+    if log_rows:
+        (Path(run_dir) / "vae_terms.json").write_text(json.dumps(log_rows[-1], indent=2))
+    return vae
+
+
+def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndarray, *, run_dir: str | Path,
+                    hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None,
+                    device: str = "cpu", seed: int = 0, progress: bool = True,
+                    checkpoint_interval_s: float = 60.0) -> LatentRegressor:
+    """Fit R(pose, shape, style) -> latent (N, L) with L1 (stage ``regressor``)."""
+    hyper = dict(hyperparameters)
+    mean, scale = input_normalisation(data.pose, data.shape, data.style, pose_indices)
+    torch.manual_seed(seed)
+    regressor = LatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
+                                latent.shape[1], hidden_size=int(hyper["hidden_size"]), dropout=float(hyper["dropout"]),
+                                input_mean=mean, input_scale=scale)
+    pose, shape, style = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in (data.pose, data.shape, data.style))
+    target = torch.as_tensor(latent, dtype=torch.float32, device=device)
+    batch_size = int(hyper["batch_size"])
+
+    def epoch_fn(net: LatentRegressor, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        order = torch.randperm(target.shape[0], generator=generator).to(device)
+        total = torch.zeros((), device=device)
+        for begin in range(0, target.shape[0], batch_size):
+            batch = order[begin:begin + batch_size]
+            loss = (net(pose[batch], shape[batch], style[batch]) - target[batch]).abs().sum(-1).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += loss.detach() * batch.numel()
+        return float(total) / target.shape[0]
+
+    return run_epochs("regressor", regressor, epoch_fn, run_dir=run_dir,
+                      hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+
+
+def fit_collision_aware(
+    data: FrameArrays,
+    faces: np.ndarray,
+    *,
+    run_dir: str | Path,
+    pose_indices: np.ndarray | None = None,
+    canonical_pose: np.ndarray | None = None,
+    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
+    fingerprint: DatasetFingerprint | None = None,
+    device: str = "cpu",
+    seed: int = 0,
+    progress: bool = True,
+    body: Any = None,
+    body_spec: Mapping[str, Any] | None = None,
+    template: Mapping[str, np.ndarray] | None = None,
+    dataset: Any = None,
+    log: Any = print,
+) -> CollisionAwareModel:
+    """Train every stage on ``data`` (training frames with ``posed_vertices``) and save the model.
+
+    body: the dataset's body model (``simulate.body``); body_spec: its ``{"backend", "path"}`` for
+    loading the saved model (default: the body's backend, no path). template: the dataset's
+    garment template (faces, rest_vertices, skinning_weights, body_vertex_index). dataset: a
+    ``learn.data.DrapeDataset`` of ``data``'s split; with it frames are grouped into their shards
+    (sequences) and projections are cached per shard sha256, without it frames are grouped by
+    style-shape pair and not cached. ``canonical_pose`` is unused: the canonical space is the
+    body model's pose 0 and default shape.
+    """
+    del canonical_pose
+    if body is None or template is None:
+        raise ValueError("fit_collision_aware needs body= (the dataset's body model) and template= "
+                         "(the dataset's garment template)")
+    if data.posed_vertices is None:
+        raise ValueError("fit_collision_aware needs data.posed_vertices: the canonical projection fits the simulated garments")
+    hyper = merged_hyperparameters(hyperparameters, DEFAULT_HYPERPARAMETERS)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if pose_indices is None:
+        pose_indices = np.arange(data.pose.shape[1])
+    interval = float(hyper["model"]["checkpoint_interval_s"])
+    common = dict(run_dir=run_dir, fingerprint=fingerprint, device=device, progress=progress)
+    template = dict(template)
+    rest = canonical_body(body)
+
+    hf = hyper["fields"]
+    torch.manual_seed(seed)
+    fields = new_diffused_body(body, hidden_size=int(hf["hidden_size"]), layers=int(hf["layers"]),
+                               frequencies=int(hf["frequencies"]))
+    if not _finished(fields, run_dir, "fields", fingerprint, device):
+        targets = field_targets(body, point_count=int(hf["points"]), shape_count=int(hf["shapes"]),
+                                samples=int(hf["samples"]), spread=float(hf["spread"]),
+                                extra_points=template["rest_vertices"], seed=seed)
+        fields = fit_fields(fields, targets, hyperparameters=_epoch_settings(hf, hyper["model"]), seed=seed, **common)
+    fields = _frozen(fields.to(device))
+
+    hs = hyper["sdf"]
+    torch.manual_seed(seed + 1)
+    sdf = new_body_sdf(rest, hidden_size=int(hs["hidden_size"]), layers=int(hs["layers"]),
+                       frequencies=int(hs["frequencies"]))
+    if not _finished(sdf, run_dir, "sdf", fingerprint, device):
+        points, distance = sdf_targets(rest, body.faces, int(hs["points"]), seed=seed + 1,
+                                       extra_points=template["rest_vertices"])
+        sdf = fit_body_sdf(sdf, points, distance, hyperparameters=_epoch_settings(hs, hyper["model"]), seed=seed + 1,
+                           **common)
+    sdf = _frozen(sdf.to(device))
+
+    hp = dict(hyper["projection"])
+    batch_sequences = int(hp.pop("batch_sequences"))
+    settings = ProjectionSettings(**hp)
+    if dataset is not None:
+        canonical, info = project_split(dataset.reader, dataset.split, data, body=body, fields=fields, sdf=sdf,
+                                        template=template, settings=settings, batch_sequences=batch_sequences,
+                                        device=device, log=log if progress else None)
+    else:
+        groups = [np.flatnonzero(data.pair_id == p) for p in np.unique(data.pair_id)]
+        sequences = [{"target": data.posed_vertices[g] - (0.0 if data.translation is None else data.translation[g][:, None]),
+                      "pose": data.pose[g], "shape": data.shape[g[0]]} for g in groups]
+        results, info = project_sequences(sequences, body=body, fields=fields, sdf=sdf, faces=template["faces"],
+                                          template=template["rest_vertices"], settings=settings, device=device)
+        canonical = np.empty(data.displacements.shape, np.float32)
+        for g, x in zip(groups, results):
+            canonical[g] = x
+    if info:
+        (run_dir / "projection.json").write_text(json.dumps(info, indent=2))
+
+    vae = train_vae(canonical, faces, sdf, hyperparameters=hyper["vae"], seed=seed + 2, checkpoint_interval_s=interval,
+                    **common)
+    vae = _frozen(vae)
+    with torch.no_grad():
+        latent = torch.cat([vae.encode(torch.as_tensor(canonical[i:i + 256], device=device))[0]
+                            for i in range(0, canonical.shape[0], 256)]).cpu().numpy()
+    regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
+                                checkpoint_interval_s=interval, **common)
+    spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
+    model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
+    save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})
+    return model
+
+
+def load_collision_aware(path: str | Path, *, fingerprint: DatasetFingerprint | None = None,
+                         require_same_manifest: bool = True, device: str = "cpu", body: Any = None) -> CollisionAwareModel:
+    """Load a model saved by :func:`fit_collision_aware`, checking the dataset fingerprint; the
+    body model named in its configuration is loaded on first use unless ``body`` is given."""
+    checkpoint = load_checkpoint(path, map_location=device)
+    check_fingerprint(checkpoint.get("fingerprint"), fingerprint, source=str(path),
+                      require_same_manifest=require_same_manifest)
+    if checkpoint.get("learner") != LEARNER:
+        raise ValueError(f"{path} holds learner '{checkpoint.get('learner')}', expected '{LEARNER}'")
+    model = CollisionAwareModel.from_config(checkpoint["model_config"], body=body)
+    model.load_state_dict(checkpoint["model_state"])
+    return model.to(device).eval()

@@ -1,0 +1,220 @@
+"""Collision-aware learner (seed 002): diffused fields, the garment model's inverse, the canonical
+projection, the VAE's self-supervised collision term, and the CLI path on a tiny anny dataset."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+import yaml
+
+from learn.collision_aware.canonicalize import ProjectionSettings, project_frames
+from learn.collision_aware.diffusion import closest_surface_points, diffusion_operator, interpolation_matrix
+from learn.collision_aware.fields import DiffusedBody
+from learn.collision_aware.garment_model import pose_garment, unpose_garment
+from learn.collision_aware.vae import GarmentVAE
+from learn.common.mesh import grid_mesh
+from simulate.body.kinematics import axis_angle_to_matrix
+
+ATOL_SURFACE = 1e-5  # diffused value on the surface vs the surface value (values in [0, 1])
+MAX_STEP_OFF_SURFACE = 0.3  # largest change between 1 cm steps across the 8 cm gap (a linear ramp: 0.125; closest point: 1)
+ATOL_ROUND_TRIP_M = 1e-5
+COLLISION_DEPTH_M = 1e-3
+
+
+class SphereSDF(torch.nn.Module):
+    """Exact SDF of a sphere [m]: the canonical body of the synthetic cases."""
+
+    def __init__(self, radius: float = 0.2) -> None:
+        super().__init__()
+        self.radius = radius
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        return torch.linalg.vector_norm(points, dim=-1) - self.radius
+
+
+def two_boxes() -> trimesh.Trimesh:
+    """Two 10 cm boxes 10 cm apart along x (a pair of legs): the medial plane is x = 0."""
+    a = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    a.apply_translation((-0.1, 0.0, 0.0))
+    b = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    b.apply_translation((0.1, 0.0, 0.0))
+    return trimesh.util.concatenate([a, b])
+
+
+def test_diffused_field_is_the_surface_value_on_the_surface_and_smooth_off_it() -> None:
+    mesh = two_boxes()
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    rng = np.random.default_rng(0)
+    values = rng.random((len(vertices), 2))
+    on_surface = trimesh.sample.sample_surface(mesh, 200, seed=1)[0]
+    face, bary, distance = closest_surface_points(on_surface, vertices, faces)
+    assert distance.max() < 1e-6, f"surface samples {distance.max()} m off the surface"
+    exact = interpolation_matrix(face, bary, faces, len(vertices)) @ values
+    diffused = diffusion_operator(on_surface, vertices, faces, samples=32, seed=2) @ values
+    assert np.abs(diffused - exact).max() < ATOL_SURFACE, f"on-surface error {np.abs(diffused - exact).max()}"
+
+    side = np.where(vertices[:, 0] > 0, 1.0, 0.0)[:, None]  # 0 on the left box, 1 on the right one
+    line = np.stack([np.linspace(-0.04, 0.04, 9), np.zeros(9), np.zeros(9)], axis=1)  # across the gap
+    nearest = interpolation_matrix(*closest_surface_points(line, vertices, faces)[:2], faces, len(vertices)) @ side
+    field = diffusion_operator(line, vertices, faces, samples=1024, seed=3) @ side
+    assert np.abs(np.diff(nearest[:, 0])).max() == pytest.approx(1.0), "the closest-point field should jump"
+    steps = np.abs(np.diff(field[:, 0]))
+    assert steps.max() < MAX_STEP_OFF_SURFACE, f"diffused field jumps by {steps.max():.3f} across the medial plane"
+    assert field[0, 0] < 0.5 < field[-1, 0], f"diffused field does not follow the sides: {field[:, 0]}"
+
+
+def _rotations(batch: int, joints: int, scale: float, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    transforms = torch.eye(4).repeat(batch, joints, 1, 1)
+    transforms[..., :3, :3] = axis_angle_to_matrix(scale * torch.randn(batch, joints, 3, generator=g))
+    transforms[..., :3, 3] = 0.02 * torch.randn(batch, joints, 3, generator=g)
+    return transforms
+
+
+def _small_fields(seed: int = 0) -> DiffusedBody:
+    torch.manual_seed(seed)
+    return DiffusedBody(3, [0.5], [0.5], hidden_size=16, layers=2, frequencies=1, scale=0.5)
+
+
+def test_canonical_posed_canonical_round_trip() -> None:
+    fields = _small_fields()
+    g = torch.Generator().manual_seed(1)
+    canonical = 0.2 * torch.randn(2, 50, 3, generator=g)
+    shape = torch.tensor([[0.7], [0.3]])
+    transforms = _rotations(2, 3, 0.3, seed=2)
+    with torch.no_grad():
+        posed = pose_garment(fields, canonical, shape, transforms)
+        back = unpose_garment(fields, posed, shape, transforms, initial=canonical + 0.01 * torch.randn(2, 50, 3, generator=g),
+                              iterations=30)
+    error = (back - canonical).abs().max().item()
+    assert error < ATOL_ROUND_TRIP_M, f"canonical -> posed -> canonical differs by {error} m"
+    assert (posed - canonical).abs().max() > 0.01, "the test transforms should move the garment"
+
+
+def _patch_on_sphere(radius: float, offsets: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
+    """A 10 x 10 grid patch over the sphere's +z cap at ``radius + offsets`` [m] (B, 100)."""
+    grid, faces = grid_mesh(10, 10, spacing=0.025)
+    theta = (grid[:, 0] - grid[:, 0].mean()) / radius
+    phi = (grid[:, 1] - grid[:, 1].mean()) / radius
+    direction = np.stack([np.sin(theta) * np.cos(phi), np.sin(phi), np.cos(theta) * np.cos(phi)], axis=1)
+    points = (radius + np.asarray(offsets)[..., None]) * direction
+    return torch.as_tensor(points, dtype=torch.float32), faces
+
+
+def test_projection_reduces_its_objective_and_clears_the_body() -> None:
+    sdf = SphereSDF(0.2)
+    grid_offsets = np.linspace(-0.004, 0.008, 100)  # some vertices up to 4 mm inside the sphere
+    truth, faces = _patch_on_sphere(0.2, np.stack([grid_offsets, grid_offsets[::-1]]))
+    fields = _small_fields(3)
+    shape = torch.tensor([[0.6], [0.4]])
+    transforms = _rotations(2, 3, 0.2, seed=4)
+    with torch.no_grad():
+        target = pose_garment(fields, truth, shape, transforms)
+    settings = ProjectionSettings(steps=80, lr=1e-3, epsilon_m=2e-3)
+    x, info = project_frames(target, shape, transforms, fields=fields, sdf=sdf, faces=torch.as_tensor(faces, dtype=torch.int64),
+                             initial=truth + 0.005, settings=settings)
+    assert torch.all(info["objective"] < 0.5 * info["objective_start"]), info
+    inside_start = (sdf(truth) < -COLLISION_DEPTH_M).float().mean().item()
+    inside = (sdf(x) < -COLLISION_DEPTH_M).float().mean().item()
+    assert inside_start > 0.1, "the synthetic frames should start with collisions"
+    assert inside == 0.0, f"{100 * inside:.1f} % of projected vertices are more than 1 mm inside the body"
+    rms = info["reconstruction"].sqrt().max().item()
+    assert rms < 0.004, f"projection reconstructs the frames only to {rms * 1000:.2f} mm rms"
+
+
+def test_self_supervised_term_pushes_random_samples_out_of_the_body() -> None:
+    """The term on decoded random latents is what trains the decoder away from the body where
+    there is no data: with training garments outside the body and a decoder whose random samples
+    are inside, the loss with the term differs from the loss without it exactly by that term, its
+    gradient reaches the decoder, and a step along it lowers the random samples' collisions.
+    (Training to convergence on a tiny case put no random sample inside with or without the term,
+    so the comparison is made on the gradient.)"""
+    from learn.collision_aware.sdf import collision_penalty
+    from learn.collision_aware.vae import vae_loss
+    from learn.common.mesh import uniform_laplacian_torch
+
+    sdf = SphereSDF(0.2)
+    outside, faces = _patch_on_sphere(0.2, np.full((8, 100), 0.01))  # training garments 1 cm outside
+    inside, _ = _patch_on_sphere(0.2, np.full(100, -0.01))  # the decoder's mean: 1 cm inside
+    torch.manual_seed(0)
+    vae = GarmentVAE(100, inside.numpy(), 0.01, latent_size=4, hidden_size=16)
+    laplacian = uniform_laplacian_torch(faces, 100, boundary_aware=False)
+    weights = {"laplacian": 1.0, "collision": 10.0, "kl": 1e-3}
+    losses, grads = {}, {}
+    for w in (1.0, 0.0):
+        torch.manual_seed(1)  # same posterior and random latents in both
+        terms = vae_loss(vae, outside, laplacian=laplacian, sdf=sdf, weights={**weights, "random_collision": w},
+                         epsilon_m=2e-3, random_samples=64)
+        vae.zero_grad()
+        terms["loss"].backward()
+        losses[w] = {k: v.detach() for k, v in terms.items()}
+        grads[w] = [p.grad.clone() for p in vae.decoder.parameters()]
+    assert float(losses[1.0]["random_collision"]) > 0.005, "random samples should start inside the body"
+    expected = float(losses[0.0]["loss"]) + 10.0 * float(losses[1.0]["random_collision"])
+    assert float(losses[1.0]["loss"]) == pytest.approx(expected, rel=1e-5), "the two losses differ by more than the term"
+    difference = [g1 - g0 for g1, g0 in zip(grads[1.0], grads[0.0])]
+    assert sum(float(d.abs().sum()) for d in difference) > 0, "the random-sample term gives the decoder no gradient"
+
+    z = torch.randn(256, 4, generator=torch.Generator().manual_seed(2))
+
+    def random_penalty() -> float:
+        with torch.no_grad():
+            return float(collision_penalty(sdf(vae.decode(z)), 2e-3).mean())
+
+    before = random_penalty()
+    step = 0.2 / max(float(d.abs().max()) for d in difference)  # largest parameter change 0.2
+    with torch.no_grad():
+        for p, d in zip(vae.decoder.parameters(), difference):
+            p -= step * d
+    assert random_penalty() < 0.9 * before, (before, random_penalty())
+
+
+def test_vae_collision_gradient_points_out_of_the_body() -> None:
+    """The collision term's gradient moves decoded vertices that are inside the body outward."""
+    sdf = SphereSDF(0.2)
+    torch.manual_seed(0)
+    vae = GarmentVAE(100, np.zeros((100, 3)), 0.1, latent_size=4, hidden_size=8)
+    decoded = vae.decode(torch.zeros(1, 4)).detach().requires_grad_(True)
+    from learn.collision_aware.sdf import collision_penalty
+
+    collision_penalty(sdf(decoded), 2e-3).mean().backward()
+    inside = sdf(decoded.detach())[0] < 2e-3
+    assert inside.any()
+    radial = (decoded.grad[0] * decoded.detach()[0]).sum(-1)
+    assert torch.all(radial[inside] < 0), "descending the gradient must move vertices away from the centre"
+
+
+def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, capsys) -> None:
+    from collision_aware_data import write_band_dataset
+    from pipelines.cli import main
+
+    data = tmp_path / "data"
+    write_band_dataset(data, anny_body, splits={"train": 2, "test_test": 1}, frames_per_task=2)
+    config = tmp_path / "tiny.yaml"
+    small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
+    config.write_text(yaml.safe_dump({
+        "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
+        "sdf": {**small, "points": 1000},
+        "projection": {"steps": 3},
+        "vae": {"hidden_size": 16, "batch_size": 4},
+        "regressor": {"hidden_size": 16, "batch_size": 4},
+    }))
+    run = tmp_path / "run"
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
+                 "--epochs", "2", "--no-progress"]) == 0
+    cached = sorted((data / "cache" / "canonical").glob("*.npy"))
+    assert len(cached) == 2, f"expected one cached projection per training shard, got {cached}"
+    assert main(["evaluate", str(run), "--data", str(data), "--postprocess-frames", "1", "--renders", "0"]) == 0
+    report = json.loads((run / "evaluation" / "evaluation.json").read_text())
+    metrics = report["splits"]["test_test"]["collision_aware"]
+    for key in ("unposed_error_mm", "posed_error_mm", "collision_rate", "collision_rate_postprocessed"):
+        assert np.isfinite(metrics[key]), (key, metrics)
+    assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 0.5 * metrics["unposed_error_mm"] + 1.0, metrics
+    assert report["timing"]["collision_aware"]["cpu"]["ms_per_frame_batch_1"] > 0
+    out = tmp_path / "pred.obj"
+    assert main(["predict", str(run), "--learner", "collision_aware", "--style", "0.1,0.2", "--out", str(out)]) == 0
+    with np.load(run / "template.npz") as template:
+        assert len(trimesh.load(out, process=False).vertices) == len(template["rest_vertices"])
