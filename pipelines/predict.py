@@ -29,12 +29,13 @@ def run(args: argparse.Namespace) -> int:
     import trimesh
 
     from learn.common.skinning import garment_posing_functions
+    from learn.registry import get_learner
     from learn.tailornet.evaluate import PosingContext, predict_vertices
-    from learn.tailornet.train import load_learner
     from simulate.body import load_body_model
 
+    entry = get_learner(args.learner)
     run_dir = Path(args.run)
-    file = run_dir / f"{args.learner}_model.pt"
+    file = run_dir / entry.model_file
     if not file.is_file():
         raise FileNotFoundError(f"no {args.learner} model in {run_dir} (expected {file.name}; run drape train first)")
     if not (run_dir / "template.npz").is_file():
@@ -42,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     with np.load(run_dir / "template.npz") as z:
         template = {k: z[k] for k in z.files}
     info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
-    model = load_learner(file, device=args.device)
+    model = entry.load(file, device=args.device)
     body_spec = info.get("body", {"backend": "anny", "path": None})
     body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
     cfg = getattr(model, "config", {}) or {}
@@ -74,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pose", default=None, help="60 axis-angle values or a .npy (default: canonical pose)")
     p.add_argument("--shape", default=None, help="body shape values (default: neutral)")
     p.add_argument("--style", required=True, help="style vector (as stored in the dataset's shards)")
-    p.add_argument("--learner", default="tailornet", choices=["tailornet", "baseline"])
+    p.add_argument("--learner", default="tailornet", help="a learner of learn/registry.py trained into RUN "
+                                                          "(tailornet, baseline, uvimage, uvimage_pca)")
     p.add_argument("--out", required=True, help="output mesh (.obj or .ply)")
     p.add_argument("--unposed", action="store_true", help="write the unposed displacement garment instead")
     p.add_argument("--postprocess", action="store_true", help="push vertices inside the body out (Laplacian-preserving)")

@@ -34,9 +34,11 @@ def _overrides(args: argparse.Namespace) -> dict:
         if not isinstance(hyper, dict):
             raise ValueError(f"--config {path} must map stage names (lf, hf, shape_style, baseline, model) to settings")
     if args.epochs is not None:
+        from learn.registry import get_learner
+
         if args.epochs < 1:
             raise ValueError(f"--epochs must be >= 1 (got {args.epochs})")
-        for stage in ("lf", "hf", "shape_style", "baseline"):
+        for stage in get_learner(args.learner).stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
     if args.prototypes is not None:
         hyper.setdefault("model", {})["prototype_count"] = int(args.prototypes)
@@ -55,12 +57,12 @@ def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu
 def run(args: argparse.Namespace) -> int:
     from data_manifest.reader import DatasetReader
     from learn.data import DrapeDataset
+    from learn.registry import get_learner
     from learn.tailornet.train import (dataset_fingerprint, fit_baseline, fit_tailornet, frame_arrays_from_dataset,
                                        garment_pose_indices, stages_for_rank)
     from simulate.body import load_body_model
 
-    if args.learner not in ("tailornet", "baseline"):
-        raise ValueError(f"unknown learner {args.learner!r}; expected one of tailornet, baseline")
+    entry = get_learner(args.learner)
     reader = DatasetReader(args.data)
     split = next((s for s in TRAIN_SPLITS if s in reader.splits and reader.num_frames(s) > 0), None)
     if split is None:
@@ -77,14 +79,15 @@ def run(args: argparse.Namespace) -> int:
                                         posable_joints=body.pose_joint_indices)
     fingerprint = dataset_fingerprint(args.data, template)
     t0 = time.perf_counter()
-    data = frame_arrays_from_dataset(DrapeDataset(args.data, split))
+    data = frame_arrays_from_dataset(DrapeDataset(args.data, split, frequencies=args.learner == "tailornet"))
     pairs = int(np.unique(data.pair_id).size)
-    hyper.setdefault("model", {})
-    # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
-    # phenotype vector and our style the CLOTH3D-like parameters, where no prefix is "the most
-    # important", so every component is an input unless the config says otherwise.
-    hyper["model"].setdefault("shape_components", int(data.shape.shape[1]))
-    hyper["model"].setdefault("style_components", int(data.style.shape[1]))
+    if args.learner in ("tailornet", "baseline"):
+        hyper.setdefault("model", {})
+        # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
+        # phenotype vector and our style the CLOTH3D-like parameters, where no prefix is "the most
+        # important", so every component is an input unless the config says otherwise.
+        hyper["model"].setdefault("shape_components", int(data.shape.shape[1]))
+        hyper["model"].setdefault("style_components", int(data.style.shape[1]))
     if args.learner == "tailornet":
         requested = int(hyper["model"].get("prototype_count", 20))
         if requested > pairs:
@@ -102,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         if stages is None or "baseline" in stages:
             fit_baseline(data, template["faces"], **common)
     else:
-        fit_baseline(data, template["faces"], **common)
+        entry.fit(data, template["faces"], **common, **(entry.context(reader, body) if entry.context else {}))
     if rank == 0:
         info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "frames": data.frame_count,
                 "pairs": pairs, "dataset_manifest_sha256": fingerprint.dataset_manifest_sha256,
@@ -117,7 +120,9 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a learner (tailornet, baseline) on a dataset",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("learner", choices=["tailornet", "baseline"], help="what to train (tailornet also trains the baseline)")
+    # not argparse choices: the registry imports torch, and `drape --help` stays light
+    p.add_argument("learner", help="what to train, a name in learn/registry.py: tailornet (also trains the baseline), "
+                                   "baseline, uvimage, uvimage_pca")
     p.add_argument("--data", required=True, help="dataset directory (from drape generate-dataset)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
