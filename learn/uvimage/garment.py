@@ -24,6 +24,18 @@ def shard_template(template: Any) -> dict:
             "body_vertex_index": template.body_vertex_index, "uv": template.uv}
 
 
+def garment_template(garment_type: str, resolution: int | None, body: Any):
+    """``make_template(garment_type, body, resolution=resolution)``, kept for the last
+    (body, type, resolution) asked (a t-shirt takes seconds to build)."""
+    from simulate.garment.templates import make_template
+
+    key = (id(body), garment_type, None if resolution is None else int(resolution))
+    if key not in _TEMPLATES:
+        _TEMPLATES.clear()
+        _TEMPLATES[key] = make_template(garment_type, body, resolution=key[2])
+    return _TEMPLATES[key]
+
+
 def dataset_template(spec: dict, expected_sha256: str, body: Any):
     """The ``GarmentTemplate`` of a dataset from its spec (``garment.type``,
     ``garment.resolution``) on ``body``, checked against ``expected_sha256``."""
@@ -31,15 +43,7 @@ def dataset_template(spec: dict, expected_sha256: str, body: Any):
     if not isinstance(garment, dict) or "type" not in garment:
         raise ValueError(f"the dataset's spec names no garment type (spec.garment = {garment!r}): the UV-image learner "
                          "needs a dataset made by drape generate-dataset from a garment template")
-    from simulate.garment.templates import make_template
-
-    key = (id(body), garment["type"], garment.get("resolution"))
-    if key not in _TEMPLATES:
-        resolution = garment.get("resolution")
-        _TEMPLATES.clear()
-        _TEMPLATES[key] = make_template(garment["type"], body,
-                                        resolution=None if resolution is None else int(resolution))
-    template = _TEMPLATES[key]
+    template = garment_template(garment["type"], garment.get("resolution"), body)
     got = template_sha256(shard_template(template))
     if got != expected_sha256:
         raise ValueError(f"the dataset's garment template has sha256 {expected_sha256}, but make_template("
