@@ -1,11 +1,18 @@
 """Learner registry: names used in configs and on the command line -> their functions.
 
-Each entry gives ``fit(data, faces, *, run_dir, pose_indices, canonical_pose,
-hyperparameters, fingerprint, device, seed, progress)`` returning the trained module,
-the file name of the saved model inside the run directory, and ``load(path, *,
-fingerprint, require_same_manifest, device)``. ``context`` names further keyword
-arguments ``fit`` takes from the training command (``body``, ``body_spec``, ``template``,
-``dataset``), and ``epoch_stages`` the hyper-parameter stages ``--epochs`` sets.
+Each ``LearnerEntry`` gives:
+
+- ``fit(data, faces, *, run_dir, pose_indices, canonical_pose, hyperparameters, fingerprint,
+  device, seed, progress, **extra)``: trains, saves and returns the module;
+- ``model_file``: the file name of the saved model inside the run directory, and
+  ``load(path, *, fingerprint, require_same_manifest, device)`` reading it back;
+- ``stages``: the hyper-parameter stages whose epochs ``drape train --epochs`` sets;
+- ``context``: ``None`` or ``context(*, reader, dataset, body, body_spec, template) -> dict``,
+  the ``extra`` keyword arguments of ``fit``. ``drape train`` calls it with everything it has
+  (the dataset's ``DatasetReader``, the training split's ``DrapeDataset``, the body model, its
+  ``{"backend", "path"}`` and the shards' template arrays); each learner takes the keywords it
+  needs (``**_`` for the others), so one callable covers arguments passed through and
+  arguments computed from the dataset (the UV-image learners rebuild the full garment template).
 """
 
 from __future__ import annotations
@@ -13,9 +20,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from learn.collision_aware.train import EPOCH_STAGES as COLLISION_AWARE_EPOCH_STAGES
-from learn.collision_aware.train import fit_collision_aware, load_collision_aware
+from learn.collision_aware.train import EPOCH_STAGES as COLLISION_AWARE_STAGES
+from learn.collision_aware.train import collision_aware_context, fit_collision_aware, load_collision_aware
 from learn.tailornet.train import fit_baseline, fit_tailornet, load_learner
+from learn.uvimage.garment import uvimage_context
+from learn.uvimage.train import fit_uvimage, fit_uvimage_pca, load_uvimage
 
 
 @dataclass(frozen=True)
@@ -25,30 +34,42 @@ class LearnerEntry:
     model_file: str
     load: Callable[..., object]
     description: str
-    context: tuple[str, ...] = ()
-    epoch_stages: tuple[str, ...] = ("lf", "hf", "shape_style", "baseline")
+    stages: tuple[str, ...] = ()
+    context: Callable[..., dict] | None = None
 
 
 LEARNERS: dict[str, LearnerEntry] = {
     "tailornet": LearnerEntry(
         "tailornet", fit_tailornet, "tailornet_model.pt", load_learner,
         "TailorNet mixture: low-frequency MLP + kernel mixture of prototype high-frequency MLPs",
+        ("lf", "hf", "shape_style", "baseline"),
     ),
     "baseline": LearnerEntry(
         "baseline", fit_baseline, "baseline_model.pt", load_learner,
         "TailorNet's baseline: one MLP of (pose, shape, style)",
+        ("baseline",),
+    ),
+    "uvimage": LearnerEntry(
+        "uvimage", fit_uvimage, "uvimage_model.pt", load_uvimage,
+        "seed 001: cloth-pixel offsets as front/back UV images from a transposed-conv decoder of joint rotations",
+        ("uvimage",), uvimage_context,
+    ),
+    "uvimage_pca": LearnerEntry(
+        "uvimage_pca", fit_uvimage_pca, "uvimage_pca_model.pt", load_uvimage,
+        "seed 001 appendix E.3: an MLP predicting 128 PCA coefficients of the cloth-pixel offsets",
+        ("uvimage_pca",), uvimage_context,
     ),
     "collision_aware": LearnerEntry(
         "collision_aware", fit_collision_aware, "collision_aware_model.pt", load_collision_aware,
         "seed 002: diffused body fields, canonical space, garment VAE with self-supervised collisions, MLP regressor",
-        context=("body", "body_spec", "template", "dataset"), epoch_stages=COLLISION_AWARE_EPOCH_STAGES,
+        COLLISION_AWARE_STAGES, collision_aware_context,
     ),
 }
 
 
 def get_learner(name: str) -> LearnerEntry:
     """The registry entry for ``name`` (``-`` read as ``_``); unknown names raise listing the known ones."""
-    name = name.replace("-", "_")
-    if name not in LEARNERS:
+    key = name.replace("-", "_")
+    if key not in LEARNERS:
         raise ValueError(f"unknown learner '{name}'; expected one of {sorted(LEARNERS)}")
-    return LEARNERS[name]
+    return LEARNERS[key]

@@ -1,8 +1,10 @@
 """``drape evaluate RUN --data DIR``: predicted against simulated drapes.
 
 For every test split (train_test, test_train, test_test) and every model in RUN
-(tailornet, baseline, collision_aware): mean per-vertex error in mm on unposed displacements (as
-TailorNet reports) and on posed vertices, the collision rate (share of garment vertices
+(each learner of learn/registry.py whose model file is there: tailornet, baseline,
+uvimage, uvimage_pca, collision_aware): mean per-vertex error in mm on unposed displacements
+(as TailorNet reports) and on posed vertices, the normal error (1 - cos of predicted and
+simulated vertex normals, seed 001), the collision rate (share of garment vertices
 deeper than 1 mm inside the body along the nearest face normal) without and with the
 Laplacian-preserving post-process, and inference ms/frame at batch 1 and batched on
 the CPU and on the GPU when there is one. The simulator's amortized ms per kept frame
@@ -33,8 +35,8 @@ def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
             models[name] = entry.load(run_dir / entry.model_file, fingerprint=fingerprint, require_same_manifest=False,
                                       device=device)
     if not models:
-        files = " or ".join(entry.model_file for entry in LEARNERS.values())
-        raise FileNotFoundError(f"no trained model in {run_dir} (expected {files}; run drape train first)")
+        files = ", ".join(entry.model_file for entry in LEARNERS.values())
+        raise FileNotFoundError(f"no trained model in {run_dir} (expected one of {files}; run drape train first)")
     return models
 
 
@@ -135,10 +137,11 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
         body_v = body.pose(frames.shape[i], frames.pose[i]).vertices[0]
         render_prediction(pred, frames.posed_vertices[i], template["faces"], out / f"render_{split_for_renders}_{k}.png",
                           body_vertices=body_v, body_faces=body.faces, title=f"{name}, {split_for_renders} frame {i}")
-    table = [f"{'split':<12}{'model':<11}{'unposed mm':>11}{'posed mm':>10}{'coll %':>8}{'coll pp %':>10}"]
+    table = [f"{'split':<12}{'model':<13}{'unposed mm':>11}{'posed mm':>10}{'normal':>8}{'coll %':>8}{'coll pp %':>10}"]
     for split, per_model in results["splits"].items():
         for m, r in per_model.items():
-            table.append(f"{split:<12}{m:<11}{r['unposed_error_mm']:>11.2f}{r.get('posed_error_mm', float('nan')):>10.2f}"
+            table.append(f"{split:<12}{m:<13}{r['unposed_error_mm']:>11.2f}{r.get('posed_error_mm', float('nan')):>10.2f}"
+                         f"{r.get('normal_error', float('nan')):>8.4f}"
                          f"{100 * r.get('collision_rate', float('nan')):>8.2f}{100 * r.get('collision_rate_postprocessed', float('nan')):>10.2f}")
     log("\n".join(table))
     if speedups:

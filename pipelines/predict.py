@@ -29,12 +29,12 @@ def run(args: argparse.Namespace) -> int:
     import trimesh
 
     from learn.common.skinning import garment_posing_functions
-    from learn.tailornet.evaluate import PosingContext, predict_vertices
     from learn.registry import get_learner
+    from learn.tailornet.evaluate import PosingContext, predict_vertices
     from simulate.body import load_body_model
 
-    run_dir = Path(args.run)
     entry = get_learner(args.learner)
+    run_dir = Path(args.run)
     file = run_dir / entry.model_file
     if not file.is_file():
         raise FileNotFoundError(f"no {args.learner} model in {run_dir} (expected {file.name}; run drape train first)")
@@ -75,7 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--pose", default=None, help="60 axis-angle values or a .npy (default: canonical pose)")
     p.add_argument("--shape", default=None, help="body shape values (default: neutral)")
     p.add_argument("--style", required=True, help="style vector (as stored in the dataset's shards)")
-    p.add_argument("--learner", default="tailornet", choices=["tailornet", "baseline", "collision_aware", "collision-aware"])
+    p.add_argument("--learner", default="tailornet", help="a learner of learn/registry.py trained into RUN (tailornet, "
+                                                          "baseline, uvimage, uvimage_pca, collision_aware or collision-aware)")
     p.add_argument("--out", required=True, help="output mesh (.obj or .ply)")
     p.add_argument("--unposed", action="store_true", help="write the unposed displacement garment instead")
     p.add_argument("--postprocess", action="store_true", help="push vertices inside the body out (Laplacian-preserving)")

@@ -13,6 +13,8 @@ rank 0 assembles the model.
 ``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
 the canonical body's SDF, the canonical projection of the training frames (cached per shard under
 ``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
+``uvimage`` and ``uvimage_pca`` (seed 001; docs/learners/uvimage.md) train one stage each, named
+after the learner.
 """
 from __future__ import annotations
 
@@ -28,7 +30,9 @@ import yaml
 TRAIN_SPLITS = ("train_train", "train")
 
 
-def _overrides(args: argparse.Namespace, epoch_stages: tuple[str, ...] = ("lf", "hf", "shape_style", "baseline")) -> dict:
+def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
+    """Hyper-parameters from ``--config``, ``--epochs`` (set for each of ``stages``, the
+    learner's registry ``stages``) and ``--prototypes`` (tailornet only)."""
     hyper: dict = {}
     if args.config:
         path = Path(args.config)
@@ -40,7 +44,7 @@ def _overrides(args: argparse.Namespace, epoch_stages: tuple[str, ...] = ("lf", 
     if args.epochs is not None:
         if args.epochs < 1:
             raise ValueError(f"--epochs must be >= 1 (got {args.epochs})")
-        for stage in epoch_stages:
+        for stage in stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
     if args.prototypes is not None:
         if args.learner != "tailornet":
@@ -73,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if split is None:
         raise ValueError(f"dataset {args.data} has no frames in a training split ({', '.join(TRAIN_SPLITS)}); "
                          f"its splits: {', '.join(f'{s} ({reader.num_frames(s)})' for s in reader.splits)}")
-    hyper = _overrides(args, entry.epoch_stages)
+    hyper = _overrides(args, entry.stages)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     template = reader.template
@@ -110,12 +114,11 @@ def run(args: argparse.Namespace) -> int:
             fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0, **common)
         if stages is None or "baseline" in stages:
             fit_baseline(data, template["faces"], **common)
-    elif args.learner == "baseline":
-        fit_baseline(data, template["faces"], **common)
     else:
-        context = {"body": body, "body_spec": {"backend": body.name, "path": body_spec.get("path")}, "template": template,
-                   "dataset": dataset}
-        entry.fit(data, template["faces"], **common, **{k: context[k] for k in entry.context})
+        extra = {} if entry.context is None else entry.context(
+            reader=reader, dataset=dataset, body=body, body_spec={"backend": body.name, "path": body_spec.get("path")},
+            template=template)
+        entry.fit(data, template["faces"], **common, **extra)
     if rank == 0:
         info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "frames": data.frame_count,
                 "pairs": pairs, "dataset_manifest_sha256": fingerprint.dataset_manifest_sha256,
@@ -128,10 +131,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train a learner (tailornet, baseline, collision_aware) on a dataset",
+    p = sub.add_parser("train", help="train a learner (tailornet, baseline, uvimage, uvimage_pca, collision_aware) on a dataset",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("learner", choices=["tailornet", "baseline", "collision_aware", "collision-aware"],
-                   help="what to train (tailornet also trains the baseline; collision_aware: seed 002)")
+    # not argparse choices: the registry imports torch, and `drape --help` stays light
+    p.add_argument("learner", help="what to train, a name in learn/registry.py: tailornet (also trains the baseline), "
+                                   "baseline, uvimage, uvimage_pca (seed 001), collision_aware or collision-aware (seed 002)")
     p.add_argument("--data", required=True, help="dataset directory (from drape generate-dataset)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")

@@ -162,6 +162,14 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
                       fingerprint=fingerprint, device=device, seed=seed, progress=progress)
 
 
+def collision_aware_context(*, body: Any, body_spec: Mapping[str, Any], template: Mapping[str, np.ndarray],
+                            dataset: Any, **_: Any) -> dict:
+    """Extra ``fit`` arguments of :func:`fit_collision_aware` for ``drape train`` (see
+    :mod:`learn.registry`): the body model, its ``{"backend", "path"}``, the shards'
+    template arrays and the training split's ``DrapeDataset``, as the command has them."""
+    return {"body": body, "body_spec": body_spec, "template": template, "dataset": dataset}
+
+
 def fit_collision_aware(
     data: FrameArrays,
     faces: np.ndarray,

@@ -19,6 +19,7 @@ import torch
 
 from learn.common.collision import COLLISION_THRESHOLD_M, collision_mask
 from learn.common.losses import per_vertex_error_mm
+from learn.common.normals import normal_error
 from learn.common.postprocess import remove_body_penetration_batch
 from learn.tailornet.model import GarmentPoser, UnposedBody, pose_displacements
 from learn.tailornet.train import FrameArrays
@@ -85,8 +86,9 @@ def evaluate_split(
     """Metrics of ``model`` on the frames of one split.
 
     Returns a dict with ``frames``, ``unposed_error_mm`` (mean over frames of the mean
-    per-vertex error), and with ``posing`` given: ``posed_error_mm`` (when
-    ``data.posed_vertices`` is set), ``collision_rate`` of predictions and of the ground
+    per-vertex error), and with ``posing`` given: ``posed_error_mm`` and
+    ``normal_error`` (mean 1 - cos of predicted and true vertex normals, seed 001) when
+    ``data.posed_vertices`` is set, ``collision_rate`` of predictions and of the ground
     truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
     ``postprocessed_posed_error_mm``. ``data.translation`` (when set) is added to the
     posed garment and body. The post-process (a sparse solve per frame on the CPU, about
@@ -111,7 +113,7 @@ def evaluate_split(
     result: dict[str, Any] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
     if posing is None:
         return result
-    posed_errors, posed_pp_errors, posed_subset_errors = [], [], []
+    posed_errors, posed_pp_errors, posed_subset_errors, normal_errors = [], [], [], []
     colliding = colliding_pp = colliding_truth = colliding_subset = 0
     vertex_total = pp_vertex_total = 0
     if postprocess_frames is None or postprocess_frames >= data.frame_count:
@@ -139,6 +141,8 @@ def evaluate_split(
             if data.posed_vertices is not None:
                 truth = data.posed_vertices[start:stop]
                 posed_errors.append(per_vertex_error_mm(torch.from_numpy(posed), torch.from_numpy(truth)).numpy())
+                normal_errors.append(normal_error(torch.from_numpy(posed), torch.from_numpy(truth),
+                                                  posing.garment_faces).numpy())
                 colliding_truth += int(
                     collision_mask(truth, body, posing.body_faces, threshold=threshold, device=collision_device).sum()
                 )
@@ -160,6 +164,7 @@ def evaluate_split(
     result["collision_rate"] = colliding / vertex_total
     if data.posed_vertices is not None:
         result["posed_error_mm"] = float(np.concatenate(posed_errors).mean())
+        result["normal_error"] = float(np.concatenate(normal_errors).mean())
         result["ground_truth_collision_rate"] = colliding_truth / vertex_total
     if postprocess:
         result["postprocess_frames_evaluated"] = int(pp_selected.sum())
@@ -269,7 +274,9 @@ def evaluate_models(
 
     Returns ``{"splits": {split: {model: metrics}}, "timing": {model: {device: {...}}}}``
     with metrics from :func:`evaluate_split` and timings from :func:`time_inference`
-    (on the first split's frames). JSON-serialisable.
+    (on the first split's frames). JSON-serialisable. A model with ``decoder_only()``
+    (the UV-image learners: their full forward also poses the body and unskins) also
+    gets ``decoder_ms_per_frame_batch_<b>``: its network alone, as seed 001 times it.
     """
     if not models or not splits:
         raise ValueError(f"need at least one model and one split, got {sorted(models)} and {sorted(splits)}")
@@ -290,5 +297,10 @@ def evaluate_models(
             )
             for timing_device in timing_devices
         }
+        if hasattr(model, "decoder_only"):
+            for timing_device in timing_devices:
+                decoder = time_inference(model.decoder_only(), first.pose, first.shape, first.style,
+                                         batch_sizes=timing_batch_sizes, device=timing_device)
+                report["timing"][name][timing_device].update({f"decoder_{k}": v for k, v in decoder.items()})
         model.to(device)
     return report
