@@ -9,7 +9,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
-import signal
 import sys
 import traceback
 
@@ -56,8 +55,10 @@ RESUMABLE = ("generate-dataset", "train", "quickstart")
 def main(argv: list[str] | None = None) -> int:
     """Runs one command; returns its exit status (see :mod:`pipelines.errors`): errors are one
     line on stderr, the traceback only with ``--debug`` (anywhere on the line) or DRAPE_DEBUG=1."""
-    from pipelines.errors import EXIT_SIGINT, EXIT_SIGTERM, Terminated, describe, install_sigterm
+    from pipelines.errors import (EXIT_SIGINT, EXIT_SIGTERM, Terminated, describe, hdf5_files_left_open, is_disk_full,
+                                  install_sigterm, restore_signals)
 
+    program = argv is None  # the process is drape itself (console script, python -m)
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv or os.environ.get("DRAPE_DEBUG", "") not in ("", "0")
     argv = [a for a in argv if a != "--debug"]
@@ -82,10 +83,15 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         code, message = describe(exc)
         print(f"drape {args.command}: error: {message}", file=sys.stderr)
+        if program and is_disk_full(exc) and hdf5_files_left_open():
+            # a write that failed inside HDF5 (a full disk) leaves files the library cannot close;
+            # its exit handler would crash on them (SIGSEGV): end here, the cleanup is done
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
         return code
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        restore_signals(previous)
 
 
 if __name__ == "__main__":

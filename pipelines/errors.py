@@ -16,6 +16,7 @@ import math
 import os
 import shutil
 import signal
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -36,17 +37,39 @@ class Terminated(KeyboardInterrupt):
     signum = signal.SIGTERM
 
 
+_received: list[int] = []  # signals raised as exceptions, in case one was swallowed
+
+
 def install_sigterm() -> Any:
-    """Makes SIGTERM raise :class:`Terminated` in the main thread; returns the previous handler
-    (None where signals cannot be set: not the main thread)."""
+    """Makes SIGTERM raise :class:`Terminated` and SIGINT KeyboardInterrupt in the main thread,
+    and remembers them for :func:`raise_if_interrupted`; returns the previous handlers (None
+    where signals cannot be set: not the main thread)."""
     def handler(signum, frame):  # noqa: ARG001
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not break the cleanup
-        raise Terminated()
+        _received.append(signum)
+        if signum == signal.SIGTERM:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not break the cleanup
+            raise Terminated()
+        raise KeyboardInterrupt()
 
     try:
-        return signal.signal(signal.SIGTERM, handler)
+        return {signum: signal.signal(signum, handler) for signum in (signal.SIGTERM, signal.SIGINT)}
     except ValueError:  # not the main thread
         return None
+
+
+def restore_signals(previous: Any) -> None:
+    """Puts back the handlers :func:`install_sigterm` replaced."""
+    for signum, handler in (previous or {}).items():
+        signal.signal(signum, handler)
+    _received.clear()
+
+
+def raise_if_interrupted() -> None:
+    """Raises the interruption again when a signal's exception was swallowed (an exception raised
+    while Python runs a finalizer or weakref callback is printed and dropped): long loops call
+    this at safe points so Ctrl-C and SIGTERM always stop the run."""
+    if _received:
+        raise Terminated() if _received[-1] == signal.SIGTERM else KeyboardInterrupt()
 
 
 def one_line(text: str) -> str:
@@ -81,6 +104,17 @@ def is_disk_full(error: BaseException) -> bool:
     text = str(error)
     return ("No space left on device" in text or "errno = 28" in text or "Disk quota exceeded" in text
             or "File too large" in text or "errno = 27" in text)
+
+
+def hdf5_files_left_open() -> bool:
+    """Whether HDF5 still holds files (h5py loaded): after a failed write it cannot close them."""
+    h5py = sys.modules.get("h5py")
+    if h5py is None:
+        return False
+    try:
+        return h5py.h5f.get_obj_count(h5py.h5f.OBJ_ALL, h5py.h5f.OBJ_FILE) > 0
+    except Exception:  # noqa: BLE001 - only a hint for the exit path
+        return False
 
 
 def describe_os_error(error: OSError) -> str:

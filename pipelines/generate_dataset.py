@@ -399,10 +399,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
         if lock.took_over is not None:
             options.get("log", print)(f"took over the writer lock of an ended run ({lock.took_over.describe()})")
         return _generate_locked(spec, out_dir, **options)
-    except OSError as error:
+    except Exception as error:  # h5py reports a full disk as OSError or RuntimeError
         from pipelines.errors import is_disk_full
 
-        if is_disk_full(error):
+        if is_disk_full(error) and not isinstance(error, DiskFullError):
             raise DiskFullError.at(out_dir, error) from error
         raise
     finally:
@@ -417,11 +417,22 @@ class DiskFullError(OSError):
     def at(cls, out_dir: Path, error: BaseException) -> "DiskFullError":
         from pipelines.errors import free_bytes, human_bytes
 
-        where = getattr(error, "filename", None) or out_dir
+        where = getattr(error, "filename", None)
+        if not where:  # h5py names the file only in its message
+            import re
+
+            found = re.search(r"filename = '([^']+)'", str(error))
+            where = found.group(1) if found else out_dir
         free = free_bytes(out_dir)
-        return cls(f"the disk of {str(out_dir)!r} is full while writing {str(where)!r} "
-                   f"({human_bytes(free or 0)} free): finished shards are kept and listed; free some space "
-                   f"and rerun the same command to resume")
+        reason = getattr(error, "strerror", None)
+        if not reason:
+            import re
+
+            found = re.search(r"error message = '([^']+)'", str(error))
+            reason = found.group(1) if found else str(error).splitlines()[0][:200]
+        return cls(f"the disk of {str(out_dir)!r} is full: writing {str(where)!r} failed ({reason}; "
+                   f"{human_bytes(free or 0)} free); finished shards are kept and listed, the unfinished one "
+                   f"removed: free some space and rerun the same command to resume")
 
 
 def estimated_bytes(tasks: list, template_dict: dict, precision: str) -> int:
@@ -524,7 +535,10 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
         f"{worlds} worlds on {ctx.device}")
     beat = {"done": 0, "calls": 0, "last": time.perf_counter()}
 
+    from pipelines.errors import raise_if_interrupted
+
     def on_progress(count: int, batch: list[str] | None = None) -> None:
+        raise_if_interrupted()  # a Ctrl-C or SIGTERM whose exception a finalizer swallowed
         if batch is not None:
             count = sum(len(ctx.tasks[t].poses) for t in batch)
         bar.update(count)
