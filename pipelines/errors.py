@@ -170,7 +170,7 @@ def check_output_dir(path: str | os.PathLike[str], option: str = "--out") -> Pat
     naming ``option`` when it is a file, cannot be created or is read-only."""
     p = Path(path)
     if p.exists() and not p.is_dir():
-        raise UsageError(f"{option} {str(p)!r} is a file; expected a directory (give a new or existing directory)")
+        raise UsageError(f"{option} {str(p)!r} is a file; expected a directory")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except FileExistsError:

@@ -30,7 +30,16 @@ def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
     models = {}
     for name, file in (("tailornet", "tailornet_model.pt"), ("baseline", "baseline_model.pt")):
         if (run_dir / file).is_file():
-            models[name] = load_learner(run_dir / file, fingerprint=fingerprint, require_same_manifest=False, device=device)
+            try:
+                models[name] = load_learner(run_dir / file, fingerprint=fingerprint, require_same_manifest=False,
+                                            device=device)
+            except Exception as exc:  # torch.load raises pickle, runtime and zip errors on a damaged file
+                from learn.tailornet.train import DatasetMismatchError
+
+                if isinstance(exc, DatasetMismatchError):
+                    raise
+                raise ValueError(f"{str(run_dir / file)!r} is not a readable {name} checkpoint ({type(exc).__name__}: "
+                                 f"{' '.join(str(exc).split())[:200]}); rerun drape train") from None
     if not models:
         raise FileNotFoundError(f"no trained model in {run_dir} (expected tailornet_model.pt or baseline_model.pt; "
                                 "run drape train first)")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.errors import UsageError, check_output_file, check_torch_device
+from pipelines.errors import UsageError, check_output_file, check_torch_device, one_line
 
 
 def _vector(text: str | None, size: int, field: str, default: np.ndarray,
@@ -61,17 +61,30 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"no {args.learner} model in {run_dir} (expected {file.name}; run drape train first)")
     if not (run_dir / "template.npz").is_file():
         raise FileNotFoundError(f"{run_dir} has no template.npz (written by drape train)")
-    with np.load(run_dir / "template.npz") as z:
-        template = {k: z[k] for k in z.files}
-    info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
-    model = load_learner(file, device=args.device)
+    try:
+        with np.load(run_dir / "template.npz", allow_pickle=False) as z:
+            template = {k: z[k] for k in z.files}
+        info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
+    except (OSError, ValueError, EOFError) as exc:
+        raise UsageError(f"RUN {str(run_dir)!r}: template.npz or run.json is unreadable ({one_line(str(exc))}); "
+                         f"rerun drape train") from None
     body_spec = info.get("body", {"backend": "anny", "path": None})
     body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
-    cfg = getattr(model, "config", {}) or {}
-    style_size = int(cfg.get("low_frequency", cfg).get("style_components", 0))
+    # the body's inputs are checked before the model is loaded
     pose = _vector(args.pose, body.pose_size, "pose", body.canonical_pose)
     shape = _vector(args.shape, body.shape_size, "shape", body.shape_default, ranges=body.shape_ranges,
                     names=list(body.shape_names))
+    try:
+        model = load_learner(file, device=args.device)
+    except Exception as exc:  # torch.load raises pickle, runtime and zip errors on a damaged file
+        from learn.tailornet.train import DatasetMismatchError
+
+        if isinstance(exc, DatasetMismatchError):
+            raise
+        raise UsageError(f"{str(file)!r} is not a readable {args.learner} checkpoint ({type(exc).__name__}: "
+                         f"{one_line(str(exc))[:200]}); rerun drape train") from None
+    cfg = getattr(model, "config", {}) or {}
+    style_size = int(cfg.get("low_frequency", cfg).get("style_components", 0))
     style = _vector(args.style, style_size, "style", np.zeros(style_size)) if args.style is not None else None
     if style is None:
         raise ValueError(f"--style is required: {style_size} style values (the dataset's style vector)")
