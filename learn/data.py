@@ -49,7 +49,10 @@ def low_frequency_for_task(reader: DatasetReader, task_id: str, smoother: Laplac
             np.save(fh, low)
         os.replace(tmp, path)
     except OSError as error:  # the cache only saves time: go on without it
-        tmp.unlink(missing_ok=True)
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
         warnings.warn(f"low-frequency cache not written ({error.strerror or error}: {error.filename or cache_dir}); "
                       f"it is computed again at the next load", RuntimeWarning, stacklevel=2)
     return low

@@ -52,15 +52,27 @@ def install_sigterm() -> Any:
         raise KeyboardInterrupt()
 
     try:
-        return {signum: signal.signal(signum, handler) for signum in (signal.SIGTERM, signal.SIGINT)}
+        previous = {signum: signal.signal(signum, handler) for signum in (signal.SIGTERM, signal.SIGINT)}
     except ValueError:  # not the main thread
         return None
+    hook = sys.unraisablehook
+
+    def quiet(unraisable):  # the interruption swallowed by a finalizer is raised again, not printed
+        if not (isinstance(unraisable.exc_value, KeyboardInterrupt) and _received):
+            hook(unraisable)
+
+    sys.unraisablehook = quiet
+    previous["unraisablehook"] = hook
+    return previous
 
 
 def restore_signals(previous: Any) -> None:
     """Puts back the handlers :func:`install_sigterm` replaced."""
     for signum, handler in (previous or {}).items():
-        signal.signal(signum, handler)
+        if signum == "unraisablehook":
+            sys.unraisablehook = handler
+        else:
+            signal.signal(signum, handler)
     _received.clear()
 
 
