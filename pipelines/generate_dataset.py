@@ -411,7 +411,7 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
 
 class DiskFullError(OSError):
     """The dataset's file system filled up; the message names the path and the space free.
-    Finished shards stay listed; the shard being written is removed (rerun to resume)."""
+    Complete shards are kept; the shard being written is removed (rerun to resume)."""
 
     @classmethod
     def at(cls, out_dir: Path, error: BaseException) -> "DiskFullError":
@@ -431,7 +431,7 @@ class DiskFullError(OSError):
             found = re.search(r"error message = '([^']+)'", str(error))
             reason = found.group(1) if found else str(error).splitlines()[0][:200]
         return cls(f"the disk of {str(out_dir)!r} is full: writing {str(where)!r} failed ({reason}; "
-                   f"{human_bytes(free or 0)} free); finished shards are kept and listed, the unfinished one "
+                   f"{human_bytes(free or 0)} free); complete shards are kept, the one being written is "
                    f"removed: free some space and rerun the same command to resume")
 
 

@@ -142,12 +142,15 @@ def test_evaluate_bad_input(tmp_path, capsys, dataset):
     fails(["evaluate", str(run), "--data", str(dataset)], capsys, "baseline_model.pt' is not a readable baseline checkpoint")
 
 
-def test_predict_bad_input(tmp_path, capsys, anny_body):
+def test_predict_bad_input(tmp_path, capsys, anny_body, unwritable_dir):
     run = tmp_path / "run"
     run.mkdir()
     out = str(tmp_path / "p.obj")
     fails(["predict", str(tmp_path / "nope"), "--style", "0", "--out", out], capsys, "RUN", "is not a directory")
     fails(["predict", str(run), "--style", "0", "--out", str(tmp_path / "p.stl")], capsys, "--out must end in .obj or .ply")
+    (tmp_path / "dir.obj").mkdir()
+    fails(["predict", str(run), "--style", "0", "--out", str(tmp_path / "dir.obj")], capsys, "--out", "is a directory")
+    fails(["predict", str(run), "--style", "0", "--out", str(unwritable_dir / "p.obj")], capsys, "--out")
     fails(["predict", str(run), "--style", "0", "--out", out], capsys, "no tailornet model in", "run drape train first")
     (run / "tailornet_model.pt").write_bytes(b"not a checkpoint")
     np.savez(run / "template.npz", faces=np.zeros((1, 3), np.int32))
