@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     """Runs one command; returns its exit status (see :mod:`pipelines.errors`): errors are one
     line on stderr, the traceback only with ``--debug`` (anywhere on the line) or DRAPE_DEBUG=1."""
     from pipelines.errors import (EXIT_SIGINT, EXIT_SIGTERM, Terminated, describe, hdf5_files_left_open, is_disk_full,
-                                  install_sigterm, raise_if_interrupted, restore_signals)
+                                  install_signal_handlers, raise_if_interrupted, restore_signals)
 
     program = argv is None  # the process is drape itself (console script, python -m)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if not argv or command is None else 2
-    previous = install_sigterm()
+    previous = install_signal_handlers()
     try:
         status = int(args.func(args) or 0)
         raise_if_interrupted()  # a signal whose exception a finalizer swallowed still ends the run as one

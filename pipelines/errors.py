@@ -40,7 +40,7 @@ class Terminated(KeyboardInterrupt):
 _received: list[int] = []  # signals raised as exceptions, in case one was swallowed
 
 
-def install_sigterm() -> Any:
+def install_signal_handlers() -> Any:
     """Makes SIGTERM raise :class:`Terminated` and SIGINT KeyboardInterrupt in the main thread,
     and remembers them for :func:`raise_if_interrupted`; returns the previous handlers (None
     where signals cannot be set: not the main thread)."""
@@ -67,7 +67,7 @@ def install_sigterm() -> Any:
 
 
 def restore_signals(previous: Any) -> None:
-    """Puts back the handlers :func:`install_sigterm` replaced."""
+    """Puts back the handlers :func:`install_signal_handlers` replaced."""
     for signum, handler in (previous or {}).items():
         if signum == "unraisablehook":
             sys.unraisablehook = handler
