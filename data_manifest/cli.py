@@ -8,7 +8,10 @@ sets ``func(args) -> int`` (the exit status). ``main(argv)`` runs them standalon
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
+from pathlib import Path
 from typing import Any
 
 from .export import EXPORT_FORMATS, export_task
@@ -16,27 +19,68 @@ from .schema import DatasetError
 from .validate import info, validate_dataset
 
 
+#: Exit statuses: 0 sound, 1 the dataset has problems (validate, info), 2 bad input (a missing
+#: directory, an unknown task, an output that cannot be written).
+EXIT_PROBLEMS, EXIT_USAGE = 1, 2
+
+
+def _fail(command: str, error: BaseException | str) -> int:
+    text = "; ".join(line.strip() for line in str(error).splitlines() if line.strip())
+    print(f"drape dataset {command}: error: {text}", file=sys.stderr)
+    return EXIT_USAGE
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
+    if not Path(args.dir).is_dir():
+        return _fail("validate", f"dataset directory {args.dir!r} does not exist")
     report = validate_dataset(args.dir, check_sha256=not args.no_checksum)
     print(report)
-    return 0 if report.ok else 1
+    return 0 if report.ok else EXIT_PROBLEMS
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
     try:
-        print(info(args.dir), end="")
-    except (FileNotFoundError, ValueError) as error:
-        print(f"drape dataset info: {error}", file=sys.stderr)
-        return 1
-    return 0
+        text, problems = info(args.dir, with_problems=True)
+    except (FileNotFoundError, ValueError, DatasetError) as error:
+        return _fail("info", error)
+    print(text, end="")
+    return EXIT_PROBLEMS if problems else 0
+
+
+def _check_export_out(out: Path, format: str) -> str | None:
+    """Why ``--out`` cannot take the export (None when it can)."""
+    target = out.parent if format == "pc2" else out
+    if format == "pc2" and out.is_dir():
+        return f"--out {str(out)!r} is a directory; pc2 writes one file (e.g. {str(out / 'task.pc2')!r})"
+    if format != "pc2" and out.exists() and not out.is_dir():
+        return f"--out {str(out)!r} is a file; {format} writes one file per frame into a directory"
+    probe_dir = target
+    while not probe_dir.exists() and probe_dir != probe_dir.parent:
+        probe_dir = probe_dir.parent
+    if not probe_dir.is_dir():
+        return f"--out {str(out)!r}: {str(probe_dir)!r} is a file, not a directory"
+    probe = probe_dir / f".drape-write-probe-{os.getpid()}"
+    try:
+        with open(probe, "wb"):
+            pass
+        probe.unlink()
+    except OSError as error:
+        return f"--out {str(out)!r}: {str(probe_dir)!r} is not writable ({error.strerror or error})"
+    return None
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
+    if not (math.isfinite(args.sample_rate) and args.sample_rate > 0):
+        return _fail("export", f"--sample-rate must be a finite number > 0 (got {args.sample_rate!r})")
+    problem = _check_export_out(Path(args.out), args.format)
+    if problem:
+        return _fail("export", problem)
     try:
         paths = export_task(args.dir, args.task, format=args.format, out=args.out, sample_rate=args.sample_rate)
     except (FileNotFoundError, ValueError, DatasetError) as error:
-        print(f"drape dataset export: {error}", file=sys.stderr)
-        return 1
+        return _fail("export", error)
+    except OSError as error:
+        return _fail("export", f"cannot write {error.filename or args.out}: {error.strerror or error}")
     where = paths[0] if len(paths) == 1 else paths[0].parent if paths else args.out
     print(f"wrote {len(paths)} {args.format} file(s) for task {args.task!r} to {where}")
     return 0

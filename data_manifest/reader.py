@@ -32,23 +32,34 @@ from .schema import (
     CorruptShardError,
     MissingShardError,
 )
+from .integrity import IntegrityChecker
 from .shard import decode_positions, read_dropped_log, read_template
+
+#: What h5py and numpy raise on damaged HDF5 (a flipped byte in a header, chunk index or
+#: attribute can surface as any of these); the reader reports each as CorruptShardError.
+_DECODE_ERRORS = (OSError, KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError,
+                  UnicodeDecodeError, OverflowError)
 
 
 class DatasetReader:
     """Read a drape dataset directory.
 
-    root: the dataset directory (holding manifest.json). verify: check every listed shard
-    up front (existence, size, sha256, layout, template; see ``validate.check_shard_file``)
-    and raise on the first problem. max_open_files: size of the LRU of open HDF5 handles.
+    root: the dataset directory (holding manifest.json). integrity (default True): before a
+    shard is first read, its size and sha256 are checked against the manifest
+    (``integrity.IntegrityChecker``; digests are cached per file, so a second read of an
+    unchanged shard costs a ``stat``). verify: check every listed shard up front (existence,
+    size, sha256, layout, template; see ``validate.check_shard_file``) and raise on the first
+    problem. max_open_files: size of the LRU of open HDF5 handles.
 
     Errors: a missing directory or manifest raises FileNotFoundError naming the path; an
     unknown split raises ValueError listing the available ones; a listed shard that is
     missing raises MissingShardError (a FileNotFoundError), one that is truncated or
-    unreadable raises CorruptShardError (a ValueError), both naming the file and task.
+    unreadable raises CorruptShardError (a ValueError), both naming the file and task; so
+    does a shard that HDF5 cannot decode (never a TypeError from deep inside h5py).
     """
 
-    def __init__(self, root: str | os.PathLike[str], *, verify: bool = False, max_open_files: int = 16):
+    def __init__(self, root: str | os.PathLike[str], *, verify: bool = False, max_open_files: int = 16,
+                 integrity: bool = True):
         if isinstance(max_open_files, bool) or not isinstance(max_open_files, int) or max_open_files < 1:
             raise ValueError(f"max_open_files must be an integer >= 1 (got {max_open_files!r})")
         self.root = Path(root)
@@ -60,6 +71,8 @@ class DatasetReader:
         self._template: dict[str, np.ndarray] | None = None
         self._handles: OrderedDict[int, h5py.File] = OrderedDict()
         self._pid = os.getpid()
+        self._integrity = IntegrityChecker(self.root) if integrity else None
+        self._checked: set[int] = set()  # shards whose bytes matched the manifest in this reader
         if verify:
             self.verify()
 
@@ -109,8 +122,14 @@ class DatasetReader:
     def shard_no(self, task_id: str) -> int:
         """Position of a task's shard in ``shard_entries``."""
         if task_id not in self._shard_no:
-            raise ValueError(f"task {task_id!r} has no shard in dataset {str(self.root)!r} "
-                             f"(listed tasks: {', '.join(sorted(self._shard_no)) or 'none'})")
+            import difflib
+
+            listed = sorted(self._shard_no)
+            close = difflib.get_close_matches(str(task_id), listed, n=1)
+            examples = ", ".join(listed[:5]) + (", ..." if len(listed) > 5 else "")
+            raise ValueError(f"task {task_id!r} has no shard in dataset {str(self.root)!r}"
+                             + (f" (did you mean {close[0]}?)" if close else "")
+                             + f"; {len(listed)} tasks listed: {examples or 'none'} (see `drape dataset info`)")
         return self._shard_no[task_id]
 
     def _check_split(self, split: str) -> None:
@@ -148,7 +167,7 @@ class DatasetReader:
             handle = self._open(0)
             try:
                 self._template = read_template(handle)
-            except OSError as error:
+            except _DECODE_ERRORS as error:
                 raise self._corrupt(0, error) from None
         return {key: value.copy() for key, value in self._template.items()}
 
@@ -177,9 +196,16 @@ class DatasetReader:
         if size != entry["bytes"]:
             raise CorruptShardError(f"shard {str(path)!r} of task {entry['task_id']!r} has {size} bytes, the "
                                     f"manifest lists {entry['bytes']} (truncated or replaced)")
+        if self._integrity is not None and number not in self._checked:
+            problem = self._integrity.problem(entry)
+            if problem is not None:
+                kind, message = problem
+                raise (MissingShardError if kind == "missing" else CorruptShardError)(
+                    f"{message}; run `drape dataset validate {self.root}`")
+            self._checked.add(number)
         try:
             handle = h5py.File(path, "r")
-        except OSError as error:
+        except Exception as error:  # h5py raises OSError, and others on some damage
             raise self._corrupt(number, error) from None
         self._handles[number] = handle
         while len(self._handles) > self.max_open_files:
@@ -229,7 +255,7 @@ class DatasetReader:
             }
             if BODY_TRANSLATION in handle:
                 item["body_translation"] = np.asarray(handle[BODY_TRANSLATION][row], dtype=np.float32)
-        except (OSError, KeyError) as error:
+        except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         return item
 
@@ -251,7 +277,7 @@ class DatasetReader:
                 arrays[f"{QUALITY_GROUP}/{name}"] = np.asarray(dataset[()], dtype=np.float32)
             if BODY_TRANSLATION in handle:
                 arrays["body_translation"] = np.asarray(handle[BODY_TRANSLATION][()], dtype=np.float32)
-        except (OSError, KeyError) as error:
+        except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         if frames != self._entries[number]["frame_count"]:
             raise CorruptShardError(f"shard {str(self._path(number))!r} holds {frames} frames, the manifest "
@@ -301,9 +327,10 @@ class DatasetReader:
         for number in self._split_shards(split):
             if not sum(self._entries[number].get("filter_stats", {}).values()):
                 continue
+            handle = self._open(number)
             try:
-                log = read_dropped_log(self._open(number))
-            except (OSError, KeyError) as error:
+                log = read_dropped_log(handle)
+            except _DECODE_ERRORS as error:
                 raise self._corrupt(number, error) from None
             if log is None:
                 continue

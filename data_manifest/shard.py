@@ -18,6 +18,7 @@ most 0.24 mm. Pose, shape, style, quality and template arrays are always float32
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -66,6 +67,21 @@ _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ012345678
 _SMALL_CHUNK_ROWS = 256  # rows per chunk of the small per-frame arrays (pose, quality, ...)
 _HASH_BLOCK_BYTES = 1 << 20
 _MAX_TASK_JSON_BYTES = 32 * 1024  # HDF5 compact attributes must stay below 64 KiB
+SPACE_RESERVE_BYTES = 16 << 20
+"""Free space [B] a shard writer keeps in hand: a frame is refused (ENOSPC, before HDF5 writes a
+byte of it) when the disk would keep less. HDF5 flushes its chunk and metadata caches when a
+file closes; a write that fails inside HDF5 leaves the library unable to close the file (it
+crashes the process at exit), so the writer stops while the temporary can still be closed and
+removed cleanly."""
+
+
+def free_space(directory: str | os.PathLike[str]) -> int | None:
+    """Bytes an unprivileged writer may still use on the file system of ``directory``."""
+    try:
+        stat = os.statvfs(directory)
+    except (OSError, AttributeError):
+        return None
+    return int(stat.f_bavail) * int(stat.f_frsize)
 
 
 def shard_path(root: str | os.PathLike[str], task_id: str) -> Path:
@@ -292,6 +308,15 @@ class ShardWriter:
             options.update(compression="lzf")
         return options
 
+    def _check_space(self, needed: int) -> None:
+        """Raises OSError(ENOSPC) naming the shard when writing ``needed`` more bytes would leave
+        less than :data:`SPACE_RESERVE_BYTES` free."""
+        free = free_space(self.path.parent)
+        if free is not None and free < needed + SPACE_RESERVE_BYTES:
+            raise OSError(errno.ENOSPC, f"No space left on device ({free} B free; the shard of task {self.task_id!r} "
+                                        f"needs about {needed} B more and keeps {SPACE_RESERVE_BYTES >> 20} MiB in hand "
+                                        f"to close its file cleanly)", str(self.tmp_path))
+
     def _ensure_open(self) -> h5py.File:
         if self._state == "open":
             assert self._file is not None
@@ -299,6 +324,7 @@ class ShardWriter:
         if self._state != "new":
             raise ValueError(f"ShardWriter for task {self.task_id!r} is {self._state}; it cannot be reused")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._check_space(sum(int(np.asarray(v).nbytes) for v in self.template.values()))
         self._start = time.perf_counter()
         # track_times=False everywhere and fixed attribute order keep the bytes (and the
         # sha256) identical for identical content, so a resumed run equals a fresh one.
@@ -428,6 +454,7 @@ class ShardWriter:
         extra: further per-frame float arrays (same shape every frame), stored as extra/<name>.
         """
         handle = self._ensure_open()
+        self._check_space(2 * self.vertex_count * 3 * 4)
         row = self.frame_count
         where = f"task {self.task_id!r} frame {row}"
         posed = np.asarray(posed_vertices, dtype=np.float64)

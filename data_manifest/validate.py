@@ -142,8 +142,9 @@ def check_shard_file(
                 if frames != entry["frame_count"]:
                     report.add("frame_count", path, f"shard holds {frames} frames, the manifest lists "
                                                     f"{entry['frame_count']}")
-    except OSError as error:
-        report.add("corrupt", path, f"shard of task {task_id!r} cannot be read as HDF5: {error}")
+    except (OSError, KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError, OverflowError) as error:
+        # damaged HDF5 surfaces as any of these from h5py: each is a finding, never a crash
+        report.add("corrupt", path, f"shard of task {task_id!r} cannot be read as HDF5: {type(error).__name__}: {error}")
     return report.errors
 
 
@@ -246,14 +247,29 @@ def _size(count: int) -> str:
     return f"{value:.1f} TiB"
 
 
-def info(root: str | os.PathLike[str]) -> str:
+def info(root: str | os.PathLike[str], *, with_problems: bool = False) -> str | tuple[str, list[tuple[str, str]]]:
     """Summary of a dataset from its manifest: identity and provenance, tasks and frames per
-    split, frames kept and dropped by reason, size, precision, timings; and, from the shards'
-    frame indices and dropped-frame logs, the kept share by position in the sequence. Raises
-    FileNotFoundError / ValueError like ``Manifest.load``."""
+    split, frames kept and dropped by reason, size, precision, timings; the integrity of every
+    listed shard (missing, or size / sha256 not those the manifest lists; digests cached, see
+    ``integrity``), and a generation in progress (its lock); and, from the sound shards' frame
+    indices and dropped-frame logs, the kept share by position in the sequence. Raises
+    FileNotFoundError / ValueError like ``Manifest.load``. ``with_problems``: also return the
+    integrity problems as (kind, message) pairs."""
+    from .integrity import IntegrityChecker
+    from .lock import read_lock
+
     manifest = Manifest.load(root)
     totals = manifest.totals
     provenance = manifest.provenance
+    checker = IntegrityChecker(root)
+    problems: list[tuple[str, str]] = []
+    sound = []
+    for entry in manifest.shards:
+        problem = checker.problem(entry)
+        if problem is None:
+            sound.append(entry)
+        else:
+            problems.append(problem)
     shards = manifest.shards
     lines = [
         f"dataset {manifest.name}  (schema {manifest.to_dict()['schema_version']}, precision "
@@ -302,11 +318,24 @@ def info(root: str | os.PathLike[str]) -> str:
                      f"{seen / wall_s:.2f} simulated frames/s over {wall_s:.1f} s wall")
     if manifest.audit is not None:
         lines.extend(_audit_lines(manifest.audit))
-    position_rows = _keep_by_position(Path(root), shards)
+    lines.append("")
+    if problems:
+        missing = sum(kind == "missing" for kind, _ in problems)
+        lines.append(f"integrity: {len(problems)} of {len(shards)} shards do not match the manifest "
+                     f"({missing} missing, {len(problems) - missing} corrupt); readers refuse them. "
+                     f"Rerun generate-dataset to rewrite them, or `drape dataset validate` for details:")
+        lines.extend(f"  {kind:<8} {message}" for kind, message in problems)
+    else:
+        lines.append(f"integrity: all {len(shards)} shards match the manifest (size and sha256)")
+    holder = read_lock(root)
+    if holder is not None:
+        lines.append(f"being written: {holder.describe()}")
+    position_rows = _keep_by_position(Path(root), sound)
     if position_rows:
         lines.append("")
         lines.append(format_table(["position in sequence", "frames", "kept", "most dropped for"], position_rows))
-    return "\n".join(lines).rstrip() + "\n"
+    text = "\n".join(lines).rstrip() + "\n"
+    return (text, problems) if with_problems else text
 
 
 #: Buckets of a frame's position in its task's sequence (frame_index) for ``info``: (first, last).
@@ -328,7 +357,7 @@ def _keep_by_position(root: Path, shards: list[dict]) -> list[list[Any]]:
                         return []
                     dropped_idx.append(log["frame_index"])
                     reasons.append(log["reason"])
-        except (OSError, KeyError):
+        except (OSError, KeyError, TypeError, ValueError, IndexError, RuntimeError, AttributeError):
             return []  # validate reports unreadable shards; the summary leaves the table out
     if not dropped_idx:
         return []

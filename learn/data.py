@@ -3,16 +3,21 @@
 of the unposed displacements computed once per shard and cached next to the data.
 
 The cache key is the shard's sha256, so a regenerated shard never reuses a stale
-cache; the cache is written atomically.
+cache; the cache is written atomically. It lives in ``<dataset>/cache/low_frequency``, or in
+the user cache directory when the dataset cannot be written (a read-only mount, another
+user's data; :func:`data_manifest.integrity.cache_dir_for`); a cache that cannot be written
+at all (a full disk) is skipped, the split is then computed on every load.
 """
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from data_manifest.integrity import cache_dir_for
 from data_manifest.reader import DatasetReader
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
 
@@ -25,18 +30,31 @@ def low_frequency_for_task(reader: DatasetReader, task_id: str, smoother: Laplac
                            cache_dir: Path | None = None) -> np.ndarray:
     """Smoothed displacements (F, V, 3) of one shard, computed once and cached."""
     entry = next(e for e in reader.shard_entries if e["task_id"] == task_id)
-    cache_dir = Path(cache_dir) if cache_dir is not None else Path(reader.root) / "cache" / "low_frequency"
+    cache_dir = Path(cache_dir) if cache_dir is not None else cache_dir_for(reader.root, "low_frequency")
     path = cache_dir / f"{task_id}-{entry['sha256'][:16]}-{smoother.iterations}-{smoother.smoothness:g}.npy"
     if path.is_file():
-        return np.load(path)
+        try:
+            low = np.load(path, allow_pickle=False)
+            if low.shape == (entry["frame_count"], *low.shape[1:]) and low.dtype == np.float32:
+                return low
+        except (OSError, ValueError, EOFError):
+            pass  # a damaged cache file is computed again
     d = reader.load_task(task_id)["unposed_displacements"].astype(np.float32)
     low, _ = split_frequencies(torch.from_numpy(d), smoother)
     low = low.numpy().astype(np.float32)
-    cache_dir.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        np.save(fh, low)
-    os.replace(tmp, path)
+    try:
+        cache_dir.mkdir(parents=True, exist_ok=True)
+        with open(tmp, "wb") as fh:
+            np.save(fh, low)
+        os.replace(tmp, path)
+    except OSError as error:  # the cache only saves time: go on without it
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        warnings.warn(f"low-frequency cache not written ({error.strerror or error}: {error.filename or cache_dir}); "
+                      f"it is computed again at the next load", RuntimeWarning, stacklevel=2)
     return low
 
 

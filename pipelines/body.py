@@ -8,12 +8,20 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.errors import UsageError, check_output_file, check_torch_device
 
-def _floats(text: str, field: str) -> np.ndarray:
+
+def _floats(text: str, field: str, count: int | None = None) -> np.ndarray:
+    """Numbers separated by commas or spaces; ``count`` of them when given. Raises naming ``field``."""
     try:
-        return np.array([float(x) for x in text.replace(",", " ").split()], dtype=np.float32)
-    except ValueError as exc:
-        raise ValueError(f"--{field} must be numbers separated by commas or spaces, got {text!r}") from exc
+        values = np.array([float(x) for x in text.replace(",", " ").split()], dtype=np.float32)
+    except ValueError:
+        raise UsageError(f"{field} must be numbers separated by commas or spaces (got {text!r})") from None
+    if not np.isfinite(values).all():
+        raise UsageError(f"{field} must be finite numbers (got {text!r})")
+    if count is not None and values.size != count:
+        raise UsageError(f"{field} must have {count} numbers (got {values.size}: {text!r})")
+    return values
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,34 +50,50 @@ def run(args: argparse.Namespace) -> int:
 
     from simulate.body import POSE_JOINTS, load_body_model
 
+    out = check_output_file(args.out, "--out", suffixes=(".obj", ".ply"))
+    if args.preview:
+        check_output_file(args.preview, "--preview", suffixes=(".png",))
+    check_torch_device(args.device)
+    if args.backend == "smpl" and not args.model_path:
+        raise UsageError("--backend smpl needs --model-path (an SMPL/SMPL-H/SMPL-X .npz or .pkl file)")
+    if args.model_path and not Path(args.model_path).is_file():
+        raise UsageError(f"--model-path {args.model_path!r} does not exist")
     t0 = time.perf_counter()
     body = load_body_model(args.backend, path=args.model_path, device=args.device)
     load_s = time.perf_counter() - t0
-    shape = body.shape_default.copy() if args.shape is None else _floats(args.shape, "shape")
+    names = list(body.shape_names)
+    shape = body.shape_default.copy() if args.shape is None else _floats(args.shape, "--shape", len(names))
     for item in args.shape_set:
-        name, _, value = item.partition("=")
-        if name not in body.shape_names:
-            raise ValueError(f"--set {item!r}: unknown shape parameter {name!r}; expected one of {', '.join(body.shape_names)}")
-        shape[body.shape_names.index(name)] = float(value)
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise UsageError(f"--set {item!r} must be NAME=VALUE, e.g. height=0.9 (names: {', '.join(names)})")
+        if name not in names:
+            from pipelines.spec import nearest_name
+
+            raise UsageError(f"--set {item!r}: unknown shape parameter {name!r}{nearest_name(name, names)}; "
+                             f"expected one of {', '.join(names)}")
+        shape[names.index(name)] = _floats(value, f"--set {name}", 1)[0]
     lo, hi = body.shape_ranges[:, 0], body.shape_ranges[:, 1]
-    if shape.shape == lo.shape and ((shape < lo) | (shape > hi)).any():
+    if ((shape < lo) | (shape > hi)).any():
         bad = int(np.nonzero((shape < lo) | (shape > hi))[0][0])
-        raise ValueError(f"shape parameter {body.shape_names[bad]}={shape[bad]:g} is outside its range [{lo[bad]:g}, {hi[bad]:g}]")
-    pose = body.canonical_pose.copy() if args.pose is None else _floats(args.pose, "pose")
+        raise UsageError(f"shape parameter {names[bad]}={shape[bad]:g} is outside its range [{lo[bad]:g}, {hi[bad]:g}]")
+    pose = body.canonical_pose.copy() if args.pose is None else _floats(args.pose, "--pose", len(POSE_JOINTS) * 3)
     if args.joint:
         pose = pose.reshape(len(POSE_JOINTS), 3)
         for item in args.joint:
-            name, _, value = item.partition("=")
-            body.pose_from_dict({name: [0, 0, 0]})  # raises on an unknown joint name
-            pose[POSE_JOINTS.index(name)] = _floats(value, "joint")
+            name, sep, value = item.partition("=")
+            if not sep:
+                raise UsageError(f"--joint {item!r} must be NAME=RX,RY,RZ, e.g. left_shoulder=0,0,1.2")
+            if name not in POSE_JOINTS:
+                from pipelines.spec import nearest_name
+
+                raise UsageError(f"--joint {item!r}: unknown joint name {name!r}{nearest_name(name, POSE_JOINTS)}; "
+                                 f"expected one of {', '.join(POSE_JOINTS)}")
+            pose[POSE_JOINTS.index(name)] = _floats(value, f"--joint {name}", 3)
         pose = pose.reshape(-1)
     t1 = time.perf_counter()
     posed = body.pose(shape, pose)
     pose_s = time.perf_counter() - t1
-    out = Path(args.out)
-    if out.suffix.lower() not in (".obj", ".ply"):
-        raise ValueError(f"--out must end in .obj or .ply, got {out.name!r}")
-    out.parent.mkdir(parents=True, exist_ok=True)
     trimesh.Trimesh(posed.vertices[0], body.faces, process=False).export(out)
     summary = {"backend": body.name, "vertices": body.vertex_count, "faces": int(len(body.faces)), "joints": body.joint_count,
                "shape": dict(zip(body.shape_names, map(float, shape))), "load_s": round(load_s, 3),

@@ -77,6 +77,12 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
             if arr.ndim != 2 or arr.shape[1] != body.shape_size:
                 raise ValueError(f"spec.shapes.{group} entries must have {body.shape_size} values "
                                  f"({', '.join(body.shape_names)}), got shape {arr.shape}")
+            lo, hi = body.shape_ranges[:, 0], body.shape_ranges[:, 1]
+            outside = np.argwhere((arr < lo) | (arr > hi))
+            if len(outside):
+                i, j = (int(v) for v in outside[0])
+                raise ValueError(f"spec.shapes.{group}[{i}][{j}] ({body.shape_names[j]}) must be in "
+                                 f"[{lo[j]:g}, {hi[j]:g}] for the {body.name} body (got {arr[i, j]:g})")
             shapes.append(arr)
         else:
             from simulate.garment.shapes import sample_test_shapes

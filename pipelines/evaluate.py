@@ -31,9 +31,17 @@ def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
 
     models = {}
     for name, entry in LEARNERS.items():
-        if (run_dir / entry.model_file).is_file():
-            models[name] = entry.load(run_dir / entry.model_file, fingerprint=fingerprint, require_same_manifest=False,
-                                      device=device)
+        file = run_dir / entry.model_file
+        if file.is_file():
+            try:
+                models[name] = entry.load(file, fingerprint=fingerprint, require_same_manifest=False, device=device)
+            except Exception as exc:  # torch.load raises pickle, runtime and zip errors on a damaged file
+                from learn.tailornet.train import DatasetMismatchError
+
+                if isinstance(exc, DatasetMismatchError):
+                    raise
+                raise ValueError(f"{str(file)!r} is not a readable {name} checkpoint ({type(exc).__name__}: "
+                                 f"{' '.join(str(exc).split())[:200]}); rerun drape train") from None
     if not models:
         files = ", ".join(entry.model_file for entry in LEARNERS.values())
         raise FileNotFoundError(f"no trained model in {run_dir} (expected one of {files}; run drape train first)")
@@ -72,10 +80,19 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     from learn.tailornet.train import dataset_fingerprint, frame_arrays_from_dataset
     from simulate.body import load_body_model
 
+    from pipelines.errors import UsageError, check_number, check_output_dir, check_torch_device
+
     run_dir, data = Path(run_dir), Path(data)
-    out = Path(out) if out else run_dir / "evaluation"
-    out.mkdir(parents=True, exist_ok=True)
+    if not run_dir.is_dir():
+        raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
+    check_torch_device(device)
+    if postprocess_frames is not None:
+        check_number(postprocess_frames, "--postprocess-frames", minimum=0, integer=True)
+    check_number(renders, "--renders", minimum=0, integer=True)
+    if accuracy_report and not Path(accuracy_report).is_file():
+        raise UsageError(f"--accuracy-report {accuracy_report!r} does not exist (an accuracy.json from drape report accuracy)")
     reader = DatasetReader(data)
+    out = check_output_dir(Path(out) if out else run_dir / "evaluation", "--out")
     template = reader.template
     fingerprint = dataset_fingerprint(data, template)
     models = _load_models(run_dir, fingerprint, device)

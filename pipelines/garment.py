@@ -106,9 +106,11 @@ def run_garment(args: argparse.Namespace) -> int:
     from simulate.garment.style import StyleParams
     from simulate.garment.templates import apply_style, make_template
 
-    out = Path(args.out)
-    if out.suffix.lower() not in (".obj", ".ply"):
-        raise ValueError(f"--out must end in .obj or .ply, got {out.name!r}")
+    from pipelines.errors import check_output_file
+
+    out = check_output_file(args.out, "--out", suffixes=(".obj", ".ply"))
+    if args.preview:
+        check_output_file(args.preview, "--preview", suffixes=(".png",))
     body = load_body_model("anny")
     shape = _shape(body, args.shape)
     style = StyleParams.parse(args.garment_type, args.style)
@@ -154,8 +156,9 @@ def run_style_space(args: argparse.Namespace) -> int:
     from simulate.garment.style_space import build_style_space, outside_body, select_prototypes
     from simulate.garment.templates import apply_style, make_template
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    from pipelines.errors import check_output_dir
+
+    out = check_output_dir(args.out, "--out")
     body = load_body_model("anny")
     kwargs = {} if args.resolution is None else {"resolution": args.resolution}
     template = make_template(args.garment_type, body, **kwargs)

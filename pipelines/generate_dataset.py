@@ -34,14 +34,21 @@ holds) must not leave the start drapes unrelaxed."""
 DROP_REASONS = ("nan", "not_converged", "distortion", "penetration", "self_intersection")
 
 
-def resolve_device(device: str) -> str:
-    """"auto" -> "cuda:0" when Warp sees a GPU, else "cpu"; "cuda" -> "cuda:0"."""
+def resolve_device(device: str, option: str = "simulation.device") -> str:
+    """"auto" -> "cuda:0" when Warp sees a GPU, else "cpu"; "cuda" -> "cuda:0". Raises ValueError
+    naming ``option`` for a malformed device or a CUDA device this machine does not have."""
     import warp as wp
 
+    if not isinstance(device, str) or not (device in ("auto", "cpu", "cuda") or (
+            device.startswith("cuda:") and device[5:].isdigit())):
+        raise ValueError(f"{option} must be auto, cpu, cuda or cuda:N (got {device!r})")
     if device == "auto":
         return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
-    if device.startswith("cuda") and wp.get_cuda_device_count() == 0:
-        raise ValueError(f"simulation.device is {device!r} but Warp finds no CUDA device; use auto or cpu")
+    count = wp.get_cuda_device_count() if device.startswith("cuda") else 0
+    if device.startswith("cuda") and count == 0:
+        raise ValueError(f"{option} is {device!r} but Warp finds no CUDA device; use auto or cpu")
+    if device.startswith("cuda:") and int(device[5:]) >= count:
+        raise ValueError(f"{option} is {device!r} but Warp finds {count} CUDA device(s) (cuda:0..cuda:{count - 1})")
     return "cuda:0" if device == "cuda" else device
 
 
@@ -166,8 +173,12 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
                                            material_uv=template.face_uv)
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
-        np.savez(tmp, style_rest=style_rest, style_start=style_start.astype(np.float32), status=status)
-        os.replace(tmp, cache)
+        try:
+            np.savez(tmp, style_rest=style_rest, style_start=style_start.astype(np.float32), status=status)
+            os.replace(tmp, cache)
+        except BaseException:  # a full disk or a signal: no partial cache file stays behind
+            tmp.unlink(missing_ok=True)
+            raise
         log(f"prepared {len(style_rest)} style drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
             f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
     template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
@@ -384,11 +395,80 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     return "\n".join(lines)
 
 
-def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local", device: str | None = None,
-             ray_address: str | None = None, progress: bool = True, log: Callable[[str], None] = print,
-             heartbeat_s: float = 30.0, on_heartbeat: Callable[[dict], None] | None = None,
-             save_every_s: float = 10.0) -> Any:
+def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: Any) -> Any:
     """Runs (or resumes) a dataset generation; returns the finished Manifest.
+
+    Checks the spec, ``device`` and ``out_dir`` (a writable directory) before any work, then holds
+    ``out_dir``'s writer lock (:mod:`data_manifest.lock`) for the run: a second run on the same
+    directory raises DatasetLockedError naming the first. A full disk raises
+    :class:`DiskFullError` naming the path, the space needed and the space free. ``options``: see
+    :func:`_generate_locked`."""
+    from data_manifest.lock import DatasetLock
+
+    from pipelines.errors import check_output_dir
+
+    spec = validate_spec(dict(spec_or_path)) if isinstance(spec_or_path, dict) else load_spec(spec_or_path)
+    if options.get("device") is not None:
+        resolve_device(options["device"], option="--device")
+    out_dir = check_output_dir(out_dir, "--out")
+    lock = DatasetLock(out_dir).acquire()
+    try:
+        if lock.took_over is not None:
+            options.get("log", print)(f"took over the writer lock of an ended run ({lock.took_over.describe()})")
+        return _generate_locked(spec, out_dir, **options)
+    except Exception as error:  # h5py reports a full disk as OSError or RuntimeError
+        from pipelines.errors import is_disk_full
+
+        if is_disk_full(error) and not isinstance(error, DiskFullError):
+            raise DiskFullError.at(out_dir, error) from error
+        raise
+    finally:
+        lock.release()
+
+
+class DiskFullError(OSError):
+    """The dataset's file system filled up; the message names the path and the space free.
+    Complete shards are kept; the shard being written is removed (rerun to resume)."""
+
+    @classmethod
+    def at(cls, out_dir: Path, error: BaseException) -> "DiskFullError":
+        from pipelines.errors import free_bytes, human_bytes
+
+        where = getattr(error, "filename", None)
+        if not where:  # h5py names the file only in its message
+            import re
+
+            found = re.search(r"filename = '([^']+)'", str(error))
+            where = found.group(1) if found else out_dir
+        free = free_bytes(out_dir)
+        reason = getattr(error, "strerror", None)
+        if not reason:
+            import re
+
+            found = re.search(r"error message = '([^']+)'", str(error))
+            reason = found.group(1) if found else str(error).splitlines()[0][:200]
+        return cls(f"the disk of {str(out_dir)!r} is full: writing {str(where)!r} failed ({reason}; "
+                   f"{human_bytes(free or 0)} free); complete shards are kept, the one being written is "
+                   f"removed: free some space and rerun the same command to resume")
+
+
+def estimated_bytes(tasks: list, template_dict: dict, precision: str) -> int:
+    """Lower estimate of the bytes the shards of ``tasks`` take [B]: every target pose kept,
+    posed and unposed positions compressed to half their size (gzip keeps ~85 % of them on the
+    t-shirt), the template to a tenth (its skinning weights are mostly zero)."""
+    vertices = int(np.asarray(template_dict["rest_vertices"]).shape[0])
+    per_value = 2 if precision == "float16" else 4
+    frames = sum(len(t.poses) for t in tasks)
+    template = sum(np.asarray(v).nbytes for v in template_dict.values() if v is not None)
+    return int(frames * vertices * 3 * per_value * 2 * 0.5 + len(tasks) * template * 0.1)
+
+
+def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local",
+                     device: str | None = None, ray_address: str | None = None, progress: bool = True,
+                     log: Callable[[str], None] = print, heartbeat_s: float = 30.0,
+                     on_heartbeat: Callable[[dict], None] | None = None, save_every_s: float = 10.0) -> Any:
+    """Runs (or resumes) a dataset generation in ``out_dir`` (whose writer lock the caller holds);
+    returns the finished Manifest.
 
     Without ``progress`` bars, a line of progress is logged at most every ``heartbeat_s`` seconds.
     ``on_heartbeat`` (local executor, with or without bars) gets the same numbers as a dict at each
@@ -426,12 +506,26 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         log(f"resuming: {len(done)} of {len(ctx.plan.tasks)} shards already complete")
     # which sampled poses were pruned before simulation, and why, for the record
     plan = ctx.plan
-    np.savez(out_dir / "pruned_poses.npz", poses=plan.pruned_poses, reason=plan.pruned_reasons)
+    pruned_tmp = out_dir / "pruned_poses.npz.tmp"
+    try:
+        with open(pruned_tmp, "wb") as fh:
+            np.savez(fh, poses=plan.pruned_poses, reason=plan.pruned_reasons)
+        os.replace(pruned_tmp, out_dir / "pruned_poses.npz")
+    except BaseException:
+        pruned_tmp.unlink(missing_ok=True)
+        raise
     if len(plan.pruned_reasons):
         why, counts = np.unique(plan.pruned_reasons, return_counts=True)
         log(f"pruned sampled poses before simulation: " + ", ".join(f"{c} {w}" for w, c in zip(why, counts))
             + f" (poses.min_clearance {spec['poses']['min_clearance']}; {out_dir / 'pruned_poses.npz'})")
     total_keys = sum(len(t.poses) for t in pending)
+    from pipelines.errors import free_bytes, human_bytes
+
+    needed, free = estimated_bytes(pending, ctx.template_dict, spec["output"]["precision"]), free_bytes(out_dir)
+    if free is not None and needed > free:
+        raise DiskFullError(f"not enough free space in {str(out_dir)!r}: the {len(pending)} shards to write need about "
+                            f"{human_bytes(needed)} (a low estimate), {human_bytes(free)} are free; free some space "
+                            f"or choose another --out")
     from tqdm import tqdm
 
     bar = tqdm(total=total_keys, desc=f"{spec['name']}: target poses", unit="frame", disable=not progress, file=sys.stderr)
@@ -458,7 +552,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
         f"{worlds} worlds on {ctx.device}")
     beat = {"done": 0, "calls": 0, "last": time.perf_counter()}
 
+    from pipelines.errors import raise_if_interrupted
+
     def on_progress(count: int, batch: list[str] | None = None) -> None:
+        raise_if_interrupted()  # a Ctrl-C or SIGTERM whose exception a finalizer swallowed
         if batch is not None:
             count = sum(len(ctx.tasks[t].poses) for t in batch)
         bar.update(count)
@@ -510,12 +607,8 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
                 on_batch=after_batch, address=ray_address, skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
+    audit = dict(manifest.audit or {})
     if pending:
-        audit = dict(manifest.audit or {})
-        if int(spec["audit"]["samples"]) > 0:
-            from pipelines.audit import audit_dataset
-
-            audit.update(audit_dataset(ctx, out_dir, manifest, log=log))
         # amortized simulation cost of this run (what drape evaluate compares learners with)
         audit["simulation"] = {"seconds": round(sim_seconds, 3), "target_frames": int(total_keys),
                                "kept_frames": int(kept_this_run[0]), "device": ctx.device,
@@ -524,6 +617,17 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: 
             # where the simulation time went (frames: simulator frames; *_s: seconds stepping,
             # posing bodies, recording frames; recoveries: explosions survived)
             audit["simulation"]["phases"] = {k: round(float(v), 3) for k, v in ctx.phases.items()}
+        manifest.audit = audit
+        if int(spec["audit"]["samples"]) > 0:
+            save_manifest()  # a kill during the audit keeps the simulation's record
+    # the audit block: after new shards, or where a run was stopped before its audit ended
+    if int(spec["audit"]["samples"]) > 0 and (pending or "samples" not in audit):
+        from pipelines.audit import audit_dataset
+
+        simulation = audit.pop("simulation", None)
+        audit.update(audit_dataset(ctx, out_dir, manifest, log=log))
+        if simulation is not None:
+            audit["simulation"] = simulation
         manifest.audit = audit
     manifest.finish()
     manifest.save()

@@ -8,20 +8,38 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.errors import UsageError, check_output_file, check_torch_device, one_line
 
-def _vector(text: str | None, size: int, field: str, default: np.ndarray) -> np.ndarray:
+
+def _vector(text: str | None, size: int, field: str, default: np.ndarray,
+            ranges: np.ndarray | None = None, names: list[str] | None = None) -> np.ndarray:
+    """Numbers from a comma list or a .npy file: ``size`` finite values, each within ``ranges``
+    (rows [lo, hi]) when given; raises naming the option ``--field``."""
     if text is None:
         return np.asarray(default, np.float32)
     path = Path(text)
-    if path.suffix == ".npy" and path.is_file():
-        v = np.load(path).astype(np.float32).reshape(-1)
+    if path.suffix == ".npy":
+        if not path.is_file():
+            raise UsageError(f"--{field} {text!r}: no such .npy file")
+        try:
+            v = np.load(path, allow_pickle=False).astype(np.float32).reshape(-1)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"--{field} {text!r} is not a readable .npy array of numbers ({exc})") from None
     else:
         try:
             v = np.array([float(x) for x in text.replace(",", " ").split()], np.float32)
-        except ValueError as exc:
-            raise ValueError(f"--{field} must be numbers separated by commas (or a .npy file), got {text!r}") from exc
+        except ValueError:
+            raise UsageError(f"--{field} must be numbers separated by commas (or a .npy file), got {text!r}") from None
     if v.size != size:
-        raise ValueError(f"--{field} must have {size} values, got {v.size}")
+        raise UsageError(f"--{field} must have {size} values, got {v.size}")
+    if not np.isfinite(v).all():
+        raise UsageError(f"--{field} must be finite numbers (got {text!r})")
+    if ranges is not None:
+        bad = np.nonzero((v < ranges[:, 0]) | (v > ranges[:, 1]))[0]
+        if len(bad):
+            i = int(bad[0])
+            name = names[i] if names else f"value {i}"
+            raise UsageError(f"--{field}: {name}={v[i]:g} is outside its range [{ranges[i, 0]:g}, {ranges[i, 1]:g}]")
     return v
 
 
@@ -35,21 +53,39 @@ def run(args: argparse.Namespace) -> int:
 
     entry = get_learner(args.learner)
     run_dir = Path(args.run)
+    if not run_dir.is_dir():
+        raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
+    out = check_output_file(args.out, "--out", suffixes=(".obj", ".ply"))
+    check_torch_device(args.device)
     file = run_dir / entry.model_file
     if not file.is_file():
         raise FileNotFoundError(f"no {args.learner} model in {run_dir} (expected {file.name}; run drape train first)")
     if not (run_dir / "template.npz").is_file():
         raise FileNotFoundError(f"{run_dir} has no template.npz (written by drape train)")
-    with np.load(run_dir / "template.npz") as z:
-        template = {k: z[k] for k in z.files}
-    info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
-    model = entry.load(file, device=args.device)
+    try:
+        with np.load(run_dir / "template.npz", allow_pickle=False) as z:
+            template = {k: z[k] for k in z.files}
+        info = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
+    except (OSError, ValueError, EOFError) as exc:
+        raise UsageError(f"RUN {str(run_dir)!r}: template.npz or run.json is unreadable ({one_line(str(exc))}); "
+                         f"rerun drape train") from None
     body_spec = info.get("body", {"backend": "anny", "path": None})
     body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
+    # the body's inputs are checked before the model is loaded
+    pose = _vector(args.pose, body.pose_size, "pose", body.canonical_pose)
+    shape = _vector(args.shape, body.shape_size, "shape", body.shape_default, ranges=body.shape_ranges,
+                    names=list(body.shape_names))
+    try:
+        model = entry.load(file, device=args.device)
+    except Exception as exc:  # torch.load raises pickle, runtime and zip errors on a damaged file
+        from learn.tailornet.train import DatasetMismatchError
+
+        if isinstance(exc, DatasetMismatchError):
+            raise
+        raise UsageError(f"{str(file)!r} is not a readable {args.learner} checkpoint ({type(exc).__name__}: "
+                         f"{one_line(str(exc))[:200]}); rerun drape train") from None
     cfg = getattr(model, "config", {}) or {}
     style_size = int(cfg.get("low_frequency", cfg).get("style_components", 0))
-    pose = _vector(args.pose, body.pose_size, "pose", body.canonical_pose)
-    shape = _vector(args.shape, body.shape_size, "shape", body.shape_default)
     style = _vector(args.style, style_size, "style", np.zeros(style_size)) if args.style is not None else None
     if style is None:
         raise ValueError(f"--style is required: {style_size} style values (the dataset's style vector)")
@@ -58,8 +94,6 @@ def run(args: argparse.Namespace) -> int:
                                   rest_vertices=template["rest_vertices"]), body.faces, template["faces"])
     vertices = predict_vertices(model, pose, shape, style, posing=posing, postprocess=args.postprocess,
                                 device=args.device)[0]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     trimesh.Trimesh(vertices, template["faces"], process=False).export(out)
     if args.with_body and not args.unposed:
         posed = body.pose(shape, pose)

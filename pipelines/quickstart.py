@@ -16,6 +16,9 @@ def run(args: argparse.Namespace) -> int:
     from pipelines.generate_dataset import generate
     from pipelines.train import train
 
+    from pipelines.errors import check_number
+
+    check_number(args.epochs, "--epochs", minimum=1, integer=True)  # before minutes of simulation
     out = Path(args.out)
     t0 = time.perf_counter()
     print(f"[1/3] generate-dataset {args.spec} -> {out / 'data'}")

@@ -163,9 +163,10 @@ def run_accuracy_command(args: argparse.Namespace) -> int:
     if bad or not solvers:
         raise ValueError(f"--solvers {args.solvers!r}: expected a comma list of {', '.join(SOLVERS)} including the "
                          f"production default's solver ({default.solver})")
+    from pipelines.errors import check_output_dir
+
     device = resolve_device(args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_dir(args.out, "--out")
     poses = _poses(args.poses)
     t0 = time.perf_counter()
     scene = build_scene(args.garment, body=args.body, resolution=args.resolution, device=device)
@@ -252,9 +253,10 @@ def run_stability_command(args: argparse.Namespace) -> int:
     from simulate.reports.stability import (DEFAULT_SCENE, failing_supported, format_table, plot_heatmap,
                                             run_stability, stability_cases, unexpected_passes)
 
+    from pipelines.errors import check_output_dir
+
     device = resolve_device(args.device)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = check_output_dir(args.out, "--out")
     garment = args.garment or DEFAULT_SCENE.split("@")[0]
     scene = build_scene(garment, body="anny", resolution=args.resolution, device=device)
     cases = stability_cases(scene, args.size)

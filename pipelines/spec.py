@@ -116,8 +116,10 @@ records and hashes. Schema (every key optional unless marked required)::
 from __future__ import annotations
 
 import copy
+import difflib
 import hashlib
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -154,8 +156,49 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
+REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)}
+"""Keys a spec may (or must) give that have no default, by section path ("" = top level)."""
+
+MAX_RESOLUTION = 200_000
+"""Largest garment.resolution accepted [vertices] (the TailorNet t-shirt has 7.7k)."""
+
+
 class SpecError(ValueError):
     """A spec problem; the message names the field path, the value and what was expected."""
+
+
+def nearest_name(name: Any, known: list[str] | tuple[str, ...]) -> str:
+    """" (did you mean X?)" for the known name closest to ``name`` (difflib), or ""."""
+    close = difflib.get_close_matches(str(name), [str(k) for k in known], n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def _check_structure(raw: dict, defaults: dict, section: str, source: str, errors: list[str]) -> dict:
+    """Unknown keys and non-mapping sections at every nesting level, named by their field path.
+
+    Returns a copy of ``raw`` without the offending keys (so value checks can go on and every
+    problem is reported at once). A section given as null (e.g. all its lines commented out)
+    counts as empty."""
+    known = sorted(set(defaults) | set(REQUIRED_KEYS.get(section, ())))
+    clean: dict = {}
+    for key, value in raw.items():
+        path = f"{section}.{key}" if section else str(key)
+        if key not in known:
+            hint = nearest_name(key, known)
+            errors.append(f"spec.{path} is not a known field" + (hint or f"; known fields{' of spec.' + section if section else ''}: "
+                                                                 f"{', '.join(known)}") + f" (in {source})")
+            continue
+        if isinstance(defaults.get(key), dict):
+            if value is None:
+                value = {}
+            if not isinstance(value, dict):
+                fields = sorted(set(defaults[key]) | set(REQUIRED_KEYS.get(path, ())))
+                errors.append(f"spec.{path} must be a mapping of fields such as {', '.join(fields[:3])}"
+                              f" (got {value!r}) in {source}")
+                continue
+            value = _check_structure(value, defaults[key], path, source, errors)
+        clean[key] = value
+    return clean
 
 
 def _merge(defaults: dict, given: dict) -> dict:
@@ -178,21 +221,23 @@ class _Checker:
             node = node.get(part) if isinstance(node, dict) else None
         return node
 
-    def fail(self, path: str, expected: str) -> None:
-        self.errors.append(f"spec.{path} must be {expected} (got {self.get(path)!r}) in {self.source}")
+    def fail(self, path: str, expected: str, value: Any = None) -> None:
+        got = self.get(path) if value is None else value
+        self.errors.append(f"spec.{path} must be {expected} (got {got!r}) in {self.source}")
 
-    def integer(self, path: str, minimum: int = 0, *, allow: tuple = ()) -> None:
+    def integer(self, path: str, minimum: int = 0, *, allow: tuple = (), maximum: int | None = None) -> None:
         v = self.get(path)
         if v in allow and not isinstance(v, bool):
             return
-        if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-            self.fail(path, f"an integer >= {minimum}" + (f" or one of {allow}" if allow else ""))
+        if isinstance(v, bool) or not isinstance(v, int) or v < minimum or (maximum is not None and v > maximum):
+            self.fail(path, f"an integer >= {minimum}" + (f" and <= {maximum}" if maximum is not None else "")
+                      + (f" or one of {allow}" if allow else ""))
 
     def number(self, path: str, lo: float, hi: float | None = None, *, lo_open: bool = False,
                hi_open: bool = False) -> None:
         v = self.get(path)
-        ok = (isinstance(v, (int, float)) and not isinstance(v, bool) and (v > lo if lo_open else v >= lo)
-              and (hi is None or (v < hi if hi_open else v <= hi)))
+        ok = (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+              and (v > lo if lo_open else v >= lo) and (hi is None or (v < hi if hi_open else v <= hi)))
         if not ok:
             self.fail(path, f"a number {'>' if lo_open else '>='} {lo}"
                       + (f" and {'<' if hi_open else '<='} {hi}" if hi is not None else ""))
@@ -205,17 +250,17 @@ class _Checker:
 def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     """Validates a spec dict and returns it with defaults filled in; raises SpecError listing every problem."""
     if not isinstance(raw, dict):
-        raise SpecError(f"the spec in {source} must be a YAML mapping (got {type(raw).__name__})")
-    unknown = sorted(set(raw) - set(DEFAULTS) - {"name", "garment"})
-    spec = _merge(DEFAULTS, raw)
+        raise SpecError(f"the spec in {source} must be a YAML mapping of fields (name, garment, ...) "
+                        f"(got {type(raw).__name__})")
+    errors: list[str] = []
+    spec = _merge(DEFAULTS, _check_structure(raw, DEFAULTS, "", source, errors))
     c = _Checker(spec, source)
-    for key in unknown:
-        c.errors.append(f"spec.{key} is not a known field (expected one of {', '.join(sorted(set(DEFAULTS) | {'name'}))}) in {source}")
+    c.errors.extend(errors)
     if not isinstance(spec.get("name"), str) or not spec["name"]:
         c.fail("name", "a non-empty string")
     c.integer("seed", 0)
     c.choice("garment.type", GARMENT_TYPES)
-    c.integer("garment.resolution", 50)
+    c.integer("garment.resolution", 64, maximum=MAX_RESOLUTION)
     c.choice("garment.fabric", FABRIC_NAMES)
     c.choice("body.backend", ("anny", "smpl"))
     if spec["body"]["backend"] == "smpl" and not spec["body"].get("path"):
@@ -225,12 +270,16 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         if isinstance(styles, list):
             if not styles or not all(isinstance(s, dict) for s in styles):
                 c.fail(f"styles.{group}", "a count >= 1 or a non-empty list of {param: value} mappings")
+            elif spec["garment"].get("type") in GARMENT_TYPES:
+                _check_styles(c, f"styles.{group}", styles, spec["garment"]["type"])
         else:
             c.integer(f"styles.{group}", 1)
         shapes = spec["shapes"][group]
         if isinstance(shapes, list):
-            if not shapes or not all(isinstance(s, list) and all(isinstance(x, (int, float)) for x in s) for s in shapes):
-                c.fail(f"shapes.{group}", "a count, 'tailornet9' (train only) or a list of shape vectors")
+            if not shapes or not all(isinstance(s, list) and s and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in s) for s in shapes):
+                c.fail(f"shapes.{group}", "a count, 'tailornet9' (train only) or a non-empty list of shape vectors "
+                                          "(lists of finite numbers)")
         elif not (group == "train" and shapes == "tailornet9"):
             c.integer(f"shapes.{group}", 1)
         c.integer(f"pairs.{group}", 0 if group == "test" else 1)
@@ -240,6 +289,22 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     joints = spec["poses"]["joints"]
     if joints is not None and not (joints in ("upper", "lower", "all") or (isinstance(joints, list) and joints)):
         c.fail("poses.joints", "upper, lower, all or a list of joint names")
+    elif isinstance(joints, list):
+        from simulate.body import POSE_JOINTS
+
+        for k, name in enumerate(joints):
+            if name not in POSE_JOINTS or name == "pelvis":
+                c.fail(f"poses.joints[{k}]", f"a posable joint name{nearest_name(name, POSE_JOINTS)} "
+                                            f"(one of {', '.join(j for j in POSE_JOINTS if j != 'pelvis')})", name)
+    for key in ("path",):
+        value = spec["poses"][key]
+        if value is not None and not isinstance(value, str):
+            c.fail(f"poses.{key}", "the path of a .npz pose file (a string) or null")
+    if spec["body"]["path"] is not None and not isinstance(spec["body"]["path"], str):
+        c.fail("body.path", "the path of an SMPL-family model file (a string) or null")
+    if spec["styles"]["space"] is not None:
+        c.fail("styles.space", "null (generate-dataset samples or takes explicit style parameters; style "
+                               "spaces are for drape garment and style-space)")
     c.number("poses.range_scale", 0.0, 1.0, lo_open=True)
     if spec["poses"]["min_clearance"] is not None:
         c.number("poses.min_clearance", 0.0, 0.2)
@@ -303,8 +368,26 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if spec["pairs"]["test"] == 0 and (spec["splits"]["test_train"] or spec["splits"]["test_test"]):
         spec["splits"]["test_train"] = spec["splits"]["test_test"] = 0
     if c.errors:
-        raise SpecError("invalid dataset spec:\n  " + "\n  ".join(c.errors))
+        raise SpecError("invalid dataset spec: " + "; ".join(c.errors))
     return spec
+
+
+def _check_styles(c: _Checker, path: str, styles: list[dict], garment_type: str) -> None:
+    """Explicit style dicts: parameter names of the garment type, finite values in range."""
+    from simulate.garment.style import STYLE_SPECS
+
+    params = STYLE_SPECS[garment_type]
+    for k, style in enumerate(styles):
+        for name, value in style.items():
+            where = f"{path}[{k}].{name}"
+            if name not in params:
+                c.errors.append(f"spec.{where} is not a style parameter of a {garment_type}{nearest_name(name, list(params))}; "
+                                f"known: {', '.join(params)} (in {c.source})")
+                continue
+            lo, hi = params[name][0], params[name][1]
+            if (isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value)
+                    or not lo <= value <= hi):
+                c.fail(where, f"a number >= {lo:g} and <= {hi:g}", value)
 
 
 def load_spec(path: str | Path) -> dict[str, Any]:
@@ -316,9 +399,17 @@ def load_spec(path: str | Path) -> dict[str, Any]:
         shipped = sorted(q.stem for q in (Path(__file__).parent / "configs").glob("*.yaml"))
         raise FileNotFoundError(f"dataset spec not found: {path} (shipped specs: {', '.join(shipped)})")
     try:
-        raw = yaml.safe_load(p.read_text())
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise SpecError(f"{p} is not a YAML dataset spec (it is a binary file{', an .npz archive' if p.suffix == '.npz' else ''}; "
+                        f"expected a .yaml file such as pipelines/configs/quickstart.yaml)") from None
+    try:
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise SpecError(f"{p.name} is not valid YAML: {exc}") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise SpecError(f"{p.name} is not valid YAML{where}: {problem}") from None
     return validate_spec(raw, source=p.name)
 
 

@@ -24,10 +24,56 @@ import os
 import time
 from pathlib import Path
 
+from typing import Any
+
 import numpy as np
 import yaml
 
+from pipelines.errors import UsageError, check_number, check_output_dir, check_torch_device, one_line
+
 TRAIN_SPLITS = ("train_train", "train")
+
+
+def _check_config(hyper: Any, path: Path, learner: str = "tailornet") -> dict:
+    """Stage names, keys and value types of a --config file against the learner's defaults
+    (TailorNet's stages for tailornet and baseline; a mapping of mappings for the other learners,
+    which check their own keys); raises naming the file and the field path (e.g. ``lf.lr``)."""
+    from learn.tailornet.train import DEFAULT_HYPERPARAMETERS
+
+    from pipelines.spec import nearest_name
+
+    stages = sorted(DEFAULT_HYPERPARAMETERS)
+    if not isinstance(hyper, dict):
+        raise UsageError(f"--config {path} must map stage names to settings (got {type(hyper).__name__})")
+    if learner not in ("tailornet", "baseline"):
+        for stage, values in hyper.items():
+            if not isinstance(values, dict):
+                raise UsageError(f"--config {path}: {stage} must be a mapping of settings (got {values!r})")
+        return hyper
+    for stage, values in hyper.items():
+        if stage not in DEFAULT_HYPERPARAMETERS:
+            raise UsageError(f"--config {path}: {stage!r} is not a training stage{nearest_name(stage, stages)}; "
+                             f"expected one of {', '.join(stages)}")
+        if not isinstance(values, dict):
+            raise UsageError(f"--config {path}: {stage} must be a mapping of settings such as lr, epochs (got {values!r})")
+        known = DEFAULT_HYPERPARAMETERS[stage]
+        for key, value in values.items():
+            if key not in known:
+                raise UsageError(f"--config {path}: {stage}.{key} is not a setting{nearest_name(key, list(known))}; "
+                                 f"expected one of {', '.join(sorted(known))}")
+            default = known[key]
+            where = f"--config {path}: {stage}.{key}"
+            if isinstance(default, bool):
+                if not isinstance(value, bool):
+                    raise UsageError(f"{where} must be true or false (got {value!r})")
+            elif isinstance(default, int):
+                minimum = 0 if key in ("epochs", "smoothing_iterations") else 1
+                check_number(value, where, minimum=minimum, integer=True)
+            elif isinstance(default, float):
+                minimum = 0.0
+                check_number(value, where, minimum=minimum, above=key in ("lr", "sigma"),
+                             maximum=1.0 if key == "dropout" else None)
+    return hyper
 
 
 def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
@@ -37,18 +83,25 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
     if args.config:
         path = Path(args.config)
         if not path.is_file():
-            raise FileNotFoundError(f"--config: hyper-parameter file not found: {path}")
-        hyper = yaml.safe_load(path.read_text()) or {}
-        if not isinstance(hyper, dict):
-            raise ValueError(f"--config {path} must map stage names (lf, hf, shape_style, baseline, model) to settings")
+            raise UsageError(f"--config: hyper-parameter file not found: {path}")
+        try:
+            hyper = yaml.safe_load(path.read_text(encoding="utf-8"))
+        except UnicodeDecodeError:
+            raise UsageError(f"--config {path} is not a YAML text file") from None
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+            raise UsageError(f"--config {path} is not valid YAML{where}: "
+                             f"{getattr(exc, 'problem', None) or one_line(str(exc))}") from None
+        hyper = _check_config({} if hyper is None else hyper, path, args.learner)
     if args.epochs is not None:
-        if args.epochs < 1:
-            raise ValueError(f"--epochs must be >= 1 (got {args.epochs})")
+        check_number(args.epochs, "--epochs", minimum=1, integer=True)
         for stage in stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
     if args.prototypes is not None:
         if args.learner != "tailornet":
-            raise ValueError(f"--prototypes applies to tailornet only, not {args.learner}")
+            raise UsageError(f"--prototypes applies to tailornet only, not {args.learner}")
+        check_number(args.prototypes, "--prototypes", minimum=1, integer=True)
         hyper.setdefault("model", {})["prototype_count"] = int(args.prototypes)
     return hyper
 
@@ -72,14 +125,17 @@ def run(args: argparse.Namespace) -> int:
 
     entry = get_learner(args.learner)
     args.learner = entry.name
+    check_torch_device(args.device)
+    check_number(args.seed, "--seed", minimum=0, integer=True)
+    hyper = _overrides(args, entry.stages)
+    if Path(args.out).resolve() == Path(args.data).resolve():
+        raise UsageError(f"--out {args.out!r} is the dataset directory; give the run its own directory")
+    out = check_output_dir(args.out, "--out")
     reader = DatasetReader(args.data)
     split = next((s for s in TRAIN_SPLITS if s in reader.splits and reader.num_frames(s) > 0), None)
     if split is None:
         raise ValueError(f"dataset {args.data} has no frames in a training split ({', '.join(TRAIN_SPLITS)}); "
                          f"its splits: {', '.join(f'{s} ({reader.num_frames(s)})' for s in reader.splits)}")
-    hyper = _overrides(args, entry.stages)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     template = reader.template
     spec = reader.manifest.spec
     body_spec = spec.get("body", {"backend": "anny", "path": None})

@@ -37,3 +37,30 @@ def load_bench():
         return module
 
     return load
+
+
+@pytest.fixture
+def unwritable_dir(tmp_path):
+    """A directory this process cannot create files in: a mode 0555 directory, or for root (whom
+    permission bits do not stop) a sysfs directory; skips where neither refuses a write."""
+    from pathlib import Path
+
+    candidates = []
+    if os.geteuid() != 0:
+        locked = tmp_path / "read-only"
+        locked.mkdir()
+        locked.chmod(0o555)
+        candidates.append(locked)
+    candidates.append(Path("/sys/kernel"))
+    for directory in candidates:
+        probe = directory / f".probe-{os.getpid()}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError:
+            yield directory
+            break
+    else:
+        pytest.skip("no directory refuses writes here")
+    if os.geteuid() != 0:
+        (tmp_path / "read-only").chmod(0o755)

@@ -81,5 +81,5 @@ def test_export_errors_and_cli(dataset, tmp_path, capsys):
                      "--out", str(tmp_path / "t.pc2")]) == 0
     assert read_pc2(tmp_path / "t.pc2")[0].shape == (3, 50, 3)
     assert cli_main(["dataset", "export", str(root), "--task", "nope", "--format", "obj",
-                     "--out", str(tmp_path / "x")]) == 1
+                     "--out", str(tmp_path / "x")]) == 2  # bad input (an unknown task id)
     assert "nope" in capsys.readouterr().err

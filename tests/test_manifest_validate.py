@@ -157,6 +157,6 @@ def test_cli_exit_codes_and_output(dataset, capsys):
     assert cli_main(["dataset", "validate", str(dataset)]) == 1
     out = capsys.readouterr().out
     assert "INVALID" in out and "[missing]" in out and "train-000.h5" in out
-    assert cli_main(["dataset", "validate", str(dataset / "nope")]) == 1
-    assert cli_main(["dataset", "info", str(dataset / "nope")]) == 1
+    assert cli_main(["dataset", "validate", str(dataset / "nope")]) == 2  # bad input: no such directory
+    assert cli_main(["dataset", "info", str(dataset / "nope")]) == 2
     assert "does not exist" in capsys.readouterr().err
