@@ -99,9 +99,9 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
         for stage in stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
     if args.prototypes is not None:
+        check_number(args.prototypes, "--prototypes", minimum=1, integer=True)
         if args.learner != "tailornet":
             raise UsageError(f"--prototypes applies to tailornet only, not {args.learner}")
-        check_number(args.prototypes, "--prototypes", minimum=1, integer=True)
         hyper.setdefault("model", {})["prototype_count"] = int(args.prototypes)
     return hyper
 
