@@ -13,12 +13,13 @@ queries), written to a per-particle delta so results stay deterministic.  None o
 **Displacement bounds** (conservative, as in VBD's and Offset Geometric Contact's cloth contact):
 at each search, every particle also gets ``d_min``, the smallest distance from it to any
 vertex-triangle or edge-edge pair it belongs to (as the vertex or as a triangle's corner, as an
-edge's end) within the reach, the reach itself where there is none. Until the next search a
-solver keeps each particle within ``bound_fraction`` (< 1/2) of its ``d_min`` of where it was
-searched (``SolverVBD``'s sweep). Two primitives then close by less than the distance between
-them, so none passes through another one that was not excluded (the 2-ring and pairs close at
-rest, as for the pushes): new intersections cannot form, whatever the pushes and the elastic
-forces do. The bounds also win over body contact: where a body part presses two layers together
+edge's end) within the reach, the reach itself where there is none. Every pair counts but those
+sharing a vertex (the contact candidates' 2-ring and rest exclusions do not apply: a bound only
+limits motion). Until the next search a solver keeps each particle within ``bound_fraction``
+(< 1/2) of ``d_min - min_separation`` (at least of ``d_min / 2``) of where it was searched
+(``SolverVBD``'s sweep). Two primitives then close by less than the distance between them, and
+never below ``min_separation`` once apart by twice that: new intersections cannot form, whatever
+the penalty and the elastic forces do. The bounds also win over body contact: where a body part presses two layers together
 (an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
 """
 
@@ -41,6 +42,12 @@ MAX_SWEEP_M = 0.03
 BOUND_FRACTION = 0.45
 """Share of its smallest pair distance a particle may move between searches (< 1/2: two
 primitives moving toward each other then close by at most 90 % of their distance)."""
+
+MIN_SEPARATION_M = 1.0e-4
+"""Distance [m] the bounds keep pairs apart: a particle moves at most ``BOUND_FRACTION`` x (its
+smallest pair distance less this), so a pair never closes below it. Pairs the contact penalty does
+not act on (a fold within the 2-ring) would otherwise close by 90 % every search and in the end
+cross by float32 rounding (positions at 1 m resolve 0.06 um)."""
 
 
 @wp.kernel
@@ -268,17 +275,14 @@ def vertex_triangle_bounds(
     world_self_contact: wp.array(dtype=wp.int32),
     world_offset: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_slot: wp.array(dtype=wp.int32),
-    tri_slots: int,
-    x_rest: wp.array(dtype=wp.vec3),
-    rest_exclusion: float,
     reach: float,
     # In/out (filled with ``reach`` by the caller):
     d_min: wp.array(dtype=float),
 ):
-    """Smallest distance [m] of every vertex-triangle pair within ``reach``, to the vertex and to
-    the triangle's three corners (float atomic min: the result does not depend on the order)."""
+    """Smallest distance [m] of every vertex-triangle pair within ``reach`` whose triangle does not
+    contain the vertex, to the vertex and to the triangle's three corners (float atomic min: the
+    result does not depend on the order). Unlike the contact candidates, neighbours and pairs close
+    at rest count: a bound only limits motion, it pushes nothing apart."""
     i = wp.tid()
     w = particle_world[i]
     if world_active[w] == 0 or world_self_contact[w] == 0:
@@ -304,12 +308,6 @@ def vertex_triangle_bounds(
         d = wp.length(p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2]))
         if d >= reach:
             continue
-        pr = x_rest[i]
-        rb = closest_point_barycentric(pr, x_rest[a], x_rest[b], x_rest[c])
-        if wp.length(pr - (x_rest[a] * rb[0] + x_rest[b] * rb[1] + x_rest[c] * rb[2])) < rest_exclusion:
-            continue
-        if in_two_ring(i, a, b, c, adj_start, adj_slot, tri_slots, tri_indices):
-            continue
         best = wp.min(best, d)
         wp.atomic_min(d_min, a, d)
         wp.atomic_min(d_min, b, d)
@@ -328,14 +326,12 @@ def edge_edge_bounds(
     world_self_contact: wp.array(dtype=wp.int32),
     world_offset: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    x_rest: wp.array(dtype=wp.vec3),
-    rest_exclusion: float,
     reach: float,
     # In/out:
     d_min: wp.array(dtype=float),
 ):
     """Smallest distance [m] from each cloth edge to the edges of triangles within ``reach`` that
-    share no vertex with it and were not closer than ``rest_exclusion`` at rest, to both ends."""
+    share no vertex with it, to both ends."""
     e = wp.tid()
     i0 = edges[e][0]
     i1 = edges[e][1]
@@ -361,12 +357,7 @@ def edge_edge_bounds(
             b = tri_indices[face, (k + 1) % 3]
             if a == i0 or a == i1 or b == i0 or b == i1:
                 continue
-            d = segment_distance(p, q, x[a], x[b])
-            if d >= best:
-                continue
-            if segment_distance(x_rest[i0], x_rest[i1], x_rest[a], x_rest[b]) < rest_exclusion:
-                continue
-            best = d
+            best = wp.min(best, segment_distance(p, q, x[a], x[b]))
     wp.atomic_min(d_min, i0, best)
     wp.atomic_min(d_min, i1, best)
 
@@ -376,7 +367,8 @@ class SelfContact:
 
     def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3,
                  rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
-                 bounds: bool = True, bound_fraction: float = BOUND_FRACTION) -> None:
+                 bounds: bool = True, bound_fraction: float = BOUND_FRACTION,
+                 min_separation: float = MIN_SEPARATION_M) -> None:
         """
         Args:
             model: cloth model.
@@ -398,6 +390,7 @@ class SelfContact:
                 docstring; ``d_min``, ``x_searched``), for solvers that keep to it (``SolverVBD``).
             bound_fraction: share of its smallest pair distance a particle may move between
                 searches, in (0, 0.5).
+            min_separation: distance the bounds keep pairs apart [m] (``MIN_SEPARATION_M``).
         """
         self.model = model
         dev = model.device
@@ -419,8 +412,11 @@ class SelfContact:
         self.detect_every = int(detect_every)
         if not (np.isfinite(bound_fraction) and 0.0 < bound_fraction < 0.5):
             raise ValueError(f"self-contact bound_fraction must be in (0, 0.5) (got {bound_fraction!r})")
+        if not (np.isfinite(min_separation) and 0.0 <= min_separation < self.thickness):
+            raise ValueError(f"self-contact min_separation must be in [0, thickness) [m] (got {min_separation!r})")
         self.bounds = bool(bounds)
         self.bound_fraction = float(bound_fraction)
+        self.min_separation = float(min_separation)
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
         centers = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
@@ -476,12 +472,11 @@ class SelfContact:
             wp.copy(self.x_searched, x)
             wp.launch(vertex_triangle_bounds, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
-                              self.rest, self.rest_exclusion, reach],
+                              self.world_offset, x, reach],
                       outputs=[self.d_min], device=m.device)
             wp.launch(edge_edge_bounds, dim=self.edges.shape[0],
                       inputs=[self.mesh.id, self.edges, m.tri_indices, m.tri_world, m.particle_world, world_active,
-                              active_sc, self.world_offset, x, self.rest, self.rest_exclusion, reach],
+                              active_sc, self.world_offset, x, reach],
                       outputs=[self.d_min], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:

@@ -246,6 +246,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         sc_x_searched: wp.array(dtype=wp.vec3),
         sc_d_min: wp.array(dtype=float),
         sc_fraction: float,
+        sc_min_separation: float,
         world_self_contact: wp.array(dtype=wp.int32),
         # Out:
         contact_depth: wp.array(dtype=float),
@@ -332,7 +333,8 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                             start = wp.vec3d(sc_x_searched[i])
                             step = p - start
                             length = wp.length(step)
-                            bound = wp.float64(sc_fraction * sc_d_min[i])
+                            dm = sc_d_min[i]
+                            bound = wp.float64(sc_fraction * wp.max(dm - sc_min_separation, 0.5 * dm))
                             if length > bound:
                                 p = start + step * (bound / length)
                     if wp.static(shared):
@@ -347,11 +349,13 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     return solve_vertices_vbd
 
 
-def make_finalize_kernel(friction: bool):
+def make_finalize_kernel(friction: bool, self_contact: bool = False):
     """Friction on the substep's displacement, then velocities (x - x_prev) / dt with damping, on the
     float64 positions; the state's float32 positions are their rounding.  Same rules as
     ``common_kernels.make_finalize_kernel``.  Also the share of gravity (0..1) the substep
-    accelerated each particle by, for the next substep's start (``predict_particles``)."""
+    accelerated each particle by, for the next substep's start (``predict_particles``).  With
+    ``self_contact``, a particle that friction carries along with the body stays within its
+    self-contact displacement bound (the sweep's rule)."""
 
     @wp.kernel(module="unique", enable_backward=False)
     def finalize_particles_vbd(
@@ -372,6 +376,12 @@ def make_finalize_kernel(friction: bool):
         # Substep start:
         x64_prev: wp.array(dtype=wp.vec3d),
         v_prev: wp.array(dtype=wp.vec3),
+        # Self-contact bounds:
+        sc_x_searched: wp.array(dtype=wp.vec3),
+        sc_d_min: wp.array(dtype=float),
+        sc_fraction: float,
+        sc_min_separation: float,
+        world_self_contact: wp.array(dtype=wp.int32),
         # In/out:
         x64: wp.array(dtype=wp.vec3d),
         # Out:
@@ -394,8 +404,17 @@ def make_finalize_kernel(friction: bool):
             depth = contact_depth[i]
             if contact_active[i] != 0 and depth > 0.0:
                 cancel = friction_cancel(disp - contact_motion[i], contact_normal[i], world_friction[w] * depth)
-                disp = disp - cancel
                 p = p - wp.vec3d(cancel)
+                if wp.static(self_contact):
+                    if world_self_contact[w] != 0:
+                        start = wp.vec3d(sc_x_searched[i])
+                        step = p - start
+                        length = wp.length(step)
+                        dm = sc_d_min[i]
+                        bound = wp.float64(sc_fraction * wp.max(dm - sc_min_separation, 0.5 * dm))
+                        if length > bound:
+                            p = start + step * (bound / length)
+                disp = wp.vec3(p - x64_prev[i])
                 x64[i] = p
         x_out[i] = wp.vec3(p)
         decay = wp.max(1.0 - (world_damping[w] + extra_damping) * dt, 0.0)

@@ -162,8 +162,8 @@ class SolverVBD(SolverBase):
                                      self.self_contact is not None)
         if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
             self._sc_args = [wp.full(1, -1, dtype=wp.int32, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0,
-                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0]
-        self._finalize_vbd = _finalize_kernel(self.friction)
+                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
+        self._finalize_vbd = _finalize_kernel(self.friction, self.self_contact is not None)
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
         """The solver's positions [m] in float64, shape (particle_count,); the state's float32
@@ -195,7 +195,7 @@ class SolverVBD(SolverBase):
                 sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
                           world_self_contact=control.world_self_contact)
             sc_args = [sc.candidate, sc.side, sc.thickness, self.self_contact_stiffness, sc.x_searched, sc.d_min,
-                       sc.bound_fraction]
+                       sc.bound_fraction, sc.min_separation]
         else:
             sc_args = self._sc_args
         wp.launch_tiled(self._kernel, dim=[m.world_count],
@@ -212,5 +212,5 @@ class SolverVBD(SolverBase):
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
                           m.world_friction, self.extra_damping, self.gravity, float(dt), self.contact_active,
                           self.contact_normal, self.contact_motion, self.contact_depth, self._x64_prev,
-                          state_in.particle_qd, self.x64],
+                          state_in.particle_qd, *sc_args[4:], control.world_self_contact, self.x64],
                   outputs=[state_out.particle_q, state_out.particle_qd, self.gravity_share], device=dev)
