@@ -16,10 +16,10 @@ vertex-triangle or edge-edge pair it belongs to (as the vertex or as a triangle'
 edge's end) within the reach, the reach itself where there is none. Every pair counts but those
 sharing a vertex (the contact candidates' 2-ring and rest exclusions do not apply: a bound only
 limits motion). Until the next search a solver keeps each particle within ``bound_fraction``
-(< 1/2) of ``d_min - min_separation`` (at least of ``d_min / 2``) of where it was searched
-(``SolverVBD``'s sweep). Two primitives then close by less than the distance between them, and
-never below ``min_separation`` once apart by twice that: new intersections cannot form, whatever
-the penalty and the elastic forces do. The bounds also win over body contact: where a body part presses two layers together
+(< 1/2) of ``d_min - min_separation`` of where it was searched (``SolverVBD``'s sweep; a tenth
+of ``d_min`` for a pair that starts closer). Two primitives then close by less than the distance
+between them, and never below ``min_separation`` once that far apart: new intersections cannot
+form, whatever the penalty and the elastic forces do. The bounds also win over body contact: where a body part presses two layers together
 (an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
 """
 

@@ -334,7 +334,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                             step = p - start
                             length = wp.length(step)
                             dm = sc_d_min[i]
-                            bound = wp.float64(sc_fraction * wp.max(dm - sc_min_separation, 0.5 * dm))
+                            bound = wp.float64(sc_fraction * wp.where(dm > sc_min_separation, dm - sc_min_separation, 0.1 * dm))
                             if length > bound:
                                 p = start + step * (bound / length)
                     if wp.static(shared):
@@ -411,7 +411,7 @@ def make_finalize_kernel(friction: bool, self_contact: bool = False):
                         step = p - start
                         length = wp.length(step)
                         dm = sc_d_min[i]
-                        bound = wp.float64(sc_fraction * wp.max(dm - sc_min_separation, 0.5 * dm))
+                        bound = wp.float64(sc_fraction * wp.where(dm > sc_min_separation, dm - sc_min_separation, 0.1 * dm))
                         if length > bound:
                             p = start + step * (bound / length)
                 disp = wp.vec3(p - x64_prev[i])
