@@ -176,7 +176,7 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-class _MeshSlots:
+class MeshSlots:
     """Warp meshes of one topology, one per frame of a batch: slot ``i`` holds frame ``i``.
 
     A slot's BVH is built from the first geometry it holds and refit for every later one: a tree
@@ -237,8 +237,8 @@ class QualityMeter:
         self._body_vertex_count = int(body_vertex_count)
         self._faces = wp.array(self.faces.ravel(), dtype=wp.int32, device=device)
         self._edges = wp.array(unique_edges(self.faces).astype(np.int32), dtype=wp.vec2i, device=device)
-        self._garments = _MeshSlots(self.faces, self.vertex_count, device)
-        self._bodies = _MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
+        self._garments = MeshSlots(self.faces, self.vertex_count, device)
+        self._bodies = MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
         self._buffers: dict[str, wp.array] = {}
 
     def _buffer(self, name: str, size: int, dtype) -> wp.array:

@@ -34,7 +34,7 @@ import torch
 from simulate.body.base import BodyModel, PosedBody
 from simulate.body.kinematics import to_device_async
 from simulate.cloth import ClothBuilder, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.contact import BodyCollider
 from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
 

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import SimSettings, WorldStatus
 from simulate.sequence import SequenceSettings, SequenceTask, drape_static, run_sequences
 
 # A one-frame jump of the spine this far [rad] moves the shirt at metres per second.
@@ -153,7 +153,7 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     """restart_after_rejects: after a frame the caller rejects (on_frame returns False) the world is
     put back at its settled canonical drape (the state it had when the settle hold ended) and
     reaches its next target from the canonical pose, as a world whose task starts at that target."""
-    from simulate.cloth import quasi_static
+    from simulate import quasi_static
 
     body, _, _, canonical, small, _ = scene
     bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
@@ -530,7 +530,7 @@ def test_self_contact_during_limits_the_search_to_moving_or_holding_worlds(scene
     """``self_contact_during``: at every frame launch exactly the worlds on a transition entry
     (shape blend, slerp'ed pose) have self-contact on ("transitions"), or exactly the others
     ("holds": target poses and settles), so the world-frames with it on are those frames."""
-    from simulate.cloth.quasi_static import QuasiStaticSimulator
+    from simulate.quasi_static import QuasiStaticSimulator
 
     *_, canonical, small, _jump = scene
     launched = []

@@ -102,7 +102,7 @@ def drape_canonical(
             first contact (shoulders, waistband) stretch transiently while settling.
     """
     from simulate.cloth import ClothBuilder
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
     from simulate.contact.body_collider import BodyCollider
 
     if len(garments) == 0:
