@@ -5,9 +5,8 @@ import numpy as np
 import torch
 
 from simulate.body.base import BodyModel
-from simulate.cloth import ClothBuilder, Features
-from simulate.contact import BodyCollider
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.cloth import Features
+from simulate.quasi_static import SimSettings
 from simulate.sequence.settings import SequenceSettings
 
 
@@ -26,7 +25,8 @@ def drape_static(
     max_frames: int | None = None,
     material_uv: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Relaxes W garments on W static bodies (one world each) until they come to rest.
+    """Relaxes W garments on W static bodies (one world each) until they come to rest, with the
+    sequence's settings (``simulate.garment.drape.drape_simulator`` sets the batch up).
 
     Args:
         rest_vertices: cloth rest geometry per world [m], (W, V, 3) (also the start unless given).
@@ -45,17 +45,15 @@ def drape_static(
         posed = body.on_device(torch_device).pose_torch(torch.as_tensor(np.asarray(shapes, np.float32), device=torch_device),
                                 torch.as_tensor(np.asarray(poses, np.float32), device=torch_device))
     body_vertices = posed.vertices.cpu().numpy()
-    builder = ClothBuilder()
-    for w in range(w_count):
-        builder.add_garment(rest_vertices[w], faces, fabric=fabric, material_uv=material_uv)
-    model = builder.finalize(device, features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0))
-    collider = BodyCollider(body_vertices, body_faces, device=device, thickness=settings.contact_thickness)
+    from simulate.garment.drape import drape_simulator  # (the garment package is heavy to import)
+
     budget = settings.sim.max_frames if max_frames is None else int(max_frames)
-    sim = QuasiStaticSimulator(model, collider, solver=settings.solver,
-                               settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}))
-    if start_vertices is not None:
-        for w in range(w_count):
-            sim.set_positions(np.asarray(start_vertices[w], np.float32), world=w)
+    sim = drape_simulator([{"vertices": rest_vertices[w], "faces": faces, "fabric": fabric, "material_uv": material_uv}
+                           for w in range(w_count)], body_vertices, body_faces, device=device,
+                          settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}),
+                          thickness=settings.contact_thickness, solver=settings.solver,
+                          features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0),
+                          start_vertices=start_vertices)
     status = sim.relax(budget)
     positions = sim.positions()
-    return np.stack([positions[model.world_slice(w)] for w in range(w_count)]), status
+    return np.stack([positions[sim.model.world_slice(w)] for w in range(w_count)]), status
