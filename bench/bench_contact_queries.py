@@ -44,7 +44,7 @@ def main() -> None:
     from bench_sim_throughput import tshirt_scene
 
     from simulate.cloth import Features
-    from simulate.cloth.scenes import batched_drape
+    from simulate.scenes import batched_drape
     from simulate.contact.self_contact import SelfContact
     from simulate.solvers import make_solver
 

@@ -35,7 +35,7 @@ def _emit(record: dict, out) -> None:
 
 def _run(model, collider, solver: str, mode: str | None, substeps: int | None, iterations: int, args,
          relaxation: float = 1.0, bending_mode: str | None = None) -> dict:
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 
     settings = SimSettings(substeps=substeps, iterations=iterations, xpbd_mode=mode or "gauss_seidel",
                            gs_relaxation=relaxation, xpbd_bending_mode=bending_mode,
@@ -90,7 +90,7 @@ def main() -> None:
     parser.add_argument("--plot", default=None, help="write a PNG plot of error against time")
     args = parser.parse_args()
 
-    from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
+    from simulate.scenes import batched_drape, cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
     scene = (cape_scene if args.scene == "cape" else shawl_scene)(args.resolution, body=args.body)
@@ -102,7 +102,7 @@ def main() -> None:
                 "xpbd_gs_jbend": ("xpbd", "gauss_seidel"),
                 "xpbd_jacobi": ("xpbd", "jacobi"), "mass_spring": ("mass_spring", None)}
     # Warm-up: compile every kernel variant once (not timed).
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings
 
     for name in args.solvers:
         solver, mode = variants[name]

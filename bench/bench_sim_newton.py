@@ -173,8 +173,8 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
     """Our simulator to rest; returns (world 0 positions, stepping wall [s], frames, world 0's status,
     checkpoints) as :func:`timed_frames`."""
     from simulate.cloth.fabric import resolve_fabric
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-    from simulate.cloth.scenes import batched_drape
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+    from simulate.scenes import batched_drape
 
     # Newton's cloth is isotropic (one Young's modulus, NewtonRun): ours takes the warp stiffness
     # across the weft too, so both simulate the same material.
@@ -299,7 +299,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from simulate.cloth.fabric import resolve_fabric
-    from simulate.cloth.scenes import cape_scene, shawl_scene
+    from simulate.scenes import cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
 

@@ -22,7 +22,7 @@ import warp as wp
 
 def tshirt_scene(resolution: int, device: str) -> dict:
     """The dataset's t-shirt (``resolution`` vertices) on the default body in the canonical pose, as a
-    :func:`simulate.cloth.scenes.shawl_scene`-style dict (cloth at its rest geometry on the body)."""
+    :func:`simulate.scenes.shawl_scene`-style dict (cloth at its rest geometry on the body)."""
     from simulate.reports.scenes import build_scene
 
     sc = build_scene("tshirt", body="anny", resolution=resolution, device=device)
@@ -103,8 +103,8 @@ def main() -> None:
     args = parser.parse_args()
 
     from simulate.cloth import Features
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-    from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+    from simulate.scenes import batched_drape, cape_scene, shawl_scene
 
     out = open(args.out, "a") if args.out else None
     if args.scene == "tshirt":

@@ -50,7 +50,7 @@ def tshirt_on_body(resolution: int):
     body faces) of the t-shirt at its default style on the neutral body in the canonical pose."""
     from simulate.body import load_body_model
     from simulate.garment.drape import COLLISION_PARTS
-    from simulate.garment.style import generate_garment
+    from simulate.garment.templates import generate_garment
     from simulate.garment.templates import make_template
 
     body = load_body_model("anny")
@@ -91,7 +91,7 @@ def build(scene, worlds: int, device: str, material_uv: bool):
 def run_setting(scene, built, args, solver: str, substeps: int, iterations: int, tolerance: float) -> dict:
     """One setting on the built model and collider (shared by every setting: both are read-only
     to the simulator, which keeps its own states)."""
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
+    from simulate.quasi_static import QuasiStaticSimulator, SimSettings
 
     model, collider = built
 

@@ -473,8 +473,8 @@ class Manifest:
             ends.append(other.provenance["end_time"])
         merged.provenance["devices"] = sorted(devices)
         merged.provenance["hostnames"] = sorted(hosts)
-        merged.provenance["start_time"] = min(starts, key=_parse_time)
-        merged.provenance["end_time"] = None if any(end is None for end in ends) else max(ends, key=_parse_time)
+        merged.provenance["start_time"] = min(starts, key=parse_time)
+        merged.provenance["end_time"] = None if any(end is None for end in ends) else max(ends, key=parse_time)
         return merged
 
     def __repr__(self) -> str:
@@ -483,7 +483,8 @@ class Manifest:
                 f"frames_kept={totals['frames_kept']}, splits={sorted(self._splits)})")
 
 
-def _parse_time(text: str) -> _dt.datetime:
+def parse_time(text: str) -> _dt.datetime:
+    """A provenance time (ISO 8601) as an aware datetime (UTC when it names no zone)."""
     try:
         parsed = _dt.datetime.fromisoformat(text)
     except ValueError:
@@ -511,5 +512,6 @@ __all__ = [
     "collect_provenance",
     "merge_manifests",
     "package_versions",
+    "parse_time",
     "utc_now",
 ]

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import h5py
 import numpy as np
 
-from .manifest import Manifest, _parse_time
+from .manifest import Manifest, parse_time
 from .schema import (
     FRAME_INDEX,
     MANIFEST_NAME,
@@ -279,7 +279,7 @@ def info(root: str | os.PathLike[str], *, with_problems: bool = False) -> str | 
     ]
     wall_s: float | None = None
     if provenance.get("end_time"):
-        wall_s = (_parse_time(provenance["end_time"]) - _parse_time(provenance["start_time"])).total_seconds()
+        wall_s = (parse_time(provenance["end_time"]) - parse_time(provenance["start_time"])).total_seconds()
     lines.append(f"time {provenance['start_time']} -> {provenance.get('end_time') or 'running'}"
                  + (f"  (wall {wall_s:.1f} s)" if wall_s is not None else ""))
     lines.append("")

@@ -15,29 +15,28 @@ from typing import Callable, Iterable
 EXECUTORS = ("local", "ray")
 
 
-def _run_batch(spec: dict, out_dir: str, task_ids: list[str], device: str | None, skip: frozenset = frozenset()) -> list:
-    """Ray entry point (module level so it pickles by reference)."""
-    from pipelines.generate_dataset import build_context, simulate_batch
-
+def _run_batch(build_context: Callable, simulate_batch: Callable, spec: dict, out_dir: str, task_ids: list[str],
+               device: str | None, skip: frozenset = frozenset()) -> list:
+    """Ray entry point (module level so it pickles by reference; so do the two functions it gets)."""
     ctx = build_context(spec, Path(out_dir), device=device, log=lambda msg: None)
     return simulate_batch(ctx, Path(out_dir), task_ids, skip=skip)
 
 
-def run_local(ctx, out_dir: Path, batches: Iterable[list[str]], *, on_shard: Callable, on_progress: Callable,
-              on_batch: Callable[[], None] | None = None, skip: set[str] = frozenset()) -> None:
-    """Runs the batches one after another in this process; ``on_batch()`` after each."""
-    from pipelines.generate_dataset import simulate_batch
-
+def run_local(ctx, out_dir: Path, batches: Iterable[list[str]], *, simulate_batch: Callable, on_shard: Callable,
+              on_progress: Callable, on_batch: Callable[[], None] | None = None, skip: set[str] = frozenset()) -> None:
+    """Runs the batches one after another in this process (``simulate_batch(ctx, out_dir, batch, ...)``,
+    generate-dataset's); ``on_batch()`` after each."""
     for batch in batches:
         simulate_batch(ctx, out_dir, batch, on_shard=on_shard, on_progress=on_progress, skip=skip)
         if on_batch is not None:
             on_batch()
 
 
-def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, device: str | None, on_shard: Callable,
-            on_progress: Callable, on_batch: Callable[[], None] | None = None, address: str | None = None,
-            num_cpus: int | None = None, skip: set[str] = frozenset()) -> None:
-    """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA); ``on_batch()``
+def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_context: Callable, simulate_batch: Callable,
+            device: str | None, on_shard: Callable, on_progress: Callable, on_batch: Callable[[], None] | None = None,
+            address: str | None = None, num_cpus: int | None = None, skip: set[str] = frozenset()) -> None:
+    """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA) that builds its
+    context with ``build_context`` and runs ``simulate_batch`` (generate-dataset's); ``on_batch()``
     after each batch's shards are listed."""
     try:
         import ray
@@ -51,7 +50,8 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, device: str 
     try:
         gpu = bool(device and device.startswith("cuda"))
         remote = ray.remote(num_gpus=1 if gpu else 0, num_cpus=1, max_retries=1)(_run_batch)
-        pending = {remote.remote(spec, str(out_dir), batch, device, frozenset(skip) & set(batch)): batch for batch in batches}
+        pending = {remote.remote(build_context, simulate_batch, spec, str(out_dir), batch, device,
+                                 frozenset(skip) & set(batch)): batch for batch in batches}
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:

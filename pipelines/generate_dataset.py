@@ -54,7 +54,7 @@ def resolve_device(device: str, option: str = "simulation.device") -> str:
 
 def status_drop_reason(finite: bool, status: int, filters: dict[str, Any]) -> str | None:
     """The filters that need no geometry: "nan" (exploded or non-finite), "not_converged"."""
-    from simulate.cloth.quasi_static import WorldStatus
+    from simulate.quasi_static import WorldStatus
 
     if status == WorldStatus.EXPLODED or not finite:
         return "nan"
@@ -102,7 +102,7 @@ class Context:
 _CONTEXTS: dict[str, Context] = {}
 
 def sequence_settings(spec: dict):
-    from simulate.cloth.quasi_static import SimSettings
+    from simulate.quasi_static import SimSettings
     from simulate.sequence import SequenceSettings
 
     s = spec["simulation"]
@@ -132,7 +132,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         return _CONTEXTS[key]
     from simulate.body import load_body_model
     from simulate.garment.drape import COLLISION_PARTS
-    from simulate.garment.style import generate_garment
+    from simulate.garment.templates import generate_garment
     from simulate.garment.templates import make_template
     from simulate.sequence import drape_static
 
@@ -601,10 +601,11 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
     t_sim = time.perf_counter()
     ctx.phases = {}
     if executor == "local":
-        run_local(ctx, out_dir, batches, on_shard=on_shard, on_progress=on_progress, on_batch=after_batch, skip=done)
+        run_local(ctx, out_dir, batches, simulate_batch=simulate_batch, on_shard=on_shard, on_progress=on_progress,
+                  on_batch=after_batch, skip=done)
     else:
-        run_ray(spec, out_dir, batches, device=ctx.device, on_shard=on_shard, on_progress=on_progress,
-                on_batch=after_batch, address=ray_address, skip=done)
+        run_ray(spec, out_dir, batches, build_context=build_context, simulate_batch=simulate_batch, device=ctx.device,
+                on_shard=on_shard, on_progress=on_progress, on_batch=after_batch, address=ray_address, skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     audit = dict(manifest.audit or {})

@@ -58,7 +58,7 @@ def production_base(config: Path | None = None):
     accuracy setting (only :data:`BASE_FIELDS` matter; the sweep sets the rest)."""
     from pipelines.generate_dataset import sequence_settings
     from pipelines.spec import load_spec
-    from simulate.cloth.quasi_static import SimSettings
+    from simulate.quasi_static import SimSettings
 
     sim = sequence_settings(load_spec(config or CONFIG_DIR / DEFAULT_CONFIG)).sim
     return SimSettings(**{f: getattr(sim, f) for f in BASE_FIELDS})
@@ -152,7 +152,7 @@ def _load_resume(rows_path: Path, ref_path: Path, config: dict) -> Any:
 def run_accuracy_command(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from simulate.cloth.quasi_static import WorldStatus
+    from simulate.quasi_static import WorldStatus
     from simulate.reports.accuracy import REFERENCE_FRICTION, REFERENCE_SETTINGS, SOLVERS, format_table, run_accuracy, sweep_settings
     from simulate.reports.pareto import plot_error_vs_time
     from simulate.reports.scenes import build_scene

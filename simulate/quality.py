@@ -279,7 +279,7 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-class _MeshSlots:
+class MeshSlots:
     """Warp meshes of one topology, one per frame of a batch: slot ``i`` holds frame ``i``.
 
     A slot's BVH is built from the first geometry it holds and refit for every later one: a tree
@@ -351,10 +351,10 @@ class QualityMeter:
         edges = unique_edges(self.faces)
         self._edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=device)
         self._edge_faces = edge_face_table(self.faces, edges)
-        self._garments = _MeshSlots(self.faces, self.vertex_count, device)
-        self._bodies = _MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
+        self._garments = MeshSlots(self.faces, self.vertex_count, device)
+        self._bodies = MeshSlots(np.asarray(body_faces, np.int32), self._body_vertex_count, device)
         self._buffers: dict[str, wp.array] = {}
-        self._parts: list[tuple[np.ndarray, _MeshSlots]] = []
+        self._parts: list[tuple[np.ndarray, MeshSlots]] = []
         if (body_face_groups is None) != (garment_part is None):
             raise ValueError("body_face_groups and garment_part go together (both or neither)")
         if body_face_groups is not None:
@@ -366,7 +366,7 @@ class QualityMeter:
             for g, rows in enumerate(body_face_groups):
                 members = np.nonzero(part == g)[0]
                 if len(members):
-                    self._parts.append((members, _MeshSlots(bf[np.asarray(rows)], self._body_vertex_count, device)))
+                    self._parts.append((members, MeshSlots(bf[np.asarray(rows)], self._body_vertex_count, device)))
 
     def _buffer(self, name: str, size: int, dtype) -> wp.array:
         """A device array of at least ``size`` elements, reused across batches; returns its first ``size``."""

@@ -10,7 +10,7 @@ import trimesh
 
 from pipelines.audit import frame_record, reference_model, solve_reference, summarize_frames
 from simulate.cloth.fabric import FABRICS
-from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import SimSettings, WorldStatus
 from simulate.reports.scenes import build_scene, run_worlds
 from simulate.solvers.reference import world_energy
 
@@ -114,7 +114,7 @@ def test_unconverged_references_are_counted_not_measured(frame) -> None:
 def test_audit_frames_solved_in_processes_equal_serial() -> None:
     """The audit's frames solved in a process pool are the serial solves, frame for frame, bit for bit."""
     from pipelines.audit import solve_references
-    from simulate.cloth.scenes import grid_cloth, icosphere
+    from simulate.scenes import grid_cloth, icosphere
 
     verts, faces = grid_cloth(7, 7, 0.3, 0.3, plane="xz", origin=(-0.15, 0.255, -0.15))
     sphere_v, sphere_f = icosphere(0.25, subdivisions=2)

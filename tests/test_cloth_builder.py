@@ -8,7 +8,7 @@ import warp as wp
 
 from simulate.cloth import FABRICS, ClothBuilder, Fabric, Features
 from simulate.cloth.builder import dihedral_angles, greedy_colour
-from simulate.cloth.scenes import grid_cloth, tube_cloth
+from simulate.scenes import grid_cloth, tube_cloth
 
 wp.init()
 
@@ -199,7 +199,7 @@ def test_bending_energy_of_a_cylinder_matches_continuum(direction_deg: float) ->
 
 
 def test_benchmark_scenes_build_valid_worlds() -> None:
-    from simulate.cloth.scenes import batched_drape, cape_scene, shawl_scene
+    from simulate.scenes import batched_drape, cape_scene, shawl_scene
 
     for scene in (shawl_scene(8, body="capsule"), cape_scene(12, body="capsule")):
         model, collider = batched_drape(scene, 3, "cpu", jitter=0.01)

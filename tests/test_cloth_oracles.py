@@ -9,8 +9,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import capsule_body, default_body, grid_cloth, icosphere
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.scenes import capsule_body, default_body, grid_cloth, icosphere
 from simulate.contact import BodyCollider
 
 wp.init()
@@ -200,7 +200,7 @@ def test_benchmark_shawl_does_not_explode_at_the_hands() -> None:
     culled, its edge passed the open wrist cut into the forearm and was flung out (EXPLODED by
     stretch at frame 27 on CPU, every world at frame 36 on an H200). 40 frames cover that moment."""
     pytest.importorskip("simulate.body", reason="simulate.body not available")
-    from simulate.cloth.scenes import batched_drape, shawl_scene
+    from simulate.scenes import batched_drape, shawl_scene
 
     scene = shawl_scene(100)
     model, collider = batched_drape(scene, 1, "cpu", jitter=0.0)

@@ -7,8 +7,8 @@ import pytest
 
 from simulate.body.collision_parts import COLLISION_PART_NAMES, collision_parts
 from simulate.cloth import ClothBuilder, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
-from simulate.cloth.scenes import grid_cloth, icosphere
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.scenes import grid_cloth, icosphere
 from simulate.contact import BodyCollider
 
 TORSO_R = 0.15

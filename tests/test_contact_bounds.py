@@ -7,8 +7,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
-from simulate.cloth.scenes import grid_cloth
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.scenes import grid_cloth
 from simulate.quality import QualityMeter
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])

@@ -9,8 +9,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import FABRICS, ClothBuilder, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
-from simulate.cloth.scenes import grid_cloth, icosphere
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.scenes import grid_cloth, icosphere
 from simulate.contact import BodyCollider
 
 wp.init()

@@ -7,8 +7,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
-from simulate.cloth.scenes import grid_cloth
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.scenes import grid_cloth
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -168,7 +168,7 @@ def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: 
     upper_v, upper_f = grid_cloth(7, 7, 0.3, 0.3, plane="xz", origin=(-0.16, 0.02, -0.14))
     verts = np.vstack([lower_v, upper_v])
     faces = np.vstack([lower_f, upper_f + len(lower_v)])
-    from simulate.cloth.scenes import icosphere
+    from simulate.scenes import icosphere
     from simulate.contact import BodyCollider
 
     out, pushed = {}, {}

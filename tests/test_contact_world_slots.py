@@ -6,8 +6,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings
-from simulate.cloth.scenes import capsule_body, grid_cloth
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.scenes import capsule_body, grid_cloth
 from simulate.contact import BodyCollider
 from simulate.contact.body_collider import world_cell_offsets
 

@@ -74,7 +74,7 @@ def test_dataset_resolution_tshirt_rests_on_its_collider_without_self_intersecti
     """Regression: with the hem near the open cut of a torso+arms collider, a 7k-vertex t-shirt
     was thrown through the body (12x area growth, hundreds of self-intersections) within 8
     frames; COLLISION_PARTS keeps the parts beyond the garment's openings."""
-    from simulate.cloth.quasi_static import SimSettings, WorldStatus
+    from simulate.quasi_static import SimSettings, WorldStatus
     from simulate.garment.drape import COLLISION_PARTS
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceSettings, drape_static

@@ -178,7 +178,7 @@ def test_canonical_drapes_are_made_with_self_contact(tmp_path, monkeypatch, chan
     import simulate.sequence as sequence
     from pipelines.generate_dataset import build_context
     from pipelines.spec import validate_spec
-    from simulate.cloth.quasi_static import WorldStatus
+    from simulate.quasi_static import WorldStatus
 
     seen = []
 

@@ -11,8 +11,8 @@ import warp as wp
 
 from simulate.cloth import FABRICS, ClothBuilder, Fabric, Features
 from simulate.cloth.builder import material_directions, triangle_rest_frames
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import grid_cloth, tube_cloth
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.scenes import grid_cloth, tube_cloth
 
 wp.init()
 

@@ -14,8 +14,8 @@ from scipy.optimize import brentq
 
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.fabric import FABRICS
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import grid_cloth, hanging_strip, icosphere
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.scenes import grid_cloth, hanging_strip, icosphere
 from simulate.contact import BodyCollider
 from simulate.solvers.reference import solve_equilibrium, world_energy
 

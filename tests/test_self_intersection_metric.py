@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from simulate.cloth.scenes import grid_cloth
+from simulate.scenes import grid_cloth
 from simulate.quality import QualityMeter, unique_edges
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])

@@ -6,7 +6,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import SimSettings, WorldStatus
 from simulate.sequence import SequenceSettings, SequenceTask, drape_static, run_sequences
 
 # A one-frame jump of the spine this far [rad] moves the shirt at metres per second.
@@ -153,7 +153,7 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     """restart_after_rejects: after a frame the caller rejects (on_frame returns False) the world is
     put back at its settled canonical drape (the state it had when the settle hold ended) and
     reaches its next target from the canonical pose, as a world whose task starts at that target."""
-    from simulate.cloth import quasi_static
+    from simulate import quasi_static
 
     body, _, _, canonical, small, _ = scene
     bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
@@ -249,17 +249,17 @@ def test_restart_to_last_kept_goes_back_to_the_last_accepted_frame_and_heads_on_
 
 
 def test_rerouting_a_schedule_equals_planning_it_afresh():
-    """_reroute (used when a world goes home or back to its last good state) keeps the entries after
+    """reroute (used when a world goes home or back to its last good state) keeps the entries after
     the next target and re-plans only the way to it: the same entries as a full re-plan."""
-    from simulate.sequence import _plans_from, _reroute, _schedule, _visit_entries
+    from simulate.sequence.schedule import build_schedule, plans_from, reroute, visit_entries
 
     def _routes_from(tasks, starts, threshold):
-        return [routes for _, routes in _plans_from(tasks, starts, threshold)]
+        return [routes for _, routes in plans_from(tasks, starts, threshold)]
 
     rng = np.random.default_rng(1)
     task = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
                         poses=rng.normal(0.0, 0.4, (12, 60)).astype(np.float32))
-    schedule = _schedule(task, np.zeros(60, np.float32), np.zeros(6, np.float32), SequenceSettings())
+    schedule = build_schedule(task, np.zeros(60, np.float32), np.zeros(6, np.float32), SequenceSettings())
     start = rng.normal(0.0, 0.3, 60).astype(np.float32)
     other = SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=np.ones(6, np.float32),
                          poses=rng.normal(0.0, 0.6, (7, 60)).astype(np.float32))
@@ -270,19 +270,19 @@ def test_rerouting_a_schedule_equals_planning_it_afresh():
     for a, b in zip(routes, alone):  # a task's routes do not depend on the others planned with them
         np.testing.assert_array_equal(a, b)
     for next_key in (0, 5, 11):
-        rerouted = _reroute(task, schedule, next_key, start, 0.1)
-        fresh = _visit_entries(task, next_key, start, 0.1)
+        rerouted = reroute(task, schedule, next_key, start, 0.1)
+        fresh = visit_entries(task, next_key, start, 0.1)
         for a, b in zip(rerouted, fresh):
             np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}")
-        for a, b in zip(_reroute(task, schedule, next_key, start, 0.1, route=routes[next_key]), fresh):
+        for a, b in zip(reroute(task, schedule, next_key, start, 0.1, route=routes[next_key]), fresh):
             np.testing.assert_array_equal(a, b, err_msg=f"next_key {next_key}, route planned with the others")
 
 
 def test_a_task_planned_with_others_visits_and_routes_as_planned_alone():
     """run_sequences plans the schedule of a world's next task and its routes home in one batched
-    call with other tasks' (``_plans_from``): each task's visiting schedule equals
-    ``_visit_entries`` from the same start and its routes equal those planned alone."""
-    from simulate.sequence import KEY, _plans_from, _visit_entries
+    call with other tasks' (``plans_from``): each task's visiting schedule equals
+    ``visit_entries`` from the same start and its routes equal those planned alone."""
+    from simulate.sequence.schedule import KEY, plans_from, visit_entries
 
     rng = np.random.default_rng(2)
 
@@ -293,14 +293,14 @@ def test_a_task_planned_with_others_visits_and_routes_as_planned_alone():
 
     tasks = [make(7, 0.6), make(12, 0.4), make(1, 0.3)]
     starts = [rng.normal(0.0, 0.3, 60).astype(np.float32) for _ in tasks]
-    plans = _plans_from(tasks, starts, 0.1)
+    plans = plans_from(tasks, starts, 0.1)
     for task, start, (visit, routes) in zip(tasks, starts, plans):
-        fresh = _visit_entries(task, 0, start, 0.1)
+        fresh = visit_entries(task, 0, start, 0.1)
         assert len(visit) == len(fresh)
         for a, b in zip(visit, fresh):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
-        alone = _plans_from([task], [start], 0.1)[0][1]
+        alone = plans_from([task], [start], 0.1)[0][1]
         assert len(routes) == len(alone) == len(task.poses)
         for a, b in zip(routes, alone):
             np.testing.assert_array_equal(a, b)
@@ -530,7 +530,7 @@ def test_self_contact_during_limits_the_search_to_moving_or_holding_worlds(scene
     """``self_contact_during``: at every frame launch exactly the worlds on a transition entry
     (shape blend, slerp'ed pose) have self-contact on ("transitions"), or exactly the others
     ("holds": target poses and settles), so the world-frames with it on are those frames."""
-    from simulate.cloth.quasi_static import QuasiStaticSimulator
+    from simulate.quasi_static import QuasiStaticSimulator
 
     *_, canonical, small, _jump = scene
     launched = []

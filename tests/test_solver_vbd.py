@@ -10,8 +10,8 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-from simulate.cloth.scenes import grid_cloth, hanging_strip
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.scenes import grid_cloth, hanging_strip
 from simulate.solvers.vbd.solver_vbd import colour_vertices
 
 wp.init()
@@ -164,7 +164,7 @@ def test_runs_are_bit_identical_and_follow_state_changes() -> None:
 def test_shared_tile_sweep_equals_global_sweep() -> None:
     """The sweep over a shared-memory tile of each world's positions (CUDA's default) gives the
     global-memory sweep's result bit for bit (here on CPU, where both kernels also run)."""
-    from simulate.cloth.scenes import icosphere
+    from simulate.scenes import icosphere
     from simulate.contact import BodyCollider
 
     verts, faces = grid_cloth(9, 9, 0.5, 0.5, plane="xz", origin=(-0.25, 0.3, -0.25))

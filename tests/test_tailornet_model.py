@@ -11,7 +11,7 @@ from learn.tailornet.lf import DisplacementMLP, low_frequency_model
 from learn.tailornet.mixture import kernel_weights, prototype_distances
 from learn.tailornet.model import TailorNet
 from learn.tailornet.pose_mask import garment_pose_joints, pose_feature_indices
-from learn.tailornet.prototypes import canonical_frame_per_pair, choose_prototypes, convex_fit
+from simulate.garment.prototypes import canonical_frame_per_pair, choose_prototypes, convex_fit
 from learn.tailornet.shape_style import ShapeStyleModel
 
 torch.set_num_threads(1)

@@ -11,7 +11,8 @@ import scipy.sparse as sp
 import torch
 
 
-def _check_faces(faces: np.ndarray, vertex_count: int | None = None) -> np.ndarray:
+def check_faces(faces: np.ndarray, vertex_count: int | None = None) -> np.ndarray:
+    """``faces`` (F, 3) as int64 vertex indices, checked (shape, integer dtype, indices in range)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3:
         raise ValueError(f"faces must have shape (face_count, 3), got {faces.shape}")
@@ -29,7 +30,7 @@ def _check_faces(faces: np.ndarray, vertex_count: int | None = None) -> np.ndarr
 
 def face_edges(faces: np.ndarray) -> np.ndarray:
     """Directed half-edges of every face, sorted per edge, shape (3 * face_count, 2)."""
-    faces = _check_faces(faces)
+    faces = check_faces(faces)
     half = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], axis=0)
     return np.sort(half, axis=1)
 
@@ -47,7 +48,7 @@ def boundary_edges(faces: np.ndarray) -> np.ndarray:
 
 def boundary_vertices(faces: np.ndarray, vertex_count: int) -> np.ndarray:
     """Boolean mask of vertices on an open boundary, shape (vertex_count,)."""
-    faces = _check_faces(faces, vertex_count)
+    faces = check_faces(faces, vertex_count)
     mask = np.zeros(vertex_count, dtype=bool)
     mask[boundary_edges(faces).reshape(-1)] = True
     return mask
@@ -66,7 +67,7 @@ def uniform_laplacian(
     """
     from simulate.garment.mesh_ops import uniform_laplacian as laplacian
 
-    return laplacian(_check_faces(faces, vertex_count), vertex_count, boundary_aware=boundary_aware)
+    return laplacian(check_faces(faces, vertex_count), vertex_count, boundary_aware=boundary_aware)
 
 
 def scipy_to_torch_sparse(

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 import torch
 
 from learn.common.mesh import (
-    _check_faces,
+    check_faces,
     boundary_edges,
     boundary_vertices,
     mesh_edges,
@@ -133,7 +133,7 @@ def laplacian_smooth_naive(
     """
     x = np.asarray(vertices, dtype=np.float64).copy()
     vertex_count = x.shape[0]
-    faces = _check_faces(faces, vertex_count)
+    faces = check_faces(faces, vertex_count)
     on_boundary = boundary_vertices(faces, vertex_count)
     neighbours: list[set[int]] = [set() for _ in range(vertex_count)]
     for i, j in mesh_edges(faces):

@@ -18,15 +18,11 @@ import matplotlib.pyplot as plt  # noqa: E402  (backend must be chosen first)
 import numpy as np  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 
+from simulate.reports.labels import place_labels  # noqa: E402
 
-def plot_error_vs_runtime(
-    points: Sequence[dict[str, Any]], path: str | os.PathLike[str], *, title: str = "Error vs run time"
-) -> Path:
-    """Scatter of mean per-vertex error [mm] against time per frame [ms] (log scale).
 
-    points: dicts with ``label`` (str), ``ms_per_frame`` (> 0) and ``error_mm`` (>= 0),
-    e.g. one per (learner, split, device, batch size) and one for the simulator.
-    """
+def error_vs_runtime_figure(points: Sequence[dict[str, Any]], *, title: str = "Error vs run time") -> Any:
+    """The figure of :func:`plot_error_vs_runtime` (open; the caller closes it)."""
     if not points:
         raise ValueError("plot_error_vs_runtime needs at least one point, got none")
     for i, point in enumerate(points):
@@ -35,19 +31,34 @@ def plot_error_vs_runtime(
                 raise ValueError(f"points[{i}] lacks '{key}'; got keys {sorted(point)}")
         if not point["ms_per_frame"] > 0:
             raise ValueError(f"points[{i}].ms_per_frame must be > 0 for a log axis, got {point['ms_per_frame']}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure, axis = plt.subplots(figsize=(6.4, 4.2), dpi=120)
     for point in points:
         axis.scatter(point["ms_per_frame"], point["error_mm"], s=30)
-        axis.annotate(point["label"], (point["ms_per_frame"], point["error_mm"]), textcoords="offset points",
-                      xytext=(4, 4), fontsize=7)
     axis.set_xscale("log")
+    axis.margins(x=0.15, y=0.3)  # room for the labels of the outermost points
     axis.set_xlabel("time per frame [ms] (log)")
     axis.set_ylabel("mean per-vertex error [mm]")
     axis.set_title(title)
     axis.grid(True, which="both", alpha=0.3)
     figure.tight_layout()
+    # after the layout: the labels are placed where they cover no other label, in window coordinates
+    place_labels(axis, [(p["ms_per_frame"], p["error_mm"]) for p in points], [str(p["label"]) for p in points],
+                 fontsize=7)
+    return figure
+
+
+def plot_error_vs_runtime(
+    points: Sequence[dict[str, Any]], path: str | os.PathLike[str], *, title: str = "Error vs run time"
+) -> Path:
+    """Scatter of mean per-vertex error [mm] against time per frame [ms] (log scale), each point
+    labelled where its label covers no other (points of equal error and time get stacked labels).
+
+    points: dicts with ``label`` (str), ``ms_per_frame`` (> 0) and ``error_mm`` (>= 0),
+    e.g. one per (learner, split, device, batch size) and one for the simulator.
+    """
+    figure = error_vs_runtime_figure(points, title=title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)
     plt.close(figure)
     return path

@@ -36,7 +36,7 @@ from learn.tailornet.lf import DisplacementMLP, low_frequency_model
 from learn.tailornet.mixture import DEFAULT_SIGMA
 from learn.tailornet.model import TailorNet
 from learn.tailornet.pose_mask import garment_pose_joints, pose_feature_indices
-from learn.tailornet.prototypes import canonical_frame_per_pair, choose_prototypes
+from simulate.garment.prototypes import canonical_frame_per_pair, choose_prototypes
 from learn.tailornet.shape_style import ShapeStyleModel
 
 CHECKPOINT_FORMAT = 1

@@ -6,8 +6,6 @@ licence. Both return a :class:`BodyModel` with the same pose convention.
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 from simulate.body.base import JOINT_LIMITS, PARTS, POSE_JOINTS, POSE_SIZE, BodyModel, PosedBody
 from simulate.body.kinematics import inverse_lbs as inverse_lbs_torch
 from simulate.body.kinematics import lbs as lbs_torch
@@ -37,11 +35,10 @@ def load_body_model(name: str = "anny", *, path: str | None = None, device: str 
     raise ValueError(f"unknown body backend {name!r}; expected one of {', '.join(BACKENDS)}")
 
 
-@lru_cache(maxsize=4)
 def _load_anny(device: str) -> BodyModel:
-    from simulate.body.anny_backend import AnnyBody
+    from simulate.body.anny_backend import anny_on
 
-    return AnnyBody(device=device)
+    return anny_on(device)
 
 
 __all__ = [

@@ -26,6 +26,7 @@ from __future__ import annotations
 import os
 import time
 import warnings
+from functools import lru_cache
 
 import numpy as np
 import torch
@@ -75,9 +76,7 @@ class AnnyBody(BodyModel):
     name = "anny"
 
     def _copy_on(self, device: torch.device) -> "AnnyBody":
-        from simulate.body import load_body_model
-
-        return load_body_model("anny", device=str(device))  # cached per device
+        return anny_on(str(device))
 
     def __init__(self, *, device: str | torch.device = "cpu") -> None:
         start = time.perf_counter()
@@ -118,3 +117,9 @@ class AnnyBody(BodyModel):
         vertices = rest["rest_vertices"] @ rot.T  # (B, V, 3)
         joints = rest["rest_bone_heads"] @ rot.T  # (B, J, 3)
         return vertices, joints
+
+
+@lru_cache(maxsize=4)
+def anny_on(device: str) -> AnnyBody:
+    """The anny body on a torch device, built once per device (a build takes seconds)."""
+    return AnnyBody(device=device)

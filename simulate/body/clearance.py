@@ -22,7 +22,7 @@ import torch
 import warp as wp
 
 from simulate.body.base import BodyModel
-from simulate.quality import _MeshSlots, query_body_signed_distance
+from simulate.quality import MeshSlots, query_body_signed_distance
 
 __all__ = ["CLEARANCE_PAIRS", "CLEARANCE_PARTS", "LimbClearance"]
 
@@ -78,7 +78,7 @@ class LimbClearance:
         rest = body.rest(self.shape[None])[0][0]
         self._points: list[np.ndarray] = []  # measured vertex indices per pair
         self._surface_of: list[str] = []  # surface part per pair
-        self._surfaces: dict[str, tuple[np.ndarray, _MeshSlots]] = {}  # part -> (vertex indices, per-body meshes)
+        self._surfaces: dict[str, tuple[np.ndarray, MeshSlots]] = {}  # part -> (vertex indices, per-body meshes)
         self.surface_faces: dict[str, np.ndarray] = {}
         """Body triangles (F, 3) of each surface part the pairs measure to."""
         for a, b in self.pairs:
@@ -95,7 +95,7 @@ class LimbClearance:
                 used = np.unique(faces)
                 local = np.full(body.vertex_count, -1, np.int64)
                 local[used] = np.arange(len(used))
-                self._surfaces[b] = (used, _MeshSlots(local[faces], len(used), device))
+                self._surfaces[b] = (used, MeshSlots(local[faces], len(used), device))
         # the vertices any pair reads, posed together (BodyModel.posed_vertices), and where each lies there
         self._posed = np.unique(np.concatenate(self._points + [used for used, _ in self._surfaces.values()]))
         self._slot = np.full(body.vertex_count, -1, np.int64)

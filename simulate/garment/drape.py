@@ -67,6 +67,42 @@ def _penetration(collider, points: np.ndarray, world: np.ndarray) -> np.ndarray:
     return collider.signed_distance(points.astype(np.float32), world.astype(np.int32), max_dist=0.2)
 
 
+def drape_simulator(garments: list[dict], body_vertices: np.ndarray, body_faces: np.ndarray, *, device: str,
+                    settings, thickness: float, solver: str = "xpbd", features=None,
+                    start_vertices: np.ndarray | None = None, body_face_groups: list[np.ndarray] | None = None):
+    """The drape of W garments on W static bodies (one world each), ready to relax: the one set-up
+    behind ``drape_canonical`` (templates on canonical bodies) and ``simulate.sequence.drape_static``
+    (the dataset's start drapes). ``sim.relax()`` then steps every world until it comes to rest
+    (or ``settings.max_frames``).
+
+    Args:
+        garments: per world, the ``ClothBuilder.add_garment`` arguments (vertices [m] (V, 3), faces,
+            fabric, attached, skinning_weights, material_uv, ...).
+        body_vertices: the static bodies [m], (W, Vb, 3); body_faces: the faces they collide with.
+        device: Warp device; settings: ``SimSettings``; thickness: contact distance to the body [m].
+        solver: the solver's name; features: the model's ``Features`` (None: the builder's default).
+        start_vertices: initial positions [m] per world, (W, V, 3) (default: the garments' vertices).
+        body_face_groups: primary collision bodies (``BodyCollider``'s ``face_groups``; the
+            garments' ``body_part`` picks one per vertex), or None.
+    Returns:
+        the ``QuasiStaticSimulator`` (its ``model`` and ``collider`` hold the batch).
+    """
+    from simulate.cloth import ClothBuilder
+    from simulate.contact.body_collider import BodyCollider
+    from simulate.quasi_static import QuasiStaticSimulator
+
+    builder = ClothBuilder()
+    for garment in garments:
+        builder.add_garment(**garment)
+    model = builder.finalize(device, features=features)
+    collider = BodyCollider(body_vertices, body_faces, device=device, thickness=thickness, face_groups=body_face_groups)
+    sim = QuasiStaticSimulator(model, collider, solver=solver, settings=settings)
+    if start_vertices is not None:
+        for w in range(len(garments)):
+            sim.set_positions(np.asarray(start_vertices[w], np.float32), world=w)
+    return sim
+
+
 def drape_canonical(
     garments: list[tuple[GarmentTemplate, np.ndarray]],
     body,
@@ -101,9 +137,7 @@ def drape_canonical(
             than the simulator's default because the few triangles at a garment's
             first contact (shoulders, waistband) stretch transiently while settling.
     """
-    from simulate.cloth import ClothBuilder
-    from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
-    from simulate.contact.body_collider import BodyCollider
+    from simulate.quasi_static import SimSettings, WorldStatus
 
     if len(garments) == 0:
         raise ValueError("garments must hold at least one (template, vertices) pair, got none")
@@ -113,25 +147,23 @@ def drape_canonical(
     if shp.ndim != 2 or shp.shape[0] != len(garments) or shp.shape[1] != body.shape_size:
         raise ValueError(f"shapes must have shape ({len(garments)}, {body.shape_size}) or ({body.shape_size},), "
                          f"got {np.shape(shapes)}")
-    builder = ClothBuilder()
-    parts: set[str] = set()
+    pieces, parts = [], set()
     for w, (tpl, verts) in enumerate(garments):
         v = np.asarray(verts, dtype=np.float64)
         if v.shape != (tpl.vertex_count, 3):
             raise ValueError(f"garments[{w}] vertices must have shape ({tpl.vertex_count}, 3) for its "
                              f"{tpl.garment_type} template, got {v.shape}")
-        builder.add_garment(v, tpl.faces, fabric=fabric,
-                            attached=tpl.attachment if len(tpl.attachment) else None,
-                            skinning_weights=tpl.skinning_weights, material_uv=tpl.face_uv)
+        pieces.append({"vertices": v, "faces": tpl.faces, "fabric": fabric,
+                       "attached": tpl.attachment if len(tpl.attachment) else None,
+                       "skinning_weights": tpl.skinning_weights, "material_uv": tpl.face_uv})
         parts.update(COLLISION_PARTS[tpl.garment_type])
-    model = builder.finalize(device)
     posed = body.pose(shp, body.canonical_pose)
-    body_faces = body.part_faces(sorted(parts))
-    collider = BodyCollider(posed.vertices.astype(np.float64), body_faces, device=device, thickness=body_thickness)
     settings = SimSettings(max_frames=int(max_frames), tolerance=float(tolerance), substeps=int(substeps),
                            iterations=int(iterations), damping=float(damping),
                            explosion_stretch=float(explosion_stretch))
-    sim = QuasiStaticSimulator(model, collider, solver="xpbd", settings=settings)
+    sim = drape_simulator(pieces, posed.vertices.astype(np.float64), body.part_faces(sorted(parts)), device=device,
+                          settings=settings, thickness=body_thickness)
+    model, collider = sim.model, sim.collider
     world = np.asarray(model.particle_world_np)
     start = sim.positions()
     sd0 = _penetration(collider, start, world)

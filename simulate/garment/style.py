@@ -136,32 +136,3 @@ def sample_styles(garment_type: str, count: int, *, seed: int = 0) -> list[Style
     for _ in range(count):
         out.append(StyleParams(garment_type, {k: float(rng.uniform(lo, hi)) for k, (lo, hi, _, _) in spec.items()}))
     return out
-
-
-def generate_garment(garment_type: str, style: StyleParams | dict | str | None, body, *, shape=None,
-                     template=None, resolution: int | None = None):
-    """Vertices [m] (V, 3) of a garment of one style on the canonical body of ``shape``.
-
-    The topology is that of the type's template (fixed across styles): shorter lengths
-    slide hem rows up along the body instead of deleting vertices.
-
-    Args:
-        garment_type: one of :data:`GARMENT_TYPES`.
-        style: StyleParams, a {name: value} dict, a "name=value,..." string, or None.
-        body: the BodyModel the template was built on.
-        shape: body shape (S,) (default: the body's neutral shape).
-        template: a GarmentTemplate of this type (default: built with ``resolution``).
-    """
-    from simulate.garment.templates import apply_style, make_template
-
-    if not isinstance(style, StyleParams):
-        style = StyleParams.parse(garment_type, style) if isinstance(style, str) or style is None \
-            else StyleParams(garment_type, style)
-    if style.garment_type != garment_type:
-        raise ValueError(f"style is for {style.garment_type!r} but garment_type is {garment_type!r}")
-    if template is None:
-        kwargs = {} if resolution is None else {"resolution": resolution}
-        template = make_template(garment_type, body, **kwargs)
-    elif template.garment_type != garment_type:
-        raise ValueError(f"template is a {template.garment_type!r}, expected {garment_type!r}")
-    return apply_style(template, style, body, shape=shape)

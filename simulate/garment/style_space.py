@@ -184,9 +184,9 @@ def outside_body(template: GarmentTemplate, vertices: np.ndarray, body, *, shape
 
 
 def select_prototypes(drapes: np.ndarray, count: int, *, initial=None):
-    """Greedy convex-combination prototypes (TailorNet 4.4) via the learner's
-    ``learn.tailornet.prototypes.choose_prototypes``. Returns its PrototypeChoice
+    """Greedy convex-combination prototypes (TailorNet 4.4) via
+    ``simulate.garment.prototypes.choose_prototypes``. Returns its PrototypeChoice
     (indices, mean_error_mm, max_error_mm, weights)."""
-    from learn.tailornet.prototypes import choose_prototypes
+    from simulate.garment.prototypes import choose_prototypes
 
     return choose_prototypes(np.asarray(drapes, dtype=np.float64), int(count), initial=initial)

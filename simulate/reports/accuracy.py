@@ -47,7 +47,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import SimSettings, WorldStatus
 from simulate.reports.pareto import NEAR_FRONT_ERROR_SLACK, NEAR_FRONT_TIME_FACTOR, front_time_at_error, pareto_front
 from simulate.reports.scenes import Scene, SceneRun, frame_metrics, named_pose, pose_path, round_float16, run_worlds
 
@@ -244,7 +244,7 @@ def strip_error(fabric: str = "cotton", *, rows: int = STRIP_ROWS) -> dict[str, 
         "relative_error" (|extension - analytic| / analytic [-]), "residual_n", "tol_force_n", "converged"}.
     """
     from simulate.cloth.fabric import resolve_fabric
-    from simulate.cloth.scenes import hanging_strip
+    from simulate.scenes import hanging_strip
     from simulate.solvers.reference import solve_equilibrium
 
     fab = dataclasses.replace(resolve_fabric(fabric), bending_stiffness=0.0)

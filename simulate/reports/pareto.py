@@ -16,6 +16,8 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+from simulate.reports.labels import place_labels
+
 __all__ = ["pareto_front", "front_time_at_error", "plot_error_vs_time", "NEAR_FRONT_TIME_FACTOR",
            "NEAR_FRONT_ERROR_SLACK"]
 
@@ -125,6 +127,7 @@ def plot_error_vs_time(
     fig, ax = plt.subplots(figsize=(8.0, 5.5), dpi=120)
     groups: dict[str, str] = {}
     labelled: set[str] = set()
+    to_label: list[tuple[float, float, str]] = []  # (time, error, text): placed after the layout
     for i, (p, (t, e)) in enumerate(zip(points, vals)):
         group = str(p.get("group", "settings"))
         colour = groups.setdefault(group, _GROUP_COLOURS[len(groups) % len(_GROUP_COLOURS)])
@@ -132,11 +135,11 @@ def plot_error_vs_time(
             ax.scatter([t], [max(e, floor)], color=colour, s=22, zorder=3, label=None if group in labelled else group)
             labelled.add(group)
             if annotate:
-                ax.annotate(labels[i], (t, max(e, floor)), fontsize=5.5, xytext=(3, 2), textcoords="offset points")
+                to_label.append((t, max(e, floor), labels[i]))
         elif math.isfinite(t) and t > 0.0:
             ax.scatter([t], [top], color=colour, marker="x", s=30, zorder=3)
             if annotate:
-                ax.annotate(labels[i] + " (failed)", (t, top), fontsize=5.5, xytext=(3, -8), textcoords="offset points")
+                to_label.append((t, top, labels[i] + " (failed)"))
     front = pareto_front(points, time_key=time_key, error_key=error_key)
     if front:
         ft = [vals[i][0] for i in front]
@@ -151,7 +154,6 @@ def plot_error_vs_time(
     for t, e, label in extra:
         if _finite(t, e):
             ax.scatter([t], [max(e, floor)], marker="*", s=160, color="crimson", zorder=6, label=label)
-            ax.annotate(label, (t, max(e, floor)), fontsize=8, xytext=(5, 4), textcoords="offset points")
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("wall time per converged frame [ms]")
@@ -159,9 +161,13 @@ def plot_error_vs_time(
     ax.grid(True, which="both", lw=0.3, alpha=0.5)
     ax.set_title(title or "error against run time")
     ax.legend(fontsize=7, loc="best")
+    fig.tight_layout()
+    # after the layout, in window coordinates: the learners' stars first (larger), then the settings
+    place_labels(ax, [(t, max(e, floor)) for t, e, _ in extra if _finite(t, e)],
+                 [label for t, e, label in extra if _finite(t, e)], fontsize=8, color="crimson")
+    place_labels(ax, [(t, e) for t, e, _ in to_label], [text for *_, text in to_label], fontsize=5.5)
     out = Path(out_png)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)
     return out

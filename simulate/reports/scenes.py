@@ -13,7 +13,7 @@ A :class:`Scene` is one cloth (rest vertices, faces) on one body whose vertices 
   rotated about its centre) and ``shape[0]`` in [0, 1] scales its radius by 0.8 ... 1.2.
 
 :func:`run_worlds` simulates many cases at once as worlds of one
-:class:`~simulate.cloth.quasi_static.QuasiStaticSimulator`: each world starts from its start
+:class:`~simulate.quasi_static.QuasiStaticSimulator`: each world starts from its start
 positions on the first body of its path, moves one frame per path entry (the body is
 interpolated per substep inside the frame) and then relaxes on the last body until it converges,
 hits the frame budget or explodes. Worlds can differ in fabric, path and path length; the solver
@@ -33,7 +33,7 @@ import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
 from simulate.cloth.fabric import resolve_fabric
-from simulate.cloth.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.contact import BodyCollider
 
 __all__ = [
@@ -178,7 +178,7 @@ def _anny_pose_fn(body) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, 
 
 
 def _capsule_scene(resolution: int) -> Scene:
-    from simulate.cloth.scenes import capsule_body, grid_cloth
+    from simulate.scenes import capsule_body, grid_cloth
 
     # A bar along x at height 1 m: trimesh capsules stand along y in capsule_body; lay it down.
     cv, cf = capsule_body(height=0.5, radius=0.06, center=(0.0, 0.0, 0.0), count=(12, 12))
@@ -237,7 +237,7 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
     canonical = np.asarray(model.canonical_pose, np.float32)
     neutral = np.asarray(model.shape_default, np.float32)
     if garment == "shawl":
-        from simulate.cloth.scenes import grid_cloth
+        from simulate.scenes import grid_cloth
 
         bv = np.asarray(model.pose(neutral[None], canonical[None]).vertices[0])
         torso = np.unique(model.part_faces(["torso"]))
@@ -258,7 +258,7 @@ def build_scene(garment: str = "tshirt", *, body: str = "anny", resolution: int 
         rest = start = verts[used]
         material_uv = None
     else:
-        from simulate.garment.style import generate_garment
+        from simulate.garment.templates import generate_garment
         from simulate.garment.templates import make_template
 
         from simulate.garment.drape import drape_canonical

@@ -38,7 +38,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from simulate.cloth import FABRICS, Fabric
-from simulate.cloth.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import SimSettings, WorldStatus
 from simulate.reports.scenes import Scene, frame_metrics, named_pose, pose_path, run_worlds
 
 __all__ = ["Case", "stability_cases", "run_stability", "supported_cells", "CUDA_EXCEPTIONS", "failing_supported", "unexpected_passes", "plot_heatmap",

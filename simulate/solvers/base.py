@@ -12,7 +12,7 @@ __all__ = ["SolverBase"]
 
 
 class SolverBase:
-    """Allocates per-particle contact buffers once; subclasses implement ``step``."""
+    """Allocates per-particle contact buffers once; subclasses implement ``step`` (one substep)."""
 
     def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0,
                  contact_detect_every: int = 1) -> None:
@@ -52,6 +52,16 @@ class SolverBase:
         """Normal correction applied by the contact this substep [m] (friction budget)."""
         self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
+
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+             substep: int = 0) -> None:
+        """Advances every active world (``control.world_active``) by one substep: reads positions and
+        velocities from ``state_in``, writes them to ``state_out`` (a different buffer: the caller
+        swaps the two). ``dt``: substep length [s]; ``substep``: its index within the frame, which
+        decides whether the body is queried for contact planes (``queries_body``) and, with
+        self-contact, whether candidate triangles are searched afresh. Body contact reads
+        ``control.collider``, positioned by the driver for this substep."""
+        raise NotImplementedError(f"{type(self).__name__} must implement step")
 
     def garment_changed(self, dst: int, src: int) -> None:
         """World ``dst`` now holds world ``src``'s garment (``ClothModel.copy_world_garment``):

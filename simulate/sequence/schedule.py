@@ -1,0 +1,123 @@
+"""A world's schedule: the bodies it visits, one entry per frame or hold, and its re-planning.
+
+A schedule is a tuple ``(shapes (M, S), poses (M, 60), kinds (M,), keys (M,))``: entry ``j`` puts
+the body at shape ``shapes[j]`` and pose ``poses[j]``; its kind says whether the world steps one
+frame there (TRANSITION) or holds it until converged (SETTLE: not recorded; KEY: recorded as
+target ``keys[j]`` of the task, -1 for the other kinds).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
+from simulate.sequence.settings import SequenceSettings, SequenceTask
+
+# Entry kinds of a world's schedule.
+TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
+SETTLE = 1  # hold until converged, not recorded (after the shape transition)
+KEY = 2  # hold until converged, then record
+
+Schedule = tuple  # (shapes (M, S) float32, poses (M, 60) float32, kinds (M,), keys (M,))
+
+
+def build_schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape: np.ndarray, s: SequenceSettings,
+                   first_key: int = 0) -> Schedule:
+    """The schedule of one world from the canonical drape: shape transition, settle, then the
+    target poses from ``first_key`` on."""
+    n = s.shape_transition_frames
+    blend = (np.arange(1, n + 1) / n)[:, None]
+    shapes = [neutral_shape[None] * (1 - blend) + task.shape[None] * blend, task.shape[None]]
+    poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
+    kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
+    keys = [np.full(n, -1), np.array([-1])]
+    visit = visit_entries(task, first_key, canonical_pose, s.interpolation_threshold)
+    out = [np.concatenate([*part, v]) for part, v in zip((shapes, poses, kinds, keys), visit)]
+    return out[0].astype(np.float32), out[1].astype(np.float32), out[2], out[3]
+
+
+def visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, threshold: float,
+                  stop: int | None = None) -> Schedule:
+    """Schedule entries visiting ``task.poses[first_key:stop]`` from ``start_pose``, slerp'ed
+    poses inserted where a joint would turn more than ``threshold`` [rad] in one frame."""
+    seq, key_index = interpolate_sequence(task.poses[first_key:stop], start_pose, threshold)
+    return entries(task, seq, key_index, first_key)
+
+
+def entries(task: SequenceTask, seq: np.ndarray, key_index: np.ndarray, first_key: int = 0) -> Schedule:
+    """Schedule entries of the poses ``seq`` (M, 60) on the task's shape: target ``key_index +
+    first_key`` where ``key_index >= 0``, a slerp'ed transition pose elsewhere."""
+    return (np.tile(task.shape, (len(seq), 1)).astype(np.float32), seq.astype(np.float32),
+            np.where(key_index >= 0, KEY, TRANSITION), np.where(key_index >= 0, key_index + first_key, -1))
+
+
+def reroute(task: SequenceTask, schedule: Schedule, next_key: int, start_pose: np.ndarray, threshold: float,
+            route: np.ndarray | None = None) -> Schedule:
+    """``schedule`` re-planned from ``start_pose``: slerp'ed poses to target ``next_key``, then the
+    entries that already follow that target (interpolation is sequential, so they are what a full
+    re-plan gives, at a fraction of its cost). ``route``: the poses from ``start_pose`` to the
+    target, ending with it, when already known (M, 60)."""
+    _, _, kinds, keys = schedule
+    j = int(np.nonzero((kinds == KEY) & (keys == next_key))[0][0])
+    if route is None:
+        head = visit_entries(task, next_key, start_pose, threshold, stop=next_key + 1)
+    else:  # the route's last pose is the target
+        head = entries(task, np.asarray(route, np.float32), np.arange(len(route)) - (len(route) - 1), next_key)
+    return tuple(np.concatenate([h.astype(old.dtype), old[j + 1:]]) for h, old in zip(head, schedule))
+
+
+def plans_from(tasks: list[SequenceTask], start_poses: list[np.ndarray],
+               threshold: float) -> list[tuple[Schedule, list[np.ndarray]]]:
+    """Per task, from its start pose: the schedule visiting all its targets (``visit_entries``
+    from the first) and, for every target, the slerp'ed poses from the start pose to it, ending
+    with it (the route ``reroute`` inserts), all segments of all tasks interpolated in one batched
+    call (each segment is interpolated on its own, so a task's plan does not depend on the others
+    in the call; one call per task costs ~10-80 ms on a GPU)."""
+    if not tasks:
+        return []
+    starts, ends = [], []
+    for t, p in zip(tasks, start_poses):
+        start = np.asarray(p, np.float32).reshape(1, -1)
+        keys = np.asarray(t.poses, np.float32)
+        starts += [np.concatenate([start, keys[:-1]]), np.broadcast_to(start, keys.shape)]  # visit; routes
+        ends += [keys, keys]
+    starts, ends = np.concatenate(starts), np.concatenate(ends)
+    poses, segment = interpolate_segments(starts, ends, threshold)
+    bounds = np.searchsorted(segment, np.arange(len(ends) + 1))
+    out, first = [], 0
+    for t in tasks:
+        n = len(t.poses)
+        a, b = bounds[first], bounds[first + n]
+        visit = entries(t, poses[a:b], segment_key_index(segment[a:b] - first))
+        first += n
+        out.append((visit, [poses[a:b] for a, b in zip(bounds[first:first + n], bounds[first + 1:first + n + 1])]))
+        first += n
+    return out
+
+
+class PlanCache:
+    """Plans (``plans_from``) by (task, start pose), made in batches and dropped when the task is
+    done: worlds change tasks and go home thousands of times in a dataset, each trip needing the
+    task's schedule and routes from the home pose."""
+
+    def __init__(self, tasks: list[SequenceTask], threshold: float) -> None:
+        self.tasks, self.threshold = tasks, threshold
+        self.plans: dict[tuple[int, bytes], tuple] = {}
+        self.calls = 0  # batched plan calls made
+
+    def get(self, task: int, pose: np.ndarray, also: list[int]) -> tuple[Schedule, list[np.ndarray]]:
+        """Task ``task``'s plan from ``pose`` (60,). A missing plan is made in one batched call with
+        those of the tasks in ``also`` (the tasks likely to need one from the same pose next) that
+        lack one."""
+        pose = np.asarray(pose, np.float32)
+        key = (int(task), pose.tobytes())
+        if key not in self.plans:
+            batch = [u for u in dict.fromkeys([int(task)] + [int(u) for u in also]) if (u, key[1]) not in self.plans]
+            for u, plan in zip(batch, plans_from([self.tasks[u] for u in batch], [pose] * len(batch), self.threshold)):
+                self.plans[(u, key[1])] = plan
+            self.calls += 1
+        return self.plans[key]
+
+    def drop(self, task: int) -> None:
+        """Forgets task ``task``'s plans (it is done)."""
+        for key in [k for k in self.plans if k[0] == task]:
+            del self.plans[key]

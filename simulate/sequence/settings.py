@@ -1,0 +1,132 @@
+"""What the sequence driver takes and hands back: a task, its settings, a recorded frame."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from simulate.quasi_static import SimSettings
+
+#: ``SequenceSettings.self_contact_during``: the frames a world searches for self-contacts on.
+SELF_CONTACT_DURING = ("all", "transitions", "holds")
+#: ``SequenceSettings.restart_to``: where a world goes after rejected frames.
+RESTART_TO = ("home", "last_kept")
+
+
+@dataclass
+class SequenceTask:
+    """One garment on one body shape through a pose list.
+
+    Attributes:
+        rest_vertices: cloth rest geometry (edge lengths, areas) [m], shape (V, 3).
+        start_vertices: initial positions on the neutral body, canonical pose [m], (V, 3).
+        shape: body shape, (S,).
+        poses: target poses in visiting order, (N, 60).
+        fabric: fabric preset name or Fabric.
+    """
+
+    rest_vertices: np.ndarray
+    start_vertices: np.ndarray
+    shape: np.ndarray
+    poses: np.ndarray
+    fabric: object = "cotton"
+
+
+@dataclass
+class SequenceSettings:
+    """Stepping of the sequence (see the ``simulate.sequence`` docstring)."""
+
+    sim: SimSettings = field(default_factory=SimSettings)
+    solver: str = "xpbd"
+    shape_transition_frames: int = 10
+    """Frames over which the body shape is blended from the neutral shape to the task's."""
+    interpolation_threshold: float = 0.1
+    """Largest turn of any joint in one frame [rad]; slerp'ed poses are inserted between targets
+    farther apart."""
+    min_hold_frames: int = 2
+    """Frames a target pose (or the settle) is held at least, converged or not."""
+    contact_thickness: float = 0.004
+    """Distance the cloth keeps from the body surface [m]."""
+    friction: float | None = None
+    """Body friction: 0 turns it off; any other value (or None) keeps it on, with each fabric's
+    coefficient (``Fabric.friction``)."""
+    self_contact: bool = False
+    """Cloth self-contact (search and response) on."""
+    self_contact_during: str = "all"
+    """With ``self_contact``: on all frames ("all"), only while a world's body moves between poses
+    ("transitions": shape blends, slerp'ed poses, routes home) or only while a pose is held
+    ("holds": target poses and the settles). The layers of a garment cross while a pose is held
+    too, so "all" drops the fewest frames to self-intersection (docs/benchmarks.md)."""
+    recover_explosions: bool = True
+    """A world that explodes loses only the target pose it was heading to: its last good state
+    (garment and body at the previous finished hold) is put back and the world goes on to the
+    next target, slerp'ed afresh from there. Off: the rest of its schedule is handed over as failed."""
+    restart_after_explosions: int = 2
+    """After this many explosions of a world in a row (its last good state led into an explosion
+    again), the world starts over from the canonical drape (shape transition, settle, then the
+    next target) instead of the last good state: a state that led into an explosion tends to lead
+    into the next one too. 0 = never. A world that has come home (see ``restart_after_rejects``)
+    starts over from there instead."""
+    restart_after_rejects: int = 0
+    """After this many target frames in a row that ``on_frame`` rejects (returns ``False``: the
+    frame failed the dataset's filters), the world goes home: back to its settled canonical drape
+    on the task's shape (kept when the settle hold ended), from where it heads for its next target
+    along a slerp from the canonical pose. Without it a tangle is carried along the rest of the
+    sequence (self-intersection and distortion grow with the position in the sequence, not with
+    any joint angle). 0 = never."""
+    restart_to: str = "home"
+    """Where a world goes after ``restart_after_rejects`` rejected frames: "home" (its settled
+    canonical drape, then a slerp from the canonical pose) or "last_kept" (the garment and body of
+    its last accepted target frame, then a slerp from that pose; home while the world has accepted
+    none). "home" keeps more targets: a frame that passed the filters can still carry the start of
+    a tangle (docs/benchmarks.md)."""
+    home_between_targets: bool = False
+    """Every world goes home (its settled canonical drape) after each target frame, accepted or
+    not, and heads for its next target from the canonical pose: no tangle is carried from one
+    target to the next, at the price of longer moves."""
+    body_lookahead: int = 8
+    """Schedule entries per world posed ahead; whenever a world runs out, every world short of
+    entries is topped up in the same batched body-model call (one call per frame costs more than
+    the frame on a GPU). Memory: world_count x lookahead posed bodies (~0.34 MB each for anny)."""
+    cross_group_tasks: bool = True
+    """A world whose group (``world_groups``) has no task left takes the next task of the group
+    with the most target poses waiting per busy world: that group's garment (rest shape, fabric:
+    ``QuasiStaticSimulator.adopt_garment``), shape and settled home drape are swapped in, and the
+    task runs as it would in a world of its own group (tested bit for bit). Without it a group's
+    worlds wait idle once its tasks run out while others still queue."""
+    concurrent_streams: bool = True
+    """On CUDA, frames step on a stream of their own while the host hands the previous frame's
+    target frames over (``on_frames``) and poses the next bodies beside them (see ``run_sequences``).
+    Off: every launch goes to the device's stream, in the same order, so the results are the same
+    bit for bit (a check for the streams' synchronisation); only slower."""
+
+    def __post_init__(self) -> None:
+        if self.restart_to not in RESTART_TO:
+            raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
+        if self.self_contact_during not in SELF_CONTACT_DURING:
+            raise ValueError(f"SequenceSettings.self_contact_during must be one of {', '.join(SELF_CONTACT_DURING)} "
+                             f"(got {self.self_contact_during!r})")
+
+
+@dataclass
+class RecordedFrame:
+    """What ``on_frame`` receives for a target pose that finished relaxing.
+
+    Attributes:
+        task: index of the task in the batch.
+        key: index of the target pose in the task's pose list.
+        positions: garment vertices [m], (V, 3).
+        status: WorldStatus of the world (CONVERGED, MAX_STEPS or EXPLODED).
+        frames: frames the pose was held.
+        body_vertices: posed body [m], (Vb, 3).
+        skinning_transforms: (J, 4, 4); rest_vertices: shaped unposed body (Vb, 3).
+    """
+
+    task: int
+    key: int
+    positions: np.ndarray
+    status: int
+    frames: int
+    body_vertices: np.ndarray
+    skinning_transforms: np.ndarray
+    rest_body_vertices: np.ndarray
