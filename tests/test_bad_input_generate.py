@@ -50,7 +50,7 @@ def fake_context(spec, out_dir, *, device=None, log=print):
                            tasks={t.task_id: t for t in tasks}, phases={})
 
 
-def fake_run_local(ctx, out_dir, batches, *, on_shard, on_progress, on_batch=None, skip=frozenset()):
+def fake_run_local(ctx, out_dir, batches, *, on_shard, on_progress, on_batch=None, skip=frozenset(), simulate_batch=None):
     from data_manifest.shard import ShardWriter, shard_path
     from data_manifest.synthetic import synthetic_frame
 
