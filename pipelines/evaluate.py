@@ -149,6 +149,12 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
 
 
 def run(args: argparse.Namespace) -> int:
+    from learn.registry import LEARNERS
+
+    for entry in LEARNERS.values():
+        if entry.evaluate_command is not None and (Path(args.run) / entry.model_file).is_file():
+            entry.evaluate_command(args.run, args.data, device=args.device, out=args.out)
+            return 0
     evaluate(args.run, args.data, device=args.device, out=args.out, postprocess_frames=args.postprocess_frames,
              renders=args.renders, accuracy_report=args.accuracy_report)
     return 0

@@ -59,8 +59,11 @@ def run(args: argparse.Namespace) -> int:
                                        garment_pose_indices, stages_for_rank)
     from simulate.body import load_body_model
 
-    if args.learner not in ("tailornet", "baseline"):
-        raise ValueError(f"unknown learner {args.learner!r}; expected one of tailornet, baseline")
+    from learn.registry import get_learner
+
+    entry = get_learner(args.learner)
+    if entry.train_command is not None:
+        return entry.train_command(args)
     reader = DatasetReader(args.data)
     split = next((s for s in TRAIN_SPLITS if s in reader.splits and reader.num_frames(s) > 0), None)
     if split is None:
@@ -115,15 +118,18 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train a learner (tailornet, baseline) on a dataset",
+    p = sub.add_parser("train", help="train a learner (tailornet, baseline, gcvae) on a dataset",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("learner", choices=["tailornet", "baseline"], help="what to train (tailornet also trains the baseline)")
-    p.add_argument("--data", required=True, help="dataset directory (from drape generate-dataset)")
+    p.add_argument("learner", choices=["tailornet", "baseline", "gcvae"],
+                   help="what to train (tailornet also trains the baseline)")
+    p.add_argument("--data", required=True,
+                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     p.add_argument("--epochs", type=int, default=None, help="epochs for every stage (default: the paper's per stage)")
     p.add_argument("--prototypes", type=int, default=None, help="number K of high-frequency prototypes (default 20)")
-    p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}")
+    p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}; "
+                   "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)

@@ -87,6 +87,25 @@ class BodyMesh:
         """("dual", dual_faces) for skirt-like types, ("standard", faces) otherwise."""
         return ("dual", self.dual_faces) if garment_type in DUAL_TYPES else ("standard", self.faces)
 
+    def bridge_vertices(self) -> np.ndarray:
+        """(N,) bool: vertices of the faces only the dual topology has (the bridge)."""
+        standard = {tuple(sorted(f)) for f in self.faces.tolist()}
+        out = np.zeros(self.vertex_count, bool)
+        for f in self.dual_faces.tolist():
+            if tuple(sorted(f)) not in standard:
+                out[f] = True
+        return out
+
+    def topology_of_mask(self, mask: np.ndarray) -> str:
+        """"dual" when a mask covers the bridge but not the inner legs (skirt-like), else
+        "standard": what a sampled garment of unknown type is reconstructed with."""
+        mask = np.asarray(mask, bool)
+        bridge = self.bridge_vertices()
+        inside = self.inner_leg & ~bridge
+        if bridge.any() and inside.any() and mask[bridge].mean() > 0.5 and mask[inside].mean() < 0.5:
+            return "dual"
+        return "standard"
+
     def positions_for(self, garment_type: str, vertices: np.ndarray) -> np.ndarray:
         """Positions (N, 3) [m] of the topology ``garment_type`` registers on."""
         return self.dual_vertices(vertices) if garment_type in DUAL_TYPES else np.asarray(vertices, np.float64)

@@ -4,7 +4,9 @@ with the body faces whose three vertices are masked, is the garment.
 
 1. Mask: a ray from each body vertex along its (smoothed) normal, started ``RAY_START_M``
    inside the body, must leave the garment from inside (hit face facing along the ray)
-   within ``max_distance`` [m]; isolated bits are then cleaned (a vertex whose neighbours are
+   within ``max_distance`` [m], or a garment vertex projected onto the body (closest point)
+   must lie within half a body edge of it (rays from concave places such as the crotch can
+   meet the garment from outside first); isolated bits are then cleaned (a vertex whose neighbours are
    all covered is covered, one with no covered neighbour is not). Rays, not closest points:
    a skirt's flare, 20 cm off the thighs, is where the thigh's normal points, while its
    closest body point is at the hips.
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import sparse
+from scipy.spatial import cKDTree
 
 from simulate.garment import mesh_ops
 
@@ -96,7 +99,13 @@ def coverage(garment_vertices: np.ndarray, garment_faces: np.ndarray, body_verti
     in_faces[np.unique(body_faces)] = True
     hit = in_faces & (face >= 0)
     hit[hit] &= (garment_normals[face[hit]] * normals[hit]).sum(1) > 0.0
-    points = starts + t[:, None] * normals
+    points = np.where(hit[:, None], starts + t[:, None] * normals, np.nan)
+    projected = mesh_ops.ClosestPointQuery(body_vertices, body_faces).query(garment_vertices)[0]
+    edges, _ = mesh_ops.unique_edges(body_faces)
+    radius = 0.5 * float(np.median(np.linalg.norm(body_vertices[edges[:, 0]] - body_vertices[edges[:, 1]], axis=1)))
+    near = np.zeros(n, bool)
+    near[in_faces] = cKDTree(projected).query(body_vertices[in_faces])[0] <= radius
+    hit |= near
     adjacency = mesh_ops.vertex_adjacency(body_faces, n)
     degree = np.asarray(adjacency.sum(1)).ravel()
     covered = adjacency @ hit.astype(np.float64)
@@ -120,8 +129,7 @@ def register(garment_vertices: np.ndarray, garment_faces: np.ndarray, body_verti
     idx = np.flatnonzero(mask)
     if idx.size == 0:
         return Registration(offsets.astype(np.float32), mask)
-    offsets[idx] = np.where((np.linalg.norm(hits[idx] - b[idx], axis=1) < max_distance)[:, None], hits[idx],
-                            garment.query(b[idx])[0]) - b[idx]
+    offsets[idx] = np.where(np.isfinite(hits[idx]).all(1, keepdims=True), hits[idx], garment.query(b[idx])[0]) - b[idx]
     # Laplacian over the covered vertices only: uncovered neighbours do not pull offsets to 0.
     sub = mesh_ops.vertex_adjacency(body_faces, len(b))[idx][:, idx]
     degree = np.asarray(sub.sum(1)).ravel()
