@@ -122,9 +122,11 @@ def max_pool(x: torch.Tensor, members: torch.Tensor) -> torch.Tensor:
     cluster; ``members`` from :func:`cluster_members` (a gather and a max: several times
     faster than a scatter-max)."""
     padded = torch.cat([x, x.new_full((1,) + tuple(x.shape[1:]), float("-inf"))], 0)
-    return padded[members].amax(1)
+    # index_select: its backward is an index_add, where advanced indexing's sorts its indices.
+    gathered = padded.index_select(0, members.reshape(-1))
+    return gathered.view(members.shape[0], members.shape[1], *x.shape[1:]).amax(1)
 
 
 def copy_unpool(x: torch.Tensor, assignment: torch.Tensor) -> torch.Tensor:
     """(N_coarse, ...) -> (N_fine, ...): each fine vertex gets its cluster's features."""
-    return x[assignment]
+    return x.index_select(0, assignment)
