@@ -11,6 +11,9 @@ comes from the dataset's manifest; the speed-up is their ratio. Writes
 one picture; the simulator's settings sweep is added when ``--accuracy-report`` points
 at a ``drape report accuracy`` JSON) and a few renders of predicted vs simulated drapes
 coloured by per-vertex error.
+
+A gcvae run (``RUN/gcvae_model.pt``) is evaluated on a static set instead: surface error,
+normal angle, mask IoU and KL per garment type (learn/gcvae/evaluate.py).
 """
 from __future__ import annotations
 

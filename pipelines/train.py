@@ -9,6 +9,9 @@ Several GPUs: launch with ``torchrun --nproc-per-node N -m pipelines.cli train .
 stages are spread over the ranks (the K prototypes are independent networks, so
 stage parallelism scales better here than data-parallel DDP on one small MLP) and
 rank 0 assembles the model.
+
+``gcvae`` trains on a static set from ``drape static-set`` (learn/gcvae/train.py: checkpoint,
+per-epoch loss terms, the best validation epoch in ``RUN/gcvae_model.pt``).
 """
 from __future__ import annotations
 
