@@ -216,6 +216,7 @@ def test_cli_train_evaluate_sample(tmp_path: Path, anny_body, capsys) -> None:
     assert "surface mm" in capsys.readouterr().out
     out = tmp_path / "samples"
     assert main(["sample", str(run), "--out", str(out), "--count", "2", "--seed", "3"]) == 0
+    assert (out / "samples.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     objs = sorted(p.name for p in out.glob("*.obj"))
     assert objs == ["body.obj", "garment_0.obj", "garment_1.obj"], objs
     first = (out / "garment_0.obj").read_text()

@@ -13,6 +13,7 @@ sorts the CSR matrix at every call).
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import torch
@@ -48,9 +49,12 @@ def torch_sparse(matrix: sparse.spmatrix) -> torch.Tensor:
     than COO on the CPU)."""
     csr = sparse.csr_matrix(matrix)
     csr.sort_indices()
-    return torch.sparse_csr_tensor(torch.as_tensor(csr.indptr, dtype=torch.int64),
-                                   torch.as_tensor(csr.indices, dtype=torch.int64),
-                                   torch.as_tensor(csr.data, dtype=torch.float32), csr.shape, check_invariants=False)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(torch.as_tensor(csr.indptr, dtype=torch.int64),
+                                       torch.as_tensor(csr.indices, dtype=torch.int64),
+                                       torch.as_tensor(csr.data, dtype=torch.float32), csr.shape,
+                                       check_invariants=False)
 
 
 class SymmetricSparseProduct(torch.autograd.Function):

@@ -2,7 +2,8 @@
 (seeded), decoded for a body shape and tightness into offsets and a mask on the common body
 mesh, reconstructed as a mesh (masked vertices moved by their offsets, faces of three masked
 vertices; the dual topology when the mask covers the bridge between the legs but not the
-inner legs, i.e. a skirt-like garment) and written as OBJ, with the body as ``body.obj``.
+inner legs, i.e. a skirt-like garment) and written as OBJ, with the body as ``body.obj`` and
+every garment on the body in ``samples.png``.
 """
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ def sample_garments(model: GCVAE, out: str | Path, *, count: int = 4, shape: np.
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = [write_obj(out / "body.obj", body_v, mesh.faces)]
+    meshes, titles = [], []
     for k in range(count):
         mask = probability[k] > 0.5
         topology = mesh.topology_of_mask(mask)
@@ -72,5 +74,10 @@ def sample_garments(model: GCVAE, out: str | Path, *, count: int = 4, shape: np.
         # Offsets are relative to the standard positions: move them to the topology's base.
         v, f, _ = reconstruct(base, faces, body_v + offsets[k] - base, mask)
         paths.append(write_obj(out / f"garment_{k}.obj", v, f))
+        meshes.append((v, f))
+        titles.append(f"garment_{k} ({topology})")
         log(f"garment_{k}.obj: {len(v)} vertices, {len(f)} faces, {topology} topology")
+    from learn.gcvae.plots import render_samples
+
+    render_samples(body_v, mesh.faces, meshes, out / "samples.png", titles=titles)
     return paths
