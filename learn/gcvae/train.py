@@ -155,6 +155,7 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
     chosen = load_checkpoint(best_path, map_location=device)
     model.load_state_dict(chosen["model_state"])
     model.best_epoch = int(chosen["epoch"])
+    model.split_sizes = (int(len(train_index)), int(len(val_index)))
     save_gcvae(model, run_dir / MODEL_FILE, fingerprint=fingerprint,
                extra={"best_epoch": model.best_epoch, "validation_error_m": float(chosen["validation_error_m"]),
                       "hyperparameters": hyper, "train_samples": int(len(train_index)),
@@ -226,6 +227,6 @@ def run_command(args) -> int:
             "device": args.device, "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
             "registration_mm": data.registration_table()}
     (Path(args.out) / "run.json").write_text(json.dumps(info, indent=2, default=str))
-    print(f"trained gcvae on {len(data.indices('train'))} samples ({', '.join(data.types)}) in {info['seconds']} s, "
-          f"best epoch {model.best_epoch} -> {args.out}")
+    print(f"trained gcvae on {model.split_sizes[0]} samples, validated on {model.split_sizes[1]} "
+          f"({', '.join(data.types)}) in {info['seconds']} s, best epoch {model.best_epoch} -> {args.out}")
     return 0
