@@ -5,5 +5,6 @@ Modules: ``hyperparameters`` (every size and weight), ``body_mesh`` (the common 
 segments and dual topology), ``registration`` (garment -> offsets + mask and back),
 ``static_set`` (rest-pose garments on sampled bodies, registered), ``chebyshev`` (the graph
 convolution), ``pooling`` (the segment-aware hierarchy), ``model`` (the static VAE),
-``losses``, ``train``, ``evaluate``, ``sample``.
+``losses``, ``train``, ``evaluate``, ``sample`` (garments from the latent space), ``plots``,
+``synthetic`` (tiny static sets for tests).
 """
