@@ -12,7 +12,15 @@ Each ``LearnerEntry`` gives:
   (the dataset's ``DatasetReader``, the training split's ``DrapeDataset``, the body model, its
   ``{"backend", "path"}`` and the shards' template arrays); each learner takes the keywords it
   needs (``**_`` for the others), so one callable covers arguments passed through and
-  arguments computed from the dataset (the UV-image learners rebuild the full garment template).
+  arguments computed from the dataset (the UV-image learners rebuild the full garment template);
+- ``data``: the kind of data ``--data`` names for ``drape train`` and ``drape evaluate``.
+  ``"dataset"``: a ``drape generate-dataset`` directory; ``fit`` and ``context`` as above, and
+  ``drape evaluate`` / ``drape predict`` compare the learner's drapes with the simulated ones.
+  ``"static_set"``: a ``drape static-set`` directory (rest-pose garments registered on the common
+  body mesh, learn/gcvae/static_set.py); ``fit(data, *, run_dir, hyperparameters, device, seed,
+  progress)`` takes its ``StaticSet``, ``context`` is not called, ``load``'s fingerprint is the
+  set's (learn.gcvae.train.set_fingerprint), and ``drape evaluate`` reports learn/gcvae/evaluate.py's
+  per-type reconstruction metrics (surface, normals, mask IoU, KL).
 """
 
 from __future__ import annotations
@@ -22,9 +30,12 @@ from dataclasses import dataclass
 
 from learn.collision_aware.train import EPOCH_STAGES as COLLISION_AWARE_STAGES
 from learn.collision_aware.train import collision_aware_context, fit_collision_aware, load_collision_aware
+from learn.gcvae.train import fit_gcvae, load_gcvae
 from learn.tailornet.train import fit_baseline, fit_tailornet, load_learner
 from learn.uvimage.garment import uvimage_context
 from learn.uvimage.train import fit_uvimage, fit_uvimage_pca, load_uvimage
+
+DATA_KINDS = ("dataset", "static_set")
 
 
 @dataclass(frozen=True)
@@ -36,6 +47,11 @@ class LearnerEntry:
     description: str
     stages: tuple[str, ...] = ()
     context: Callable[..., dict] | None = None
+    data: str = "dataset"
+
+    def __post_init__(self) -> None:
+        if self.data not in DATA_KINDS:
+            raise ValueError(f"learner {self.name}: data must be one of {DATA_KINDS}, got {self.data!r}")
 
 
 LEARNERS: dict[str, LearnerEntry] = {
@@ -63,6 +79,11 @@ LEARNERS: dict[str, LearnerEntry] = {
         "collision_aware", fit_collision_aware, "collision_aware_model.pt", load_collision_aware,
         "seed 002: diffused body fields, canonical space, garment VAE with self-supervised collisions, MLP regressor",
         COLLISION_AWARE_STAGES, collision_aware_context,
+    ),
+    "gcvae": LearnerEntry(
+        "gcvae", fit_gcvae, "gcvae_model.pt", load_gcvae,
+        "seed 004 (CLOTH3D): offsets + mask on the body mesh, Chebyshev graph convolutions, segment-aware pooling",
+        ("train",), data="static_set",
     ),
 }
 

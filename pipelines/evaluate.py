@@ -1,8 +1,8 @@
 """``drape evaluate RUN --data DIR``: predicted against simulated drapes.
 
 For every test split (train_test, test_train, test_test) and every model in RUN
-(each learner of learn/registry.py whose model file is there: tailornet, baseline,
-uvimage, uvimage_pca, collision_aware): mean per-vertex error in mm on unposed displacements
+(each learner of learn/registry.py trained on datasets whose model file is there: tailornet,
+baseline, uvimage, uvimage_pca, collision_aware): mean per-vertex error in mm on unposed displacements
 (as TailorNet reports) and on posed vertices, the normal error (1 - cos of predicted and
 simulated vertex normals, seed 001), the collision rate (share of garment vertices
 deeper than 1 mm inside the body along the nearest face normal) without and with the
@@ -13,6 +13,11 @@ comes from the dataset's manifest; the speed-up is their ratio. Writes
 one picture; the simulator's settings sweep is added when ``--accuracy-report`` points
 at a ``drape report accuracy`` JSON) and a few renders of predicted vs simulated drapes
 coloured by per-vertex error.
+
+A run of a learner trained on a static set (registry ``data`` ``static_set``: gcvae,
+``RUN/gcvae_model.pt``) is evaluated on a ``drape static-set`` directory instead: surface error,
+normal angle, mask IoU and KL per garment type on its test and train splits
+(learn/gcvae/evaluate.py), in ``RUN/evaluation/evaluation.json``.
 """
 from __future__ import annotations
 
@@ -26,11 +31,14 @@ import numpy as np
 TEST_SPLITS = ("train_test", "test_train", "test_test")
 
 
-def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
+def _load_models(run_dir: Path, fingerprint, device: str, data: str = "dataset") -> dict:
+    """{name: model} of the learners trained on ``data`` (a registry ``data`` kind) whose model
+    file is in ``run_dir``; raises naming the file when one is unreadable, or when there is none."""
     from learn.registry import LEARNERS
 
     models = {}
-    for name, entry in LEARNERS.items():
+    learners = {name: entry for name, entry in LEARNERS.items() if entry.data == data}
+    for name, entry in learners.items():
         file = run_dir / entry.model_file
         if file.is_file():
             try:
@@ -43,7 +51,7 @@ def _load_models(run_dir: Path, fingerprint, device: str) -> dict:
                 raise ValueError(f"{str(file)!r} is not a readable {name} checkpoint ({type(exc).__name__}: "
                                  f"{' '.join(str(exc).split())[:200]}); rerun drape train") from None
     if not models:
-        files = ", ".join(entry.model_file for entry in LEARNERS.values())
+        files = ", ".join(entry.model_file for entry in learners.values())
         raise FileNotFoundError(f"no trained model in {run_dir} (expected one of {files}; run drape train first)")
     return models
 
@@ -169,7 +177,44 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     return results
 
 
+def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out: str | Path | None = None,
+                        log=print) -> dict:
+    """``drape evaluate`` of a run trained on a static set (gcvae): per-type surface error [mm],
+    normal angle [rad], mask IoU and KL on the set's test and train splits, the set's
+    registration error beside them; writes ``evaluation.json`` into ``out`` (default
+    ``RUN/evaluation``) and returns the report."""
+    from learn.gcvae.evaluate import evaluate_set, format_table
+    from learn.gcvae.static_set import StaticSet
+    from learn.gcvae.train import set_fingerprint
+
+    from pipelines.errors import UsageError, check_output_dir, check_torch_device
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
+    check_torch_device(device)
+    static_set = StaticSet(data)
+    out = check_output_dir(Path(out) if out else run_dir / "evaluation", "--out")
+    name, model = next(iter(_load_models(run_dir, set_fingerprint(static_set), device, data="static_set").items()))
+    trained_types = [str(t) for t in model.graph["types"]]
+    if trained_types != static_set.types:
+        log(f"note: the run was trained on types {trained_types}, the set has {static_set.types}")
+    splits = tuple(s for s in ("test", "train") if len(static_set.indices(s)))
+    report = evaluate_set(model, static_set, splits=splits, device=device)
+    report["learner"] = name
+    report["best_epoch"] = getattr(model, "best_epoch", None)
+    (out / "evaluation.json").write_text(json.dumps(report, indent=2))
+    log(format_table(report))
+    log(f"report: {out / 'evaluation.json'}")
+    return report
+
+
 def run(args: argparse.Namespace) -> int:
+    from learn.registry import LEARNERS
+
+    if any(entry.data == "static_set" and (Path(args.run) / entry.model_file).is_file() for entry in LEARNERS.values()):
+        evaluate_static_set(args.run, args.data, device=args.device, out=args.out)
+        return 0
     evaluate(args.run, args.data, device=args.device, out=args.out, postprocess_frames=args.postprocess_frames,
              renders=args.renders, accuracy_report=args.accuracy_report)
     return 0
@@ -179,7 +224,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="errors, collisions and timings of a trained run on a dataset's test splits",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", help="run directory from drape train")
-    p.add_argument("--data", required=True, help="dataset directory (same template as the run)")
+    p.add_argument("--data", required=True, help="dataset directory (same template as the run; "
+                                                 "for a gcvae run: a drape static-set directory)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", default=None, help="report directory (default RUN/evaluation)")
     p.add_argument("--postprocess-frames", type=int, default=32, help="frames per split to post-process (slow part)")

@@ -47,11 +47,15 @@ def run(args: argparse.Namespace) -> int:
     import trimesh
 
     from learn.common.skinning import garment_posing_functions
-    from learn.registry import get_learner
+    from learn.registry import LEARNERS, get_learner
     from learn.tailornet.evaluate import PosingContext, predict_vertices
     from simulate.body import load_body_model
 
     entry = get_learner(args.learner)
+    if entry.data != "dataset":
+        drapers = ", ".join(name for name, e in LEARNERS.items() if e.data == "dataset")
+        raise UsageError(f"--learner {args.learner} is trained on a {entry.data.replace('_', ' ')} and predicts no drape; "
+                         f"expected one of {drapers} (draw {args.learner} garments with drape sample RUN)")
     run_dir = Path(args.run)
     if not run_dir.is_dir():
         raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")

@@ -15,6 +15,10 @@ the canonical body's SDF, the canonical projection of the training frames (cache
 ``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
 ``uvimage`` and ``uvimage_pca`` (seed 001; docs/learners/uvimage.md) train one stage each, named
 after the learner.
+``gcvae`` (seed 004; docs/learners/gcvae.md) trains on a static set from ``drape static-set``
+instead of a dataset (its registry ``data`` is ``static_set``): one resumable stage ``train``
+(checkpoint ``RUN/gcvae.pt``, per-epoch loss terms and validation error in ``RUN/gcvae_terms.csv``),
+the best validation epoch in ``RUN/gcvae_model.pt``.
 """
 from __future__ import annotations
 
@@ -131,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).resolve() == Path(args.data).resolve():
         raise UsageError(f"--out {args.out!r} is the dataset directory; give the run its own directory")
     out = check_output_dir(args.out, "--out")
+    if entry.data == "static_set":
+        return _train_on_static_set(entry, args, hyper, out)
     reader = DatasetReader(args.data)
     split = next((s for s in TRAIN_SPLITS if s in reader.splits and reader.num_frames(s) > 0), None)
     if split is None:
@@ -186,18 +192,42 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path) -> int:
+    """``drape train`` of a learner whose registry ``data`` is ``static_set`` (gcvae): fits it on
+    the ``drape static-set`` directory ``--data`` and writes ``run.json``."""
+    from learn.gcvae.static_set import StaticSet
+
+    data = StaticSet(args.data)
+    t0 = time.perf_counter()
+    model = entry.fit(data, run_dir=out, hyperparameters=hyper, device=args.device, seed=args.seed,
+                      progress=not args.no_progress)
+    train_samples, validation_samples = model.split_sizes
+    info = {"learner": args.learner, "data": str(Path(data.path).resolve()), "samples": len(data),
+            "train_samples": train_samples, "validation_samples": validation_samples, "types": data.types,
+            "best_epoch": model.best_epoch, "hyperparameters": model.hyperparameters, "device": args.device,
+            "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
+            "registration_mm": data.registration_table()}
+    (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
+    print(f"trained {args.learner} on {train_samples} samples, validated on {validation_samples} "
+          f"({', '.join(data.types)}) in {info['seconds']} s, best epoch {model.best_epoch} -> {out}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train a learner (tailornet, baseline, uvimage, uvimage_pca, collision_aware) on a dataset",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser("train", help="train a learner (tailornet, baseline, uvimage, uvimage_pca, collision_aware, gcvae) "
+                       "on a dataset", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     # not argparse choices: the registry imports torch, and `drape --help` stays light
     p.add_argument("learner", help="what to train, a name in learn/registry.py: tailornet (also trains the baseline), "
-                                   "baseline, uvimage, uvimage_pca (seed 001), collision_aware or collision-aware (seed 002)")
-    p.add_argument("--data", required=True, help="dataset directory (from drape generate-dataset)")
+                                   "baseline, uvimage, uvimage_pca (seed 001), collision_aware or collision-aware (seed 002), "
+                                   "gcvae (seed 004)")
+    p.add_argument("--data", required=True,
+                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     p.add_argument("--epochs", type=int, default=None, help="epochs for every stage (default: the paper's per stage)")
     p.add_argument("--prototypes", type=int, default=None, help="number K of high-frequency prototypes (default 20)")
-    p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}")
+    p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}; "
+                   "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)

@@ -152,6 +152,8 @@ def test_predict_bad_input(tmp_path, capsys, anny_body, unwritable_dir):
     fails(["predict", str(run), "--style", "0", "--out", str(tmp_path / "dir.obj")], capsys, "--out", "is a directory")
     fails(["predict", str(run), "--style", "0", "--out", str(unwritable_dir / "p.obj")], capsys, "--out")
     fails(["predict", str(run), "--style", "0", "--out", out], capsys, "no tailornet model in", "run drape train first")
+    fails(["predict", str(run), "--style", "0", "--out", out, "--learner", "gcvae"], capsys,
+          "--learner gcvae is trained on a static set and predicts no drape", "drape sample RUN")
     (run / "tailornet_model.pt").write_bytes(b"not a checkpoint")
     np.savez(run / "template.npz", faces=np.zeros((1, 3), np.int32))
     fails(["predict", str(run), "--style", "0", "--out", out, "--shape", "0.5,0.5,0.5,0.5,1.5,0.5"], capsys,

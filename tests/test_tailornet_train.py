@@ -219,7 +219,7 @@ def test_fingerprint_helpers_and_overrides(tmp_path: Path) -> None:
         merged_hyperparameters({"lf": {"learning_rate": 1.0}})
     with pytest.raises(ValueError, match="unknown learner"):
         get_learner("nope")
-    assert set(LEARNERS) == {"tailornet", "baseline", "uvimage", "uvimage_pca", "collision_aware"}
+    assert set(LEARNERS) == {"tailornet", "baseline", "uvimage", "uvimage_pca", "collision_aware", "gcvae"}
 
 
 def test_frame_arrays_from_reader_split_groups_pairs() -> None:

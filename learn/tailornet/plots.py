@@ -67,7 +67,8 @@ def plot_error_vs_runtime(
 LIGHT_DIRECTION = np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])
 
 
-def _mesh_axis(axis: Any, vertices: np.ndarray, faces: np.ndarray, colors: Any, limits: np.ndarray) -> None:
+def mesh_axis(axis: Any, vertices: np.ndarray, faces: np.ndarray, colors: Any, limits: np.ndarray) -> None:
+    """Draws a mesh (vertices [m], faces (F, 3)) shaded with ``colors`` into a 3D axis fitted to ``limits`` (2, 3)."""
     # Body frame is y up: show (x, z, y) so the figure stands upright.
     view = vertices[:, [0, 2, 1]]
     triangles = view[faces]  # (F, 3, 3)
@@ -128,8 +129,8 @@ def render_prediction(
     for column, (vertices, colors, label) in enumerate(panels):
         axis = figure.add_subplot(1, 2, column + 1, projection="3d")
         if body_vertices is not None and body_faces is not None:
-            _mesh_axis(axis, np.asarray(body_vertices), np.asarray(body_faces), (0.8, 0.8, 0.8, 0.35), limits)
-        _mesh_axis(axis, vertices, faces, colors, limits)
+            mesh_axis(axis, np.asarray(body_vertices), np.asarray(body_faces), (0.8, 0.8, 0.8, 0.35), limits)
+        mesh_axis(axis, vertices, faces, colors, limits)
         axis.set_title(label, fontsize=9)
     mappable = plt.cm.ScalarMappable(cmap=colormap, norm=plt.Normalize(0.0, scale))
     figure.colorbar(mappable, ax=figure.axes, shrink=0.6, label="per-vertex error [mm]")

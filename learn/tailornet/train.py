@@ -305,7 +305,9 @@ def _set_rng_state(state: Mapping[str, Any], generator: torch.Generator) -> None
         torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
+def atomic_save(obj: Any, path: Path) -> None:
+    """``torch.save`` to a temporary file renamed onto ``path``: a crash leaves the previous file or
+    none, never half of one."""
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
@@ -405,7 +407,7 @@ def run_epochs(
         if epoch + 1 < epochs and time.monotonic() - last_save < checkpoint_interval_s:
             continue
         last_save = time.monotonic()
-        _atomic_save(
+        atomic_save(
             {
                 "format": CHECKPOINT_FORMAT,
                 "stage": stage,
@@ -869,7 +871,7 @@ def save_learner(
     """Save a trained model with its configuration and dataset fingerprint."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_save(
+    atomic_save(
         {
             "format": CHECKPOINT_FORMAT,
             "learner": learner,
