@@ -67,17 +67,20 @@ def _write_cache(path: Path, low: np.ndarray) -> None:
 
 
 def low_frequency_for_task(reader: DatasetReader, task_id: str, smoother: LaplacianSmoother, *,
-                           cache_dir: Path | None = None, device: str | torch.device = "cpu") -> np.ndarray:
+                           cache_dir: Path | None = None, device: str | torch.device = "cpu",
+                           displacements: np.ndarray | None = None) -> np.ndarray:
     """Smoothed displacements (F, V, 3) [m] of one shard, float32, computed once (on ``device``)
-    and cached."""
+    and cached. ``displacements``: the shard's unposed displacements (F, V, 3) [m] when the
+    caller has read them (else they are read from the shard)."""
     entry = reader.shard_entries[reader.shard_no(task_id)]
     cache_dir = Path(cache_dir) if cache_dir is not None else cache_dir_for(reader.root, "low_frequency")
     path = _cache_path(cache_dir, entry, smoother)
     low = _read_cache(path, int(entry["frame_count"]), smoother.vertex_count)
     if low is not None:
         return low
-    d = reader.load_task(task_id)["unposed_displacements"]
-    low = _smooth(d, smoother, device)
+    if displacements is None:
+        displacements = reader.load_task(task_id)["unposed_displacements"]
+    low = _smooth(displacements, smoother, device)
     _write_cache(path, low)
     return low
 
