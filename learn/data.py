@@ -87,13 +87,19 @@ def low_frequency_for_task(reader: DatasetReader, task_id: str, smoother: Laplac
 
 def _smooth(displacements: np.ndarray, smoother: LaplacianSmoother, device: str | torch.device) -> np.ndarray:
     """Low-frequency part (N, V, 3) float32 of displacements (N, V, 3), in batches of at most
-    :data:`BATCH_BYTES` on ``device``."""
+    :data:`BATCH_BYTES` on ``device``. On the CPU the smoother's scipy path (float64) runs:
+    torch's CPU sparse product is 10-150x slower (measured: 1,793 vertices, 27 columns, 23 ms
+    against 0.15 ms) and float32 rounding is the only difference."""
     out = np.empty(displacements.shape, dtype=np.float32)
     frames = max(1, BATCH_BYTES // max(1, displacements.shape[1] * 3 * 4))
+    on_cpu = torch.device(device).type == "cpu"
     for start in range(0, displacements.shape[0], frames):
-        block = torch.from_numpy(np.ascontiguousarray(displacements[start:start + frames], dtype=np.float32))
-        low, _ = split_frequencies(block.to(device), smoother)
-        out[start:start + frames] = low.cpu().numpy()
+        block = np.ascontiguousarray(displacements[start:start + frames], dtype=np.float32)
+        if on_cpu:
+            out[start:start + frames] = split_frequencies(block, smoother)[0]
+        else:
+            low, _ = split_frequencies(torch.from_numpy(block).to(device), smoother)
+            out[start:start + frames] = low.cpu().numpy()
     return out
 
 
