@@ -91,7 +91,9 @@ def main() -> None:
         t0 = time.perf_counter()
         write_synthetic(root, *args.synthetic)
         print(f"wrote {args.synthetic[0]} x {args.synthetic[1]} frames in {time.perf_counter() - t0:.1f} s")
-    DrapeDataset(root, args.split, frequencies=False, workers=1)  # integrity digests cached, files in page cache
+    t0 = time.perf_counter()
+    DrapeDataset(root, args.split, frequencies=False, workers=args.workers)  # digests cached, files in page cache
+    print(f"first read, hashing every shard: {time.perf_counter() - t0:.1f} s", flush=True)
     result = {"data": str(root), "split": args.split, "device": args.device, "workers": args.workers,
               "cpu_threads": torch.get_num_threads()}
     with tempfile.TemporaryDirectory() as tmp:
