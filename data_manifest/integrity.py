@@ -14,6 +14,7 @@ import hashlib
 import json
 import os
 import secrets
+import threading
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -24,6 +25,9 @@ CACHE_NAME = "integrity.json"
 CACHE_FORMAT = "drape-integrity-cache-1"
 #: Environment variable naming the user cache directory (else $XDG_CACHE_HOME/drape or ~/.cache/drape).
 CACHE_ENV = "DRAPE_CACHE_DIR"
+#: Serialises the digest cache's reads and writes between threads of one process (shards are
+#: hashed by a thread pool in ``parallel_read``: hashlib releases the GIL).
+_CACHE_LOCK = threading.Lock()
 
 
 def user_cache_dir() -> Path:
@@ -123,12 +127,14 @@ class IntegrityChecker:
         stat = path.stat()
         key = os.path.relpath(os.path.abspath(path), os.path.abspath(self.root))
         stamp = [int(stat.st_size), int(stat.st_mtime_ns), int(stat.st_ino)]
-        cached = self._load().get(key)
+        with _CACHE_LOCK:
+            cached = self._load().get(key)
         if cached is not None and cached[:3] == stamp:
             return str(cached[3])
         digest = file_sha256(path)
-        self._load()[key] = stamp + [digest]
-        self._save()
+        with _CACHE_LOCK:
+            self._load()[key] = stamp + [digest]
+            self._save()
         return digest
 
     # -- checks --------------------------------------------------------------------------

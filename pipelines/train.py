@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> int:
                                         posable_joints=body.pose_joint_indices)
     fingerprint = dataset_fingerprint(args.data, template)
     t0 = time.perf_counter()
-    dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet")
+    dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
     data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
     hyper.setdefault("model", {})
