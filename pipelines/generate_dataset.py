@@ -107,7 +107,7 @@ def sequence_settings(spec: dict):
 
     s = spec["simulation"]
     sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
-                      xpbd_mode=s["xpbd_mode"], gs_relaxation=float(s["gs_relaxation"]), tolerance=float(s["tolerance"]), patience=int(s["patience"]),
+                      xpbd_mode=s["xpbd_mode"], tolerance=float(s["tolerance"]), patience=int(s["patience"]),
                       outlier_fraction=float(s["outlier_fraction"]),
                       damping=float(s["damping"]), explosion_stretch=float(s["explosion_stretch"]),
                       max_frames=int(s["max_relax_frames"]), limit_cycle_window=int(s["limit_cycle_window"]),
@@ -119,10 +119,8 @@ def sequence_settings(spec: dict):
                             interpolation_threshold=float(s["interpolation_threshold"]),
                             min_hold_frames=int(s["min_hold_frames"]), contact_thickness=float(s["contact"]["thickness"]),
                             friction=float(s["contact"]["friction"]), self_contact=bool(s["contact"]["self_contact"]),
-                            self_contact_during=s["contact"]["self_contact_during"],
-                            restart_after_rejects=int(s["restart_after_rejects"]), restart_to=s["restart_to"],
-                            body_lookahead=int(s["body_lookahead"]), cross_group_tasks=bool(s["cross_group_tasks"]),
-                            home_between_targets=bool(s["home_between_targets"]))
+                            restart_after_rejects=int(s["restart_after_rejects"]),
+                            body_lookahead=int(s["body_lookahead"]), cross_group_tasks=bool(s["cross_group_tasks"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:
@@ -387,9 +385,6 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
         lines.append(f"  {'  restarts after rejects':<26}{int(phases.get('restarts_after_rejects', 0)):>6}  "
                      f"(worlds sent back to the canonical drape after dropped frames)")
-        if phases.get("homecomings"):
-            lines.append(f"  {'  homecomings':<26}{int(phases['homecomings']):>6}  "
-                         f"(home_between_targets: worlds sent back after kept frames)")
         lines.append(f"  {'  tasks of other pairs':<26}{int(phases.get('group_switches', 0)):>6}  "
                      f"(worlds that took a task of another style-shape pair, cross_group_tasks)")
     return "\n".join(lines)

@@ -46,7 +46,6 @@ records and hashes. Schema (every key optional unless marked required)::
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
       frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
-      gs_relaxation: float in (0, 2) = 1.0  over-relaxation of XPBD's Gauss-Seidel multiplier steps
       outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
                                         tolerance when it counts as converged (vertices caught where
                                         the arm and torso skins interpenetrate jitter forever)
@@ -65,15 +64,9 @@ records and hashes. Schema (every key optional unless marked required)::
                                         the world goes back to its settled canonical drape and heads
                                         for its next target from there (a tangle is not carried along
                                         the rest of the sequence; 0 = never)
-      restart_to: home|last_kept = home where it restarts: its settled canonical drape (home), or the
-                                        garment and body of its last kept frame (last_kept; home
-                                        until it has one): a shorter way to the next target
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
-      home_between_targets: bool = false  every world goes back to its settled canonical drape after
-                                        each target and reaches the next along a slerp from the
-                                        canonical pose (restart_after_rejects does so after rejects)
       cross_group_tasks: bool = true   a world whose style-shape pair has no task left takes a task
                                         of the pair with the most target poses waiting per world
                                         (its garment, shape and home drape swapped in), so the
@@ -81,9 +74,6 @@ records and hashes. Schema (every key optional unless marked required)::
       body_lookahead: int = 8          target and route poses posed ahead per world in batched
                                         body-model calls (SequenceSettings.body_lookahead)
       contact: {thickness [m], friction, self_contact: bool,
-                self_contact_during: all | transitions | holds = all,  with self_contact: every frame,
-                                        only while the body moves between poses, or only while a
-                                        pose (or the shape's settle) is held
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
                 self_contact_rest_exclusion [m] | null = null,  pairs closer than this at rest are never
                                         self-contacts (null: twice thickness + search margin)
@@ -140,12 +130,12 @@ DEFAULTS: dict[str, Any] = {
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "xpbd_mode": "gauss_seidel", "gs_relaxation": 1.0, "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
+        "xpbd_mode": "gauss_seidel", "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
         "limit_cycle_window": 0,
         "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
-        "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
-        "cross_group_tasks": True, "home_between_targets": False,
-        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
+        "restart_after_rejects": 0, "body_lookahead": 8,
+        "cross_group_tasks": True,
+        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_detect_every": 1,
                     "self_contact_rest_exclusion": None,
                     "body_contact_detect_every": 1, "canonical_self_contact": True, "primary_bodies": False},
     },
@@ -320,7 +310,6 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
         c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")
     c.choice(f"{sim}.xpbd_mode", ("gauss_seidel", "jacobi"))
-    c.number(f"{sim}.gs_relaxation", 0.0, 2.0, lo_open=True, hi_open=True)
     c.integer(f"{sim}.worlds", 1)
     c.number(f"{sim}.frame_dt", 0.0, 1.0, lo_open=True)
     c.integer(f"{sim}.substeps", 1)
@@ -336,19 +325,16 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     c.integer(f"{sim}.min_hold_frames", 1)
     c.integer(f"{sim}.restart_after_rejects", 0)
-    c.choice(f"{sim}.restart_to", ("home", "last_kept"))
     c.integer(f"{sim}.body_lookahead", 1)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)
     c.number(f"{sim}.contact.friction", 0.0, 2.0)
-    for flag in ("cross_group_tasks", "home_between_targets"):
-        if not isinstance(spec[sim][flag], bool):
-            c.fail(f"{sim}.{flag}", "true or false")
+    if not isinstance(spec[sim]["cross_group_tasks"], bool):
+        c.fail(f"{sim}.cross_group_tasks", "true or false")
     for flag in ("self_contact", "canonical_self_contact", "primary_bodies"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
-    c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions", "holds"))
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
     if spec[sim]["contact"]["self_contact_rest_exclusion"] is not None:
         c.number(f"{sim}.contact.self_contact_rest_exclusion", 0.0, 0.2)

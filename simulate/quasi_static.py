@@ -66,9 +66,6 @@ class SimSettings:
     """XPBD bending sweep ("gauss_seidel" or "jacobi"); None = same as ``xpbd_mode``.  Jacobi
     bending under Gauss-Seidel triangles needs 2 launches per iteration instead of one per
     bending colour (launch-bound single-world GPU runs), at slightly higher error."""
-    gs_relaxation: float = 1.0
-    """XPBD Gauss-Seidel over-relaxation in (0, 2); 1.5-1.6 roughly halves the error at equal
-    substeps x iterations on the cape drape (1.8 can oscillate at few iterations)."""
     gs_sweep: str = "world_blocks"
     """How XPBD launches its Gauss-Seidel colours: "world_blocks" (one launch per iteration, one
     thread block per world, a barrier between colours) or "colour_launches" (one launch per
@@ -138,7 +135,6 @@ class SimSettings:
             "limit_cycle_window": int(self.limit_cycle_window) == self.limit_cycle_window and self.limit_cycle_window >= 0,
             "explosion_speed": self.explosion_speed > 0.0,
             "explosion_stretch": self.explosion_stretch > 1.0,
-            "gs_relaxation": 0.0 < self.gs_relaxation < 2.0,
             "gs_sweep": self.gs_sweep in GS_SWEEPS,
             "gs_block_dim": int(self.gs_block_dim) == self.gs_block_dim and 32 <= self.gs_block_dim <= 1024
             and self.gs_block_dim % 32 == 0,
@@ -185,7 +181,6 @@ class QuasiStaticSimulator:
         if solver == "xpbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("mode", s.xpbd_mode)
-            opts.setdefault("gs_relaxation", s.gs_relaxation)
             opts.setdefault("bending_mode", s.xpbd_bending_mode)
             opts.setdefault("gs_sweep", s.gs_sweep)
             opts.setdefault("gs_block_dim", s.gs_block_dim)

@@ -131,8 +131,7 @@ def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_worlds_with_self_contact_off_get_no_candidates(device: str) -> None:
-    """``ClothControl.world_self_contact`` turns the search off per world (generate-dataset's
-    ``self_contact_during: transitions`` turns it off in holding worlds): two layers 2 mm apart
+    """``ClothControl.world_self_contact`` turns the search off per world: two layers 2 mm apart
     find each other in the world that has it on and not in the one that has it off."""
     from simulate.contact.self_contact import SelfContact
 

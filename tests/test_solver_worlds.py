@@ -118,16 +118,14 @@ def test_a_world_revived_while_a_frame_is_in_flight_keeps_its_new_state(device: 
 
 
 @pytest.mark.parametrize("dt_scale", [1, 4])
-@pytest.mark.parametrize("relaxation", [1.0, 1.6])
-def test_stability_matrix_stiffness_dt_fabric(dt_scale: int, relaxation: float) -> None:
-    """Stretch stiffness over four decades x silk/denim x dt up to 4x default (x plain and
-    over-relaxed Gauss-Seidel): no NaN, bounded stretch, every world converges (XPBD, all
-    variants batched as worlds)."""
+def test_stability_matrix_stiffness_dt_fabric(dt_scale: int) -> None:
+    """Stretch stiffness over four decades x silk/denim x dt up to 4x default: no NaN, bounded
+    stretch, every world converges (XPBD, all variants batched as worlds)."""
     fabrics = [dataclasses.replace(FABRICS[name], stretch_stiffness=k, weft_stiffness=None, shear_stiffness=k / 100.0)
                for name in ("silk", "denim") for k in (1.0e1, 1.0e3, 1.0e5)]
     model, collider = _sphere_scene(fabrics, "cpu")
     settings = SimSettings(frame_dt=dt_scale / 60.0, substeps=5, iterations=5, damping=2.0, tolerance=0.02,
-                           max_frames=600 // dt_scale, gs_relaxation=relaxation)
+                           max_frames=600 // dt_scale)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     status = sim.relax()
     names = [f"{f.name}/k={f.stretch_stiffness:g}" for f in fabrics]

@@ -20,8 +20,6 @@ def test_shipped_specs_validate():
     ({"garment": {"type": "cape"}}, "spec.garment.type must be one of tshirt"),
     ({"simulation": {"tolerance": -1}}, "spec.simulation.tolerance must be a number > 0.0"),
     ({"simulation": {"contact": {"self_contact": "yes"}}}, "spec.simulation.contact.self_contact must be true or false"),
-    ({"simulation": {"contact": {"self_contact_during": "never"}}},
-     "spec.simulation.contact.self_contact_during must be one of all, transitions, holds"),
     ({"simulation": {"contact": {"self_contact_rest_exclusion": -0.01}}},
      "spec.simulation.contact.self_contact_rest_exclusion must be a number >= 0.0 and <= 0.2"),
     ({"simulation": {"contact": {"canonical_self_contact": 1}}},
@@ -37,14 +35,11 @@ def test_shipped_specs_validate():
     ({"colour": "red"}, "spec.colour is not a known field"),
     ({"simulation": {"poses_per_task": 0}}, "spec.simulation.poses_per_task must be an integer >= 1"),
     ({"simulation": {"restart_after_rejects": -1}}, "spec.simulation.restart_after_rejects must be an integer >= 0"),
-    ({"simulation": {"restart_to": "start"}}, "spec.simulation.restart_to must be one of home, last_kept"),
     ({"simulation": {"body_lookahead": 0}}, "spec.simulation.body_lookahead must be an integer >= 1"),
     ({"simulation": {"cross_group_tasks": "yes"}}, "spec.simulation.cross_group_tasks must be true or false"),
-    ({"simulation": {"home_between_targets": 1}}, "spec.simulation.home_between_targets must be true or false"),
     ({"simulation": {"contact": {"body_contact_detect_every": 0}}},
      "spec.simulation.contact.body_contact_detect_every must be an integer >= 1"),
     ({"simulation": {"outlier_fraction": 0.9}}, "spec.simulation.outlier_fraction must be a number >= 0.0 and <= 0.5"),
-    ({"simulation": {"gs_relaxation": 2.0}}, "spec.simulation.gs_relaxation must be a number > 0.0 and < 2.0 (got 2.0)"),
     ({"splits": {"test_test": "some"}}, "spec.splits.test_test must be an integer >= 0 or one of ('all',)"),
 ])
 def test_malformed_fields_name_their_path(patch, path):
