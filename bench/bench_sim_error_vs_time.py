@@ -40,7 +40,7 @@ def _run(model, collider, solver: str, mode: str | None, substeps: int | None, i
     settings = SimSettings(substeps=substeps, iterations=iterations, xpbd_mode=mode or "gauss_seidel",
                            xpbd_bending_mode=bending_mode,
                            damping=args.damping, tolerance=args.tolerance, patience=args.patience,
-                           max_frames=args.max_frames)
+                           max_frames=args.max_frames, explosion_stretch=3.0, outlier_fraction=0.0)
     collider.set_pose(collider_start(collider))
     sim = QuasiStaticSimulator(model, collider, solver=solver, settings=settings)
     wp.synchronize_device(model.device)

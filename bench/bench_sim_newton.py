@@ -184,7 +184,8 @@ def run_ours(scene: dict, args, solver: str, substeps: int, iterations: int, tol
                            xpbd_mode="jacobi" if solver == "ours_xpbd_jacobi" else "gauss_seidel",
                            xpbd_bending_mode="jacobi" if solver == "ours_xpbd_gs_jb" else None,
                            damping=args.damping,
-                           tolerance=tolerance, patience=args.patience, max_frames=max_frames)
+                           tolerance=tolerance, patience=args.patience, max_frames=max_frames,
+                           explosion_stretch=3.0, outlier_fraction=0.0)  # the settings of its figures
     sim = QuasiStaticSimulator(model, collider, settings=settings, solver="vbd" if solver == "ours_vbd" else "xpbd")
     wp.synchronize_device(model.device)
 

@@ -6,8 +6,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simulate.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceSettings, SequenceTask, drape_static, run_sequences
+from unit_sim import unit_settings
 
 # A one-frame jump of the spine this far [rad] moves the shirt at metres per second.
 JUMP_RAD = 1.2
@@ -28,7 +29,7 @@ def scene(anny_body):
     # lifted by drape_static's own max_frames (as generate-dataset does for its canonical drapes)
     draped, status = drape_static(anny_body, template.faces, template.vertices[None], shapes=anny_body.shape_default[None],
                                   poses=canonical[None], body_faces=anny_body.part_faces(("torso", "arms")),
-                                  settings=SequenceSettings(sim=SimSettings(damping=20.0, tolerance=0.01, patience=3, max_frames=2)),
+                                  settings=SequenceSettings(sim=unit_settings(damping=20.0, tolerance=0.01, patience=3, max_frames=2)),
                                   device="cpu", max_frames=80)
     assert status[0] == WorldStatus.CONVERGED, "the start drape must come to rest within drape_static's max_frames"
     return anny_body, template, draped[0], canonical, small, jump
@@ -40,7 +41,7 @@ def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: floa
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
     settings = dataclasses.replace(settings, **overrides)
@@ -111,7 +112,7 @@ def test_a_world_that_keeps_exploding_starts_over_from_the_canonical_drape(scene
         task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                             shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
         settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+            sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                             explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
             shape_transition_frames=1, interpolation_threshold=10.0, restart_after_explosions=restart_after)
         frames = []
@@ -135,7 +136,7 @@ def _run_rejecting(scene, keys, reject_keys=(), **sequence_settings):
     task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                         shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.1, **sequence_settings)
     frames = []
@@ -265,7 +266,7 @@ def test_frames_handed_over_together_are_the_frames_handed_over_one_by_one(scene
     # each world's body sits at its own offset in the shared contact mesh, twins round differently
     # (measured 0.3 mm apart after one frame of this bend), and a converging hold can end a frame apart
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=4, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=4, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1)
     common = dict(body_faces=body.part_faces(("torso", "arms")), settings=settings, device="cpu")
@@ -334,7 +335,7 @@ def test_worlds_take_their_groups_next_task_when_one_is_done(scene):
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=sh, poses=np.stack(k))
              for k, sh in zip(keys, shapes)]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.2, restart_after_rejects=1,
         cross_group_tasks=False)  # a world keeps its group (the next test lifts this)
@@ -384,7 +385,7 @@ def test_a_world_out_of_tasks_takes_another_groups_task_as_a_world_of_that_group
     tasks.append(SequenceTask(rest_vertices=loose, start_vertices=start, shape=heavy, poses=np.stack(keys[3]),
                               fabric="silk"))  # group 1: one short task, so its world runs out first
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.2)
     out = {}
@@ -444,7 +445,7 @@ def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream
 
     def run(concurrent: bool):
         settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+            sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                             explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
             shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1,
             concurrent_streams=concurrent)
