@@ -91,7 +91,7 @@ case $stage in
   self-contact)
     # the same slice (20+20 pairs, POSES train poses per pair, 30-pose tasks) without and with self-contact:
     # what it does to the self-intersection drops, explosions and time; EXTRA passes more bench flags to both,
-    # e.g. EXTRA="--sim contact.self_contact_during=transitions" (self-contact only while bodies move)
+    # e.g. EXTRA="--sim contact.self_contact_detect_every=3" (the search every 3rd substep)
     for sc in ${SC:-false true}; do
       T=${T:-270} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses ${TEST_POSES:-10} \
         --sim poses_per_task=30 --sim contact.self_contact=$sc --device cuda:0 --out /tmp/tn-sc-$sc ${EXTRA:-}

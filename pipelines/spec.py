@@ -45,60 +45,37 @@ records and hashes. Schema (every key optional unless marked required)::
                                         (converged stiffness); xpbd: faster, stretches stiff cloth
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
-      frame_dt, substeps, iterations, tolerance [m/s], patience, max_relax_frames
-      gs_relaxation: float in (0, 2) = 1.0  over-relaxation of XPBD's Gauss-Seidel multiplier steps
+      frame_dt: float [s] = 1/60        the body moves from one pose to the next in one frame
+      substeps: int = 10, iterations: int = 10   per frame, per substep
+      tolerance: float [m/s] = 0.01     a pose is held until every vertex is slower (3 frames in a row)
+      max_relax_frames: int = 120       frames a pose is held at most
       outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
                                         tolerance when it counts as converged (vertices caught where
                                         the arm and torso skins interpenetrate jitter forever)
       limit_cycle_window: int = 0       frames of position history: a vertex back within tolerance x frame_dt
                                         of where it was 2..N frames ago (a small limit cycle of
                                         alternating contacts) also counts as at rest (0 = off)
-      damping: float [1/s] = 20          velocity damping: settles quasi-static drapes fast
-      explosion_stretch: float = 50      triangle stretch ratio that marks a world exploded (real
-                                        blow-ups; a few triangles at first contact reach 10-30x
-                                        transiently at 7.7k vertices, and the distortion filter
-                                        judges the kept frames)
       shape_transition_frames: int = 10
       interpolation_threshold: float [rad] = 0.1
-      min_hold_frames: int = 2          frames each target pose is held at least
       restart_after_rejects: int = 0    after this many target frames in a row dropped by the filters,
                                         the world goes back to its settled canonical drape and heads
                                         for its next target from there (a tangle is not carried along
                                         the rest of the sequence; 0 = never)
-      restart_to: home|last_kept = home where it restarts: its settled canonical drape (home), or the
-                                        garment and body of its last kept frame (last_kept; home
-                                        until it has one): a shorter way to the next target
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
-      home_between_targets: bool = false  every world goes back to its settled canonical drape after
-                                        each target and reaches the next along a slerp from the
-                                        canonical pose (restart_after_rejects does so after rejects)
-      cross_group_tasks: bool = true   a world whose style-shape pair has no task left takes a task
-                                        of the pair with the most target poses waiting per world
-                                        (its garment, shape and home drape swapped in), so the
-                                        batch's worlds stay busy to the end
-      body_lookahead: int = 8          target and route poses posed ahead per world in batched
-                                        body-model calls (SequenceSettings.body_lookahead)
-      contact: {thickness [m], friction, self_contact: bool,
-                self_contact_during: all | transitions | holds = all,  with self_contact: every frame,
-                                        only while the body moves between poses, or only while a
-                                        pose (or the shape's settle) is held
+      contact: {thickness [m] = 0.004, self_contact: bool = false,
                 self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
-                self_contact_rest_exclusion [m] | null = null,  pairs closer than this at rest are never
-                                        self-contacts (null: twice thickness + search margin)
                 body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
                                         (0, N, 2N, ... of a frame) and move the planes with the body
                                         in between (SimSettings.body_contact_detect_every)
-                canonical_self_contact: bool = true, the canonical style drapes (where every
-                                        sequence starts and restarts) with self-contact, whatever
-                                        self_contact says (without it 7 of the TailorNet spec's
-                                        40 drapes started with > 60 garment edges through the
-                                        garment; VBD and XPBD, the mass-spring solver drapes without)
                 primary_bodies: bool = false}  each garment vertex meets only its primary collision
                                         body (torso / left arm / right arm for tops, legs for pants;
                                         seed 001 D.6; simulate/body/collision_parts.py): cloth
                                         between an arm and the torso is not pushed by the wrong skin
+                                        The rest (damping, explosion limit, calm frames, hold
+                                        minimum, lookahead, ...) are the library's defaults
+                                        (simulate.quasi_static.SimSettings, simulate.sequence.SequenceSettings)
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
       max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
@@ -140,14 +117,10 @@ DEFAULTS: dict[str, Any] = {
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
         "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "xpbd_mode": "gauss_seidel", "gs_relaxation": 1.0, "damping": 20.0, "explosion_stretch": 50.0, "tolerance": 0.01, "outlier_fraction": 0.005, "patience": 3, "max_relax_frames": 120,
-        "limit_cycle_window": 0,
-        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "min_hold_frames": 2, "poses_per_task": None,
-        "restart_after_rejects": 0, "restart_to": "home", "body_lookahead": 8,
-        "cross_group_tasks": True, "home_between_targets": False,
-        "contact": {"thickness": 0.004, "friction": 0.3, "self_contact": False, "self_contact_during": "all", "self_contact_detect_every": 1,
-                    "self_contact_rest_exclusion": None,
-                    "body_contact_detect_every": 1, "canonical_self_contact": True, "primary_bodies": False},
+        "tolerance": 0.01, "outlier_fraction": 0.005, "max_relax_frames": 120, "limit_cycle_window": 0,
+        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "poses_per_task": None, "restart_after_rejects": 0,
+        "contact": {"thickness": 0.004, "self_contact": False, "self_contact_detect_every": 1,
+                    "body_contact_detect_every": 1, "primary_bodies": False},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
@@ -319,39 +292,24 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     device = spec[sim]["device"]
     if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
         c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")
-    c.choice(f"{sim}.xpbd_mode", ("gauss_seidel", "jacobi"))
-    c.number(f"{sim}.gs_relaxation", 0.0, 2.0, lo_open=True, hi_open=True)
     c.integer(f"{sim}.worlds", 1)
     c.number(f"{sim}.frame_dt", 0.0, 1.0, lo_open=True)
     c.integer(f"{sim}.substeps", 1)
     c.integer(f"{sim}.iterations", 1)
     c.number(f"{sim}.tolerance", 0.0, lo_open=True)
     c.number(f"{sim}.outlier_fraction", 0.0, 0.5)
-    c.number(f"{sim}.damping", 0.0)
-    c.number(f"{sim}.explosion_stretch", 1.0, lo_open=True)
-    c.integer(f"{sim}.patience", 1)
     c.integer(f"{sim}.max_relax_frames", 1)
     c.integer(f"{sim}.limit_cycle_window", 0)
     c.integer(f"{sim}.shape_transition_frames", 1)
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
-    c.integer(f"{sim}.min_hold_frames", 1)
     c.integer(f"{sim}.restart_after_rejects", 0)
-    c.choice(f"{sim}.restart_to", ("home", "last_kept"))
-    c.integer(f"{sim}.body_lookahead", 1)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
     c.number(f"{sim}.contact.thickness", 0.0, 0.05)
-    c.number(f"{sim}.contact.friction", 0.0, 2.0)
-    for flag in ("cross_group_tasks", "home_between_targets"):
-        if not isinstance(spec[sim][flag], bool):
-            c.fail(f"{sim}.{flag}", "true or false")
-    for flag in ("self_contact", "canonical_self_contact", "primary_bodies"):
+    for flag in ("self_contact", "primary_bodies"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
-    c.choice(f"{sim}.contact.self_contact_during", ("all", "transitions", "holds"))
     c.integer(f"{sim}.contact.self_contact_detect_every", 1)
-    if spec[sim]["contact"]["self_contact_rest_exclusion"] is not None:
-        c.number(f"{sim}.contact.self_contact_rest_exclusion", 0.0, 0.2)
     c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)

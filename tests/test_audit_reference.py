@@ -10,9 +10,10 @@ import trimesh
 
 from pipelines.audit import frame_record, reference_model, solve_reference, summarize_frames
 from simulate.cloth.fabric import FABRICS
-from simulate.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import WorldStatus
 from simulate.reports.scenes import build_scene, run_worlds
 from simulate.solvers.reference import world_energy
+from unit_sim import unit_settings
 
 CONTACT_THICKNESS = 0.004
 """Collider thickness of the drape and of the reference [m] (the production spec's)."""
@@ -34,7 +35,7 @@ def frame():
     scene = build_scene(body="capsule", resolution=60)
     body = scene.body_vertices(scene.neutral_shape[None], scene.canonical_pose[None])[0]
     run = run_worlds(scene, start=scene.start_vertices, paths=[body], fabrics=["cotton"],
-                     settings=SimSettings(frame_dt=1 / 45, substeps=4, iterations=8, tolerance=0.01, max_frames=300,
+                     settings=unit_settings(frame_dt=1 / 45, substeps=4, iterations=8, tolerance=0.01, max_frames=300,
                                           damping=20.0),
                      contact_thickness=CONTACT_THICKNESS)
     assert run.status[0] == WorldStatus.CONVERGED, run

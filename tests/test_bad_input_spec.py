@@ -34,8 +34,8 @@ def test_unknown_keys_at_every_level_name_the_path_and_the_nearest_name(patch, e
 
 
 @pytest.mark.parametrize("patch, expected", [
-    ({"simulation": 3}, "spec.simulation must be a mapping of fields such as body_lookahead, contact, "
-                        "cross_group_tasks (got 3)"),
+    ({"simulation": 3}, "spec.simulation must be a mapping of fields such as contact, device, "
+                        "frame_dt (got 3)"),
     ({"simulation": {"contact": [1]}}, "spec.simulation.contact must be a mapping of fields such as"),
     ({"filters": "strict"}, "spec.filters must be a mapping of fields such as collision_depth"),
     ({"garment": "tshirt"}, "spec.garment must be a mapping of fields such as fabric, resolution, type (got 'tshirt')"),

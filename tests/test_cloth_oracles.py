@@ -9,9 +9,10 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
 from simulate.scenes import capsule_body, default_body, grid_cloth, icosphere
 from simulate.contact import BodyCollider
+from unit_sim import unit_settings
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -40,7 +41,7 @@ def test_free_fall_matches_half_g_t_squared(device: str, solver: str) -> None:
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric=dataclasses.replace(STRIP_FABRIC, damping=0.0))
     model = builder.finalize(device, features=Features(body_contact=False))
-    settings = SimSettings(substeps=10, iterations=2, damping=0.0, max_frames=1000)
+    settings = unit_settings(substeps=10, iterations=2, damping=0.0, max_frames=1000)
     sim = QuasiStaticSimulator(model, None, solver=solver, settings=settings)
     frames = 30
     for _ in range(frames):
@@ -80,7 +81,7 @@ def test_hanging_strip_extension_matches_stiffness(device: str, solver: str, mod
     # Mass-spring keeps velocities apart from positions; float32 position quantization (ulp
     # ~1e-7 m near y = 1 m) times its spring stiffness leaves a ~1e-4 m/s speed floor.
     tolerance = 1e-4 if solver == "xpbd" else 1e-3
-    settings = SimSettings(substeps=10, iterations=10, damping=5.0, tolerance=tolerance, max_frames=2000,
+    settings = unit_settings(substeps=10, iterations=10, damping=5.0, tolerance=tolerance, max_frames=2000,
                            xpbd_mode=mode or "gauss_seidel")
     sim = QuasiStaticSimulator(model, None, solver=solver, settings=settings)
     status = sim.relax()
@@ -102,7 +103,7 @@ def test_cloth_dropped_on_sphere_comes_to_rest(device: str, mode: str, bending_m
     model = builder.finalize(device)
     sphere_v, sphere_f = icosphere(0.25, subdivisions=3)
     collider = BodyCollider(sphere_v, sphere_f, device=device)
-    settings = SimSettings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400, xpbd_mode=mode,
+    settings = unit_settings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400, xpbd_mode=mode,
                            xpbd_bending_mode=bending_mode)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     status = sim.relax()
@@ -137,7 +138,7 @@ def test_cloth_draped_over_body_comes_to_rest(device: str, body: str) -> None:
     builder.add_garment(verts, faces, fabric="cotton")
     model = builder.finalize(device)
     collider = BodyCollider(body_v, body_f, device=device)
-    settings = SimSettings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400)
+    settings = unit_settings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     status = sim.relax()
     assert status[0] == WorldStatus.CONVERGED, f"{kind}: drape did not converge: {WorldStatus(status[0]).name}"
@@ -165,7 +166,7 @@ def test_xpbd_and_mass_spring_agree_on_a_rest_shape(device: str) -> None:
     rest = {}
     for solver, substeps, iterations in (("xpbd", 10, 20), ("mass_spring", None, 1)):
         sim = QuasiStaticSimulator(model, None, solver=solver,
-                                   settings=SimSettings(substeps=substeps, iterations=iterations, damping=5.0,
+                                   settings=unit_settings(substeps=substeps, iterations=iterations, damping=5.0,
                                                         tolerance=1e-3, max_frames=1500))
         status = sim.relax()
         assert status[0] == WorldStatus.CONVERGED, f"{solver}: {WorldStatus(status[0]).name}"
@@ -187,7 +188,7 @@ def test_outlier_fraction_lets_a_world_converge_around_a_few_moving_particles(ou
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric=STRIP_FABRIC, pinned=[0, 1, 2])
     model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
-    settings = SimSettings(substeps=10, iterations=10, damping=5.0, tolerance=1e-3, max_frames=300,
+    settings = unit_settings(substeps=10, iterations=10, damping=5.0, tolerance=1e-3, max_frames=300,
                            outlier_fraction=outlier_fraction)
     sim = QuasiStaticSimulator(model, None, settings=settings)
     status = sim.relax()
@@ -204,7 +205,7 @@ def test_benchmark_shawl_does_not_explode_at_the_hands() -> None:
 
     scene = shawl_scene(100)
     model, collider = batched_drape(scene, 1, "cpu", jitter=0.0)
-    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(tolerance=0.01, max_frames=40))
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(tolerance=0.01, max_frames=40))
     status = sim.relax()
     assert status[0] != WorldStatus.EXPLODED, f"shawl exploded: {sim.explosion_causes}"
     assert np.isfinite(sim.positions()).all()
@@ -228,7 +229,7 @@ def test_body_contact_planes_carried_between_queries(substeps: int, every: int, 
         model = builder.finalize("cpu")
         sphere_v, sphere_f = icosphere(0.25, subdivisions=3)
         collider = BodyCollider(sphere_v, sphere_f, device="cpu")
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(
             substeps=substeps, iterations=5, damping=2.0, tolerance=0.02, body_contact_detect_every=n))
         for _ in range(30):  # settle on the still sphere
             sim.step_frame()

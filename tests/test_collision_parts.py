@@ -7,9 +7,10 @@ import pytest
 
 from simulate.body.collision_parts import COLLISION_PART_NAMES, collision_parts
 from simulate.cloth import ClothBuilder, Features
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.quasi_static import QuasiStaticSimulator
 from simulate.scenes import grid_cloth, icosphere
 from simulate.contact import BodyCollider
+from unit_sim import unit_settings
 
 TORSO_R = 0.15
 ARM_R = 0.06
@@ -53,7 +54,7 @@ def test_cloth_meets_only_its_primary_part(solver: str, parts: bool) -> None:
     model = builder.finalize("cpu", features=Features(friction=False))
     collider = BodyCollider(verts, faces, device="cpu", face_groups=groups if parts else None)
     sim = QuasiStaticSimulator(model, collider, solver=solver,
-                               settings=SimSettings(substeps=5, iterations=10, damping=5.0))
+                               settings=unit_settings(substeps=5, iterations=10, damping=5.0))
     for _ in range(40):
         sim.step_frame()
     q = sim.positions()

@@ -7,9 +7,10 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Features
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.quasi_static import QuasiStaticSimulator
 from simulate.scenes import grid_cloth
 from simulate.quality import QualityMeter
+from unit_sim import unit_settings
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
 
@@ -30,7 +31,7 @@ def test_fast_layer_does_not_pass_through(device: str, bounds: bool) -> None:
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
     model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(substeps=5, iterations=5, damping=2.0,
+    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=5, iterations=5, damping=2.0,
                                                                                frame_dt=1.0 / 60.0),
                                solver_options={"self_contact_options": {"bounds": bounds}})
     v0 = np.zeros((len(verts), 3), np.float32)
@@ -60,7 +61,7 @@ def test_world_without_self_contact_is_unaffected(device: str) -> None:
         for _ in range(2 if on else 1):
             builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
         model = builder.finalize(device, features=Features(self_contact=on, body_contact=False))
-        sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(substeps=4, iterations=3))
+        sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=4, iterations=3))
         if on:
             sim.control.set_self_contact(np.array([True, False]))
         for _ in range(8):

@@ -9,9 +9,10 @@ import pytest
 import warp as wp
 
 from simulate.cloth import FABRICS, ClothBuilder, Features
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.quasi_static import QuasiStaticSimulator
 from simulate.scenes import grid_cloth, icosphere
 from simulate.contact import BodyCollider
+from unit_sim import unit_settings
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -77,7 +78,7 @@ def test_moving_body_carries_cloth_by_friction_and_does_not_tunnel(friction: boo
     builder.add_garment(cloth_v, cloth_f, fabric=dataclasses.replace(FABRICS["denim"], friction=0.8))
     model = builder.finalize("cpu", features=Features(friction=friction))
     collider = BodyCollider(verts, faces, device="cpu")
-    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=5, damping=2.0))
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=5, damping=2.0))
     for _ in range(20):
         sim.step_frame()
     x0 = sim.positions()[:, 0].mean()

@@ -9,6 +9,7 @@ import warp as wp
 from simulate.cloth import ClothBuilder, Features
 from simulate.quasi_static import QuasiStaticSimulator, SimSettings
 from simulate.scenes import grid_cloth
+from unit_sim import unit_settings
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -27,7 +28,7 @@ def test_layer_rests_on_layer_with_self_contact(device: str, mode: str, self_con
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))  # the lower layer is a table
     model = builder.finalize(device, features=Features(self_contact=self_contact, body_contact=False))
-    sim = QuasiStaticSimulator(model, None, settings=SimSettings(substeps=5, iterations=5, damping=2.0,
+    sim = QuasiStaticSimulator(model, None, settings=unit_settings(substeps=5, iterations=5, damping=2.0,
                                                                  xpbd_mode=mode))
     assert (sim.solver.self_contact is not None) == self_contact, "self-contact buffers/kernels present when off"
     for _ in range(30):
@@ -109,7 +110,7 @@ def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
     model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
     calls = {}
     for every in (1, 5):
-        sim = QuasiStaticSimulator(model, None, settings=SimSettings(substeps=5, iterations=5, damping=2.0,
+        sim = QuasiStaticSimulator(model, None, settings=unit_settings(substeps=5, iterations=5, damping=2.0,
                                                                      self_contact_detect_every=every))
         contact = sim.solver.self_contact
         assert contact.detect_every == every
@@ -131,8 +132,7 @@ def test_detecting_every_fifth_substep_still_holds_the_layer() -> None:
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_worlds_with_self_contact_off_get_no_candidates(device: str) -> None:
-    """``ClothControl.world_self_contact`` turns the search off per world (generate-dataset's
-    ``self_contact_during: transitions`` turns it off in holding worlds): two layers 2 mm apart
+    """``ClothControl.world_self_contact`` turns the search off per world: two layers 2 mm apart
     find each other in the world that has it on and not in the one that has it off."""
     from simulate.contact.self_contact import SelfContact
 
@@ -180,7 +180,7 @@ def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: 
         model = builder.finalize(device, features=Features(self_contact=True))
         sv, sf = icosphere(0.05, subdivisions=2)
         collider = BodyCollider(sv + np.array([0.0, 0.05, 0.0], np.float32), sf, device=device, world_count=2)
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=4, damping=2.0,
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=4, damping=2.0,
                                                                          gs_sweep=sweep, gs_block_dim=64),
                                    solver_options={"gs_shared": shared})
         assert sim.solver._fused == shared
@@ -267,23 +267,15 @@ def test_candidate_search_matches_brute_force(rest_exclusion: float) -> None:
         assert got[i] in allowed[i] and d < nearest[i] + 1e-6, (i, got[i], expected[i], d, nearest[i])
 
 
-def test_rest_exclusion_comes_from_the_settings_and_the_spec() -> None:
-    """``SimSettings.self_contact_rest_exclusion`` (the spec's ``contact.self_contact_rest_exclusion``)
-    reaches the solver's SelfContact; None keeps its default, a negative value is refused."""
-    import copy
-
-    from pipelines.generate_dataset import sequence_settings
-    from pipelines.spec import load_spec
-
+def test_rest_exclusion_comes_from_the_settings() -> None:
+    """``SimSettings.self_contact_rest_exclusion`` reaches the solver's SelfContact; None keeps its
+    default, a negative value is refused."""
     v, f = grid_cloth(5, 5, 0.1, 0.1, plane="xz")
     builder = ClothBuilder()
     builder.add_garment(v, f, fabric="cotton")
     model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
-    spec = copy.deepcopy(load_spec("quickstart"))
     for value in (None, 0.006):
-        spec["simulation"]["contact"]["self_contact_rest_exclusion"] = value
-        settings = sequence_settings(spec).sim
-        assert settings.self_contact_rest_exclusion == value
+        settings = SimSettings(self_contact_rest_exclusion=value)
         sim = QuasiStaticSimulator(model, None, settings=settings)
         contact = sim.solver.self_contact
         expected = 2.0 * (contact.thickness + contact.margin) if value is None else value

@@ -6,10 +6,11 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings
+from simulate.quasi_static import QuasiStaticSimulator
 from simulate.scenes import capsule_body, grid_cloth
 from simulate.contact import BodyCollider
 from simulate.contact.body_collider import world_cell_offsets
+from unit_sim import unit_settings
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -44,7 +45,7 @@ def _drape(device: str, worlds: int, frames: int = 40) -> tuple[np.ndarray, Body
         builder.add_garment(cloth_v, cloth_f, fabric="cotton")
     model = builder.finalize(device)
     collider = BodyCollider(body_v, body_f, device=device, world_count=worlds)
-    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=5, max_frames=frames))
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=5, max_frames=frames))
     for _ in range(frames):
         sim.step_frame()
     return sim.positions().reshape(worlds, len(cloth_v), 3), collider

@@ -9,6 +9,7 @@ import warp as wp
 from simulate.garment.drape import PENETRATION_TOLERANCE_M, drape_canonical
 from simulate.garment.style import sample_styles
 from simulate.garment.templates import apply_style, make_template
+from unit_sim import unit_settings
 
 TEST_RESOLUTION = 300
 MAX_FRAMES = 300
@@ -74,13 +75,13 @@ def test_dataset_resolution_tshirt_rests_on_its_collider_without_self_intersecti
     """Regression: with the hem near the open cut of a torso+arms collider, a 7k-vertex t-shirt
     was thrown through the body (12x area growth, hundreds of self-intersections) within 8
     frames; COLLISION_PARTS keeps the parts beyond the garment's openings."""
-    from simulate.quasi_static import SimSettings, WorldStatus
+    from simulate.quasi_static import WorldStatus
     from simulate.garment.drape import COLLISION_PARTS
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceSettings, drape_static
 
     template = make_template("tshirt", anny_body, resolution=7700)
-    settings = SequenceSettings(sim=SimSettings(damping=20.0, tolerance=0.05, patience=3, max_frames=60,
+    settings = SequenceSettings(sim=unit_settings(damping=20.0, tolerance=0.05, patience=3, max_frames=60,
                                                 explosion_stretch=3.0))
     x, status = drape_static(anny_body, template.faces, template.vertices[None], shapes=anny_body.shape_default[None],
                              poses=anny_body.canonical_pose[None], body_faces=anny_body.part_faces(COLLISION_PARTS["tshirt"]),

@@ -168,7 +168,6 @@ def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("changes, expected", [
     ({}, True),
-    ({"simulation__contact__canonical_self_contact": False}, False),
     ({"simulation__solver": "mass_spring"}, False),  # self-contact is XPBD's
 ])
 def test_canonical_drapes_are_made_with_self_contact(tmp_path, monkeypatch, changes, expected):

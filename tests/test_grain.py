@@ -11,8 +11,9 @@ import warp as wp
 
 from simulate.cloth import FABRICS, ClothBuilder, Fabric, Features
 from simulate.cloth.builder import material_directions, triangle_rest_frames
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
 from simulate.scenes import grid_cloth, tube_cloth
+from unit_sim import unit_settings
 
 wp.init()
 
@@ -148,9 +149,9 @@ def _hang_strip(fabric: Fabric, *, length: float, width: float, rows: int, roll:
                         grain_axis=grain_axis)
     model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
     if solver == "xpbd":  # as the strip oracle (tests/test_cloth_oracles.py)
-        settings = SimSettings(substeps=10, iterations=10, damping=5.0, tolerance=1e-4, max_frames=2000)
+        settings = unit_settings(substeps=10, iterations=10, damping=5.0, tolerance=1e-4, max_frames=2000)
     else:  # heavy damping settles the explicit solver in ~50 frames; its speed floor is ~1e-3 m/s
-        settings = SimSettings(substeps=None, damping=20.0, tolerance=2e-3, max_frames=400)
+        settings = unit_settings(substeps=None, damping=20.0, tolerance=2e-3, max_frames=400)
     sim = QuasiStaticSimulator(model, None, solver=solver, settings=settings)
     status = sim.relax()
     q = sim.positions()
@@ -350,5 +351,5 @@ def test_template_warp_runs_up_its_panels(anny_body, monkeypatch) -> None:
     with pytest.raises(Built):
         drape_static(anny_body, faces, tpl.vertices[None], shapes=anny_body.shape_default[None],
                      poses=anny_body.canonical_pose[None], body_faces=anny_body.part_faces(["torso"]),
-                     settings=SequenceSettings(), device="cpu", material_uv=tpl.face_uv)
+                     settings=SequenceSettings(sim=unit_settings()), device="cpu", material_uv=tpl.face_uv)
     assert len(calls) == 2 and all(c is not None and np.array_equal(c, tpl.face_uv) for c in calls)

@@ -14,10 +14,11 @@ from scipy.optimize import brentq
 
 from simulate.cloth import ClothBuilder, Features
 from simulate.cloth.fabric import FABRICS
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
 from simulate.scenes import grid_cloth, hanging_strip, icosphere
 from simulate.contact import BodyCollider
 from simulate.solvers.reference import solve_equilibrium, world_energy
+from unit_sim import unit_settings
 
 wp.config.log_level = wp.LOG_WARNING
 wp.init()
@@ -164,7 +165,7 @@ def test_drape_on_sphere_sticks_without_penetration() -> None:
     model = builder.finalize("cpu")
     sphere_v, sphere_f = icosphere(0.25, subdivisions=3)
     collider = BodyCollider(sphere_v, sphere_f, device="cpu", thickness=CONTACT_THICKNESS)
-    settings = SimSettings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400)
+    settings = unit_settings(substeps=5, iterations=5, damping=2.0, tolerance=0.02, max_frames=400)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     assert sim.relax()[0] == WorldStatus.CONVERGED
     start = sim.positions().astype(np.float64)

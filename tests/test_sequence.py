@@ -6,8 +6,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from simulate.quasi_static import SimSettings, WorldStatus
+from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceSettings, SequenceTask, drape_static, run_sequences
+from unit_sim import unit_settings
 
 # A one-frame jump of the spine this far [rad] moves the shirt at metres per second.
 JUMP_RAD = 1.2
@@ -28,7 +29,7 @@ def scene(anny_body):
     # lifted by drape_static's own max_frames (as generate-dataset does for its canonical drapes)
     draped, status = drape_static(anny_body, template.faces, template.vertices[None], shapes=anny_body.shape_default[None],
                                   poses=canonical[None], body_faces=anny_body.part_faces(("torso", "arms")),
-                                  settings=SequenceSettings(sim=SimSettings(damping=20.0, tolerance=0.01, patience=3, max_frames=2)),
+                                  settings=SequenceSettings(sim=unit_settings(damping=20.0, tolerance=0.01, patience=3, max_frames=2)),
                                   device="cpu", max_frames=80)
     assert status[0] == WorldStatus.CONVERGED, "the start drape must come to rest within drape_static's max_frames"
     return anny_body, template, draped[0], canonical, small, jump
@@ -40,7 +41,7 @@ def _run(scene, key_lists, *, recover: bool, lookahead: int = 8, tolerance: floa
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                           shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys)) for keys in key_lists]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=tolerance, patience=2, max_frames=max_frames, damping=20.0,
                         explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=10.0, recover_explosions=recover, body_lookahead=lookahead)
     settings = dataclasses.replace(settings, **overrides)
@@ -111,7 +112,7 @@ def test_a_world_that_keeps_exploding_starts_over_from_the_canonical_drape(scene
         task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                             shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
         settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+            sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                             explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
             shape_transition_frames=1, interpolation_threshold=10.0, restart_after_explosions=restart_after)
         frames = []
@@ -135,7 +136,7 @@ def _run_rejecting(scene, keys, reject_keys=(), **sequence_settings):
     task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                         shape=np.asarray(body.shape_default, np.float32), poses=np.stack(keys))
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.1, **sequence_settings)
     frames = []
@@ -190,62 +191,6 @@ def test_a_world_whose_frames_are_rejected_goes_home_and_heads_for_the_next_targ
     # accepted frames never send a world home
     _, accepted_stats, accepted_calls = run([bent, small], 1)
     assert accepted_stats["restarts_after_rejects"] == 0 and not accepted_calls
-
-
-def test_home_between_targets_sends_a_world_home_after_every_target(scene):
-    """home_between_targets: after each target frame, accepted or not, the world goes home and
-    reaches its next target from the canonical pose: the frames equal, bit for bit, those of a run
-    that goes home because it rejected the frame before; without the setting it moves on."""
-    body, _, _, canonical, small, _ = scene
-    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
-    homed, homed_stats = _run_rejecting(scene, [bent, small, bent], home_between_targets=True)
-    rejected, rejected_stats = _run_rejecting(scene, [bent, small, bent], reject_keys=(0, 1), restart_after_rejects=1)
-    onward, onward_stats = _run_rejecting(scene, [bent, small, bent])
-    assert homed_stats["homecomings"] == 2 and homed_stats["restarts_after_rejects"] == 0, homed_stats
-    assert rejected_stats["restarts_after_rejects"] == 2 and onward_stats["homecomings"] == 0
-    assert [f.key for f in homed] == [0, 1, 2]
-    for a, b in zip(homed, rejected):
-        np.testing.assert_array_equal(a.positions, b.positions, err_msg=f"key {a.key}")
-    assert np.abs(homed[1].positions - onward[1].positions).max() > 1e-3, "going home must change the way there"
-
-
-def test_restart_to_last_kept_goes_back_to_the_last_accepted_frame_and_heads_on_from_its_pose(scene):
-    """restart_to="last_kept": after a rejected frame the world is put back at its last accepted
-    frame (garment and body) and slerps from that pose to its next target, as a world that had
-    never visited the rejected target; the counted transition frames are exactly those routes."""
-    from simulate.poses import interpolate_sequence
-
-    body, _, _, canonical, small, _ = scene
-    bent = canonical + body.pose_from_dict({"spine1": [0.0, 0.5, 0.0]})
-    further = canonical + body.pose_from_dict({"spine1": [0.0, 0.25, 0.0]})
-
-    def run(keys, restart_to, reject_keys=()):
-        return _run_rejecting(scene, keys, reject_keys, restart_after_rejects=1, restart_to=restart_to)
-
-    def slerps(a, b):  # poses inserted between a and b
-        return len(interpolate_sequence(b[None], a, 0.1)[0]) - 1
-
-    frames, stats = run([small, bent, further], "last_kept", reject_keys=(1,))
-    assert [f.key for f in frames] == [0, 1, 2]
-    assert stats["restarts_after_rejects"] == 1 and stats["restarts_to_last_kept"] == 1, stats
-    assert slerps(small, further) < slerps(canonical, further), "the test needs a shorter way back"
-    assert stats["transition_world_frames"] == 1 + slerps(canonical, small) + slerps(small, bent) + slerps(small, further)
-    home_frames, home_stats = run([small, bent, further], "home", reject_keys=(1,))
-    assert home_stats["restarts_to_last_kept"] == 0
-    assert home_stats["transition_world_frames"] == 1 + slerps(canonical, small) + slerps(small, bent) + slerps(canonical, further)
-    skipped, _ = run([small, further], "last_kept")
-    carried, _ = run([small, bent, further], "last_kept")  # nothing rejected: the bend is carried along
-    # the same drape up to where the hold stops (the world comes back at rest; see the test above):
-    # mean vertex distance measured 0.16 mm (a few armpit vertices 6 mm), carried along 3.8 mm
-    error = np.linalg.norm(frames[2].positions - skipped[1].positions, axis=1).mean()
-    carried_error = np.linalg.norm(carried[2].positions - skipped[1].positions, axis=1).mean()
-    assert error < 1e-3, f"back at the last kept frame the drape is the one that never saw the bend: {error * 1e3:.2f} mm"
-    assert carried_error > 5 * error, (carried_error, error)
-    # a world that has kept nothing yet goes home
-    _, none_kept = run([bent, further], "last_kept", reject_keys=(0,))
-    assert none_kept["restarts_after_rejects"] == 1 and none_kept["restarts_to_last_kept"] == 0
-    with pytest.raises(ValueError, match="restart_to must be one of home, last_kept"):
-        SequenceSettings(restart_to="nowhere")
 
 
 def test_rerouting_a_schedule_equals_planning_it_afresh():
@@ -321,7 +266,7 @@ def test_frames_handed_over_together_are_the_frames_handed_over_one_by_one(scene
     # each world's body sits at its own offset in the shared contact mesh, twins round differently
     # (measured 0.3 mm apart after one frame of this bend), and a converging hold can end a frame apart
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=4, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=4, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1)
     common = dict(body_faces=body.part_faces(("torso", "arms")), settings=settings, device="cpu")
@@ -390,7 +335,7 @@ def test_worlds_take_their_groups_next_task_when_one_is_done(scene):
     tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=sh, poses=np.stack(k))
              for k, sh in zip(keys, shapes)]
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.2, restart_after_rejects=1,
         cross_group_tasks=False)  # a world keeps its group (the next test lifts this)
@@ -440,7 +385,7 @@ def test_a_world_out_of_tasks_takes_another_groups_task_as_a_world_of_that_group
     tasks.append(SequenceTask(rest_vertices=loose, start_vertices=start, shape=heavy, poses=np.stack(keys[3]),
                               fabric="silk"))  # group 1: one short task, so its world runs out first
     settings = SequenceSettings(
-        sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                         explosion_stretch=50.0),
         shape_transition_frames=1, interpolation_threshold=0.2)
     out = {}
@@ -500,7 +445,7 @@ def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream
 
     def run(concurrent: bool):
         settings = SequenceSettings(
-            sim=SimSettings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+            sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
                             explosion_speed=TEST_EXPLOSION_SPEED, explosion_stretch=50.0),
             shape_transition_frames=1, interpolation_threshold=0.1, restart_after_rejects=1,
             concurrent_streams=concurrent)
@@ -523,33 +468,3 @@ def test_frames_handed_over_beside_the_next_cuda_frame_equal_those_of_one_stream
         np.testing.assert_array_equal(a.positions, b.positions, err_msg=f"task {a.task} key {a.key}")
         np.testing.assert_array_equal(a.body_vertices, b.body_vertices, err_msg=f"task {a.task} key {a.key}")
     assert stats["frames"] == ref_stats["frames"]
-
-
-@pytest.mark.parametrize("during", ["transitions", "holds"])
-def test_self_contact_during_limits_the_search_to_moving_or_holding_worlds(scene, monkeypatch, during):
-    """``self_contact_during``: at every frame launch exactly the worlds on a transition entry
-    (shape blend, slerp'ed pose) have self-contact on ("transitions"), or exactly the others
-    ("holds": target poses and settles), so the world-frames with it on are those frames."""
-    from simulate.quasi_static import QuasiStaticSimulator
-
-    *_, canonical, small, _jump = scene
-    launched = []
-    launch = QuasiStaticSimulator.launch_frame
-
-    def spy(self):
-        assert self.solver.self_contact is not None, "self-contact must be on in the solver"
-        launched.append(((self.status == WorldStatus.RUNNING).copy(), self.control._self_contact_host.copy()))
-        return launch(self)
-
-    monkeypatch.setattr(QuasiStaticSimulator, "launch_frame", spy)
-    frames, stats = _run(scene, [[small, canonical], [canonical, small]], recover=True, self_contact=True,
-                         self_contact_during=during, interpolation_threshold=0.1)
-    assert len(frames) == 4
-    on = sum(int((ran & mask.astype(bool)).sum()) for ran, mask in launched)
-    expected = (stats["transition_world_frames"] if during == "transitions"
-                else stats["hold_world_frames"] + stats["settle_world_frames"])
-    assert on == expected > 0, (during, on, stats)
-    assert stats["transition_world_frames"] > 0 and stats["hold_world_frames"] > 0, stats
-    assert any(not m.all() for _, m in launched) and any(m.any() for _, m in launched), "the mask must change"
-    with pytest.raises(ValueError, match="self_contact_during must be one of all, transitions, holds"):
-        SequenceSettings(self_contact_during="never")

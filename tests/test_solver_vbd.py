@@ -10,9 +10,10 @@ import pytest
 import warp as wp
 
 from simulate.cloth import ClothBuilder, Fabric, Features
-from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
+from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
 from simulate.scenes import grid_cloth, hanging_strip
 from simulate.solvers.vbd.solver_vbd import colour_vertices
+from unit_sim import unit_settings
 
 wp.init()
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -37,7 +38,7 @@ def strip_fabric(stiffness: float, density: float) -> Fabric:
 def hang_strip(rows: int, fabric: Fabric, device: str, *, roll: int = 0, **settings) -> tuple[float, int]:
     """Bottom extension [m] of a 1 m x 5 cm strip pinned along its top edge, and its status."""
     verts, model = hanging_strip(rows, fabric, device, length=STRIP_LENGTH_M, width=STRIP_WIDTH_M, roll=roll)
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(
+    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(
         **{**PRODUCTION, "tolerance": STRIP_TOLERANCE_MPS, "max_frames": 1500, **settings}))
     status = sim.relax()
     return float((verts[-2:, 1] - sim.positions()[-2:, 1]).mean()), int(status[0])
@@ -95,7 +96,7 @@ def test_swinging_strip_gains_no_energy_without_damping() -> None:
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric=fabric, pinned=[0, 21])
     model = builder.finalize("cpu", features=Features(body_contact=False, bending=False))
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(
+    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(
         **{**PRODUCTION, "damping": 0.0, "max_frames": 1000}))
     e0 = strip_energy(model, sim.positions().astype(np.float64), sim.velocities().astype(np.float64))
     scale = float(model.particle_mass_np.sum()) * GRAVITY * 0.5 / 2.0
@@ -116,7 +117,7 @@ def test_free_fall_matches_half_g_t_squared(device: str) -> None:
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric=dataclasses.replace(strip_fabric(3.0e3, 0.18), damping=0.0))
     model = builder.finalize(device, features=Features(body_contact=False))
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(substeps=10, iterations=2, damping=0.0))
+    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=10, iterations=2, damping=0.0))
     frames = 30
     for _ in range(frames):
         sim.step_frame()
@@ -150,7 +151,7 @@ def test_runs_are_bit_identical_and_follow_state_changes() -> None:
         builder = ClothBuilder()
         builder.add_garment(verts, faces, fabric="cotton", pinned=[0, 5])
         model = builder.finalize("cpu", features=Features(body_contact=False))
-        sim = QuasiStaticSimulator(model, None, solver="vbd", settings=SimSettings(**PRODUCTION))
+        sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(**PRODUCTION))
         for _ in range(5):
             sim.step_frame()
         results.append(sim.positions())
@@ -176,7 +177,7 @@ def test_shared_tile_sweep_equals_global_sweep() -> None:
         model = builder.finalize("cpu")
         sphere_v, sphere_f = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(np.stack([sphere_v, sphere_v]), sphere_f, device="cpu")
-        sim = QuasiStaticSimulator(model, collider, solver="vbd", settings=SimSettings(**PRODUCTION),
+        sim = QuasiStaticSimulator(model, collider, solver="vbd", settings=unit_settings(**PRODUCTION),
                                    solver_options={"shared": shared})
         assert sim.solver.shared == shared
         for _ in range(6):
@@ -196,7 +197,7 @@ def test_rest_shape_agrees_with_mass_spring() -> None:
     model = builder.finalize("cpu", features=Features(body_contact=False))
     rest = {}
     for solver, substeps in (("vbd", 20), ("mass_spring", None)):
-        sim = QuasiStaticSimulator(model, None, solver=solver, settings=SimSettings(
+        sim = QuasiStaticSimulator(model, None, solver=solver, settings=unit_settings(
             substeps=substeps, iterations=3, damping=5.0, tolerance=1e-3, max_frames=1500))
         status = sim.relax()
         assert status[0] == WorldStatus.CONVERGED, f"{solver}: {WorldStatus(status[0]).name}"

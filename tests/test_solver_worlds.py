@@ -13,6 +13,7 @@ from simulate.cloth import FABRICS, ClothBuilder, Features
 from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.scenes import grid_cloth, icosphere
 from simulate.contact import BodyCollider
+from unit_sim import unit_settings
 
 wp.init()
 HAS_CUDA = wp.get_cuda_device_count() > 0
@@ -41,7 +42,7 @@ def _sphere_scene(fabrics: list, device: str, *, n: int = 9, collider_worlds: in
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("solver,mode", [("xpbd", "gauss_seidel"), ("xpbd", "jacobi"), ("mass_spring", None)])
 def test_exploding_world_is_frozen_and_others_are_bit_identical(device: str, solver: str, mode: str | None) -> None:
-    settings = SimSettings(substeps=5 if solver == "xpbd" else 40, iterations=4, damping=2.0, tolerance=0.02,
+    settings = unit_settings(substeps=5 if solver == "xpbd" else 40, iterations=4, damping=2.0, tolerance=0.02,
                            max_frames=40, xpbd_mode=mode or "gauss_seidel")
     results = []
     for blow_up in (False, True):
@@ -71,7 +72,7 @@ def test_same_run_twice_gives_identical_arrays(device: str) -> None:
     runs = []
     for _ in range(2):
         model, collider = _sphere_scene(["denim", "silk"], device)
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=4, iterations=4, max_frames=15,
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=4, iterations=4, max_frames=15,
                                                                           xpbd_mode="jacobi"))
         sim.relax()
         runs.append((sim.positions(), sim.velocities(), sim.residual_history))
@@ -85,7 +86,7 @@ def test_a_world_revived_while_a_frame_is_in_flight_keeps_its_new_state(device: 
     when the frame was launched and revived before it finished is not stepped by that frame, keeps
     the RUNNING status and zero frame count revive gave it, and its positions are those put back;
     the other worlds equal plain step_frame calls bit for bit. Misuse raises."""
-    settings = SimSettings(substeps=4, iterations=4, tolerance=0.02, max_frames=40)
+    settings = unit_settings(substeps=4, iterations=4, tolerance=0.02, max_frames=40)
     runs = []
     for split in (False, True):
         model, collider = _sphere_scene(["cotton", "silk"], device)
@@ -118,16 +119,14 @@ def test_a_world_revived_while_a_frame_is_in_flight_keeps_its_new_state(device: 
 
 
 @pytest.mark.parametrize("dt_scale", [1, 4])
-@pytest.mark.parametrize("relaxation", [1.0, 1.6])
-def test_stability_matrix_stiffness_dt_fabric(dt_scale: int, relaxation: float) -> None:
-    """Stretch stiffness over four decades x silk/denim x dt up to 4x default (x plain and
-    over-relaxed Gauss-Seidel): no NaN, bounded stretch, every world converges (XPBD, all
-    variants batched as worlds)."""
+def test_stability_matrix_stiffness_dt_fabric(dt_scale: int) -> None:
+    """Stretch stiffness over four decades x silk/denim x dt up to 4x default: no NaN, bounded
+    stretch, every world converges (XPBD, all variants batched as worlds)."""
     fabrics = [dataclasses.replace(FABRICS[name], stretch_stiffness=k, weft_stiffness=None, shear_stiffness=k / 100.0)
                for name in ("silk", "denim") for k in (1.0e1, 1.0e3, 1.0e5)]
     model, collider = _sphere_scene(fabrics, "cpu")
-    settings = SimSettings(frame_dt=dt_scale / 60.0, substeps=5, iterations=5, damping=2.0, tolerance=0.02,
-                           max_frames=600 // dt_scale, gs_relaxation=relaxation)
+    settings = unit_settings(frame_dt=dt_scale / 60.0, substeps=5, iterations=5, damping=2.0, tolerance=0.02,
+                           max_frames=600 // dt_scale)
     sim = QuasiStaticSimulator(model, collider, settings=settings)
     status = sim.relax()
     names = [f"{f.name}/k={f.stretch_stiffness:g}" for f in fabrics]
@@ -152,13 +151,13 @@ def test_mass_spring_stable_dt_bound() -> None:
     and the world is flagged EXPLODED (not NaN-propagating into the result arrays of others)."""
     model, collider = _sphere_scene(["cotton"], "cpu", n=7)
     auto = QuasiStaticSimulator(model, collider, solver="mass_spring",
-                                settings=SimSettings(substeps=None, damping=2.0, tolerance=0.02, max_frames=200))
+                                settings=unit_settings(substeps=None, damping=2.0, tolerance=0.02, max_frames=200))
     dt_stable = auto.solver.stable_dt()
     assert auto.dt <= 0.5 * dt_stable * (1 + 1e-9), f"auto dt {auto.dt} above half the stable bound {dt_stable}"
     assert auto.relax()[0] == WorldStatus.CONVERGED
     substeps = max(1, int(np.floor((1.0 / 60.0) / (8.0 * dt_stable))))
     fast = QuasiStaticSimulator(model, collider, solver="mass_spring",
-                                settings=SimSettings(substeps=substeps, damping=2.0, max_frames=100))
+                                settings=unit_settings(substeps=substeps, damping=2.0, max_frames=100))
     assert fast.dt > 4.0 * dt_stable
     assert fast.relax()[0] == WorldStatus.EXPLODED
 
@@ -169,7 +168,7 @@ def test_attachments_follow_targets_and_release() -> None:
     corners = np.array([0, 5])
     builder.add_garment(verts, faces, fabric="cotton", attached=corners)
     model = builder.finalize("cpu", features=Features(body_contact=False))
-    sim = QuasiStaticSimulator(model, None, settings=SimSettings(substeps=5, iterations=5, damping=3.0,
+    sim = QuasiStaticSimulator(model, None, settings=unit_settings(substeps=5, iterations=5, damping=3.0,
                                                                  tolerance=0.01, max_frames=400))
     targets = verts[corners] + np.array([0.1, 0.2, 0.0])
     sim.control.set_attachment_targets(targets)
@@ -194,7 +193,7 @@ def test_cpu_and_cuda_agree(mode: str) -> None:
     out = {}
     for device in ("cpu", "cuda:0"):
         model, collider = _sphere_scene(["cotton", "denim"], device)
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=5, xpbd_mode=mode))
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=5, xpbd_mode=mode))
         for _ in range(12):
             sim.step_frame()
         out[device] = sim.positions()
@@ -207,7 +206,7 @@ def test_cuda_graph_replay_matches_eager() -> None:
     out = {}
     for graph in (False, True):
         model, collider = _sphere_scene(["cotton"], "cuda:0")
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=5, iterations=5,
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=5,
                                                                          use_cuda_graph=graph))
         for _ in range(10):
             sim.step_frame()
@@ -228,7 +227,7 @@ def test_cpu_graph_replay_matches_eager(mode: str, substeps: int) -> None:
         model = builder.finalize("cpu")
         sv, sf = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(sv, sf, device="cpu")
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=substeps, iterations=3,
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=substeps, iterations=3,
                                                                          xpbd_mode=mode, use_cpu_graph=graph))
         for k in range(12):
             if k == 6:
@@ -262,7 +261,7 @@ def test_world_block_sweep_equals_colour_launches(device: str, bending_mode: str
         model = builder.finalize(device)
         sv, sf = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(sv, sf, device=device, world_count=3)
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(
             substeps=4, iterations=3, xpbd_bending_mode=bending_mode, gs_sweep=sweep, gs_block_dim=64),
             solver_options={"gs_shared": shared})
         if sweep == "world_blocks":
@@ -300,7 +299,7 @@ def test_worlds_that_repeat_a_garment_read_one_copy_of_its_data(device: str) -> 
         model = builder.finalize(device)
         sv, sf = icosphere(0.25, subdivisions=2)
         collider = BodyCollider(sv, sf, device=device, world_count=len(shapes))
-        sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=3, iterations=3, gs_block_dim=64),
+        sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=3, iterations=3, gs_block_dim=64),
                                    solver_options={"gs_shared": True, "share_element_data": share})
         assert sim.solver._fused and sim.solver.shared_topology
         expected = [0, 1, 0, 3, 1, 5] if share else list(range(len(shapes)))
@@ -396,7 +395,7 @@ def test_driver_and_solver_argument_errors() -> None:
     _, one_world = _sphere_scene(["cotton"], "cpu", n=5)
     with pytest.raises(ValueError, match="collider has 1 worlds but the model has 2"):
         QuasiStaticSimulator(model, one_world)
-    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=2, iterations=2))
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=2, iterations=2))
     with pytest.raises(ValueError, match=r"positions must have shape \(25, 3\)"):
         sim.set_positions(np.zeros((3, 3)), world=1)
     with pytest.raises(ValueError, match=r"worlds must be indices in \[0, 2\)"):
@@ -417,7 +416,7 @@ def test_driver_and_solver_argument_errors() -> None:
 def test_nan_world_is_flagged_and_frozen(solver: str) -> None:
     model, collider = _sphere_scene(["cotton", "cotton"], "cpu", n=5)
     sim = QuasiStaticSimulator(model, collider, solver=solver,
-                               settings=SimSettings(substeps=4 if solver == "xpbd" else None, iterations=2,
+                               settings=unit_settings(substeps=4 if solver == "xpbd" else None, iterations=2,
                                                     max_frames=5))
     bad = sim.positions()
     bad[model.world_particle_start[0] + 3] = np.nan
@@ -436,7 +435,7 @@ def test_setting_one_worlds_positions_leaves_the_others_alone(device: str) -> No
     """set_positions(world=w) writes w's particles and zeroes their velocities in place; every
     other world's positions and velocities stay bit-identical (explosion recovery relies on it)."""
     model, collider = _sphere_scene(["cotton"] * 3, device)
-    sim = QuasiStaticSimulator(model, collider, settings=SimSettings(substeps=4, iterations=4))
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=4, iterations=4))
     for _ in range(3):
         sim.step_frame()
     q0, qd0 = sim.positions(), sim.velocities()
@@ -494,7 +493,7 @@ def test_small_limit_cycles_count_as_rest_and_drift_does_not(device: str) -> Non
         return q
 
     def fast_counts(window: int, frames: int, reset_at: int | None = None) -> list[np.ndarray]:
-        sim = QuasiStaticSimulator(model, None, settings=SimSettings(tolerance=0.05, limit_cycle_window=window))
+        sim = QuasiStaticSimulator(model, None, settings=unit_settings(tolerance=0.05, limit_cycle_window=window))
         qd = np.zeros_like(base)
         qd[:, 1] = 0.12
         out = []
@@ -543,7 +542,7 @@ def test_a_world_that_adopts_another_garment_steps_as_a_world_built_with_it(devi
         model = builder.finalize(device, features=Features(self_contact=xpbd, friction=True))
         collider = BodyCollider(sv, sf, device=device, world_count=len(garments))
         options = {"gs_shared": shared, "gs_block_dim": 64} if xpbd else {}
-        return QuasiStaticSimulator(model, collider, solver=solver, settings=SimSettings(substeps=4, iterations=4),
+        return QuasiStaticSimulator(model, collider, solver=solver, settings=unit_settings(substeps=4, iterations=4),
                                     solver_options=options)
 
     swapped = make([(v, "cotton"), (loose, "silk"), (loose, "silk")])

@@ -20,12 +20,6 @@ def test_shipped_specs_validate():
     ({"garment": {"type": "cape"}}, "spec.garment.type must be one of tshirt"),
     ({"simulation": {"tolerance": -1}}, "spec.simulation.tolerance must be a number > 0.0"),
     ({"simulation": {"contact": {"self_contact": "yes"}}}, "spec.simulation.contact.self_contact must be true or false"),
-    ({"simulation": {"contact": {"self_contact_during": "never"}}},
-     "spec.simulation.contact.self_contact_during must be one of all, transitions, holds"),
-    ({"simulation": {"contact": {"self_contact_rest_exclusion": -0.01}}},
-     "spec.simulation.contact.self_contact_rest_exclusion must be a number >= 0.0 and <= 0.2"),
-    ({"simulation": {"contact": {"canonical_self_contact": 1}}},
-     "spec.simulation.contact.canonical_self_contact must be true or false"),
     ({"output": {"precision": "float8"}}, "spec.output.precision must be one of float32, float16"),
     ({"poses": {"source": "file"}}, "spec.poses.path must be a .npz pose file"),
     ({"poses": {"min_clearance": -0.01}}, "spec.poses.min_clearance must be a number >= 0.0 and <= 0.2 (got -0.01)"),
@@ -37,14 +31,9 @@ def test_shipped_specs_validate():
     ({"colour": "red"}, "spec.colour is not a known field"),
     ({"simulation": {"poses_per_task": 0}}, "spec.simulation.poses_per_task must be an integer >= 1"),
     ({"simulation": {"restart_after_rejects": -1}}, "spec.simulation.restart_after_rejects must be an integer >= 0"),
-    ({"simulation": {"restart_to": "start"}}, "spec.simulation.restart_to must be one of home, last_kept"),
-    ({"simulation": {"body_lookahead": 0}}, "spec.simulation.body_lookahead must be an integer >= 1"),
-    ({"simulation": {"cross_group_tasks": "yes"}}, "spec.simulation.cross_group_tasks must be true or false"),
-    ({"simulation": {"home_between_targets": 1}}, "spec.simulation.home_between_targets must be true or false"),
     ({"simulation": {"contact": {"body_contact_detect_every": 0}}},
      "spec.simulation.contact.body_contact_detect_every must be an integer >= 1"),
     ({"simulation": {"outlier_fraction": 0.9}}, "spec.simulation.outlier_fraction must be a number >= 0.0 and <= 0.5"),
-    ({"simulation": {"gs_relaxation": 2.0}}, "spec.simulation.gs_relaxation must be a number > 0.0 and < 2.0 (got 2.0)"),
     ({"splits": {"test_test": "some"}}, "spec.splits.test_test must be an integer >= 0 or one of ('all',)"),
 ])
 def test_malformed_fields_name_their_path(patch, path):
@@ -63,3 +52,26 @@ def test_missing_spec_file_lists_shipped(tmp_path):
     bad.write_text("name: [unclosed")
     with pytest.raises(SpecError, match="not valid YAML"):
         load_spec(bad)
+
+
+def test_the_spec_defaults_are_the_library_defaults():
+    """A spec that sets no simulation field runs with SequenceSettings() and SimSettings() as they
+    are: the library's defaults are the settings generate-dataset uses."""
+    from pipelines.generate_dataset import sequence_settings
+    from simulate.quasi_static import SimSettings
+    from simulate.sequence import SequenceSettings
+
+    settings = sequence_settings(validate_spec({"name": "t", "garment": {"type": "tshirt"}}))
+    assert settings == SequenceSettings() and settings.sim == SimSettings(), settings
+    assert (SimSettings().damping, SimSettings().explosion_stretch, SimSettings().patience) == (20.0, 50.0, 3)
+
+
+@pytest.mark.parametrize("key", ["damping", "explosion_stretch", "patience", "xpbd_mode", "min_hold_frames",
+                                 "body_lookahead", "cross_group_tasks", "restart_to", "home_between_targets",
+                                 "gs_relaxation", "contact.friction", "contact.self_contact_during",
+                                 "contact.self_contact_rest_exclusion", "contact.canonical_self_contact"])
+def test_library_settings_are_not_spec_fields(key):
+    section, _, name = key.rpartition(".")
+    sim = {name: 1} if not section else {section: {name: 1}}
+    with pytest.raises(SpecError, match=f"spec.simulation.{key} is not a known field"):
+        validate_spec({"name": "t", "garment": {"type": "tshirt"}, "simulation": sim})

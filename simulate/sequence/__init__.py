@@ -9,8 +9,7 @@ frame (one frame each), and every target pose is held until the world converges
 (or hits ``max_relax_frames``), when the frame is handed to ``on_frame`` (or, with the
 other worlds' frames that finished with it, to ``on_frames``). A world whose
 frames ``on_frame`` rejects (``restart_after_rejects``), or that keeps exploding, goes back home
-(its drape at the end of the settle) and heads for its next target from the canonical pose; with
-``restart_to="last_kept"`` a rejecting world goes back to its last accepted frame instead.
+(its drape at the end of the settle) and heads for its next target from the canonical pose.
 
 Many tasks run as parallel worlds of one simulator. Worlds follow their own
 schedules; a world whose current entry is done moves on without waiting for the
@@ -29,9 +28,8 @@ from simulate.sequence.drape import drape_static
 from simulate.sequence.loop import run_sequences
 from simulate.sequence.routing import SavedState, allocate_worlds, world_groups
 from simulate.sequence.schedule import KEY, SETTLE, TRANSITION
-from simulate.sequence.settings import RESTART_TO, SELF_CONTACT_DURING, RecordedFrame, SequenceSettings, SequenceTask
+from simulate.sequence.settings import RecordedFrame, SequenceSettings, SequenceTask
 from simulate.sequence.stats import SequenceStats
 
 __all__ = ["run_sequences", "drape_static", "SequenceTask", "SequenceSettings", "RecordedFrame", "SequenceStats",
-           "SavedState", "world_groups", "allocate_worlds", "KEY", "SETTLE", "TRANSITION", "RESTART_TO",
-           "SELF_CONTACT_DURING"]
+           "SavedState", "world_groups", "allocate_worlds", "KEY", "SETTLE", "TRANSITION"]

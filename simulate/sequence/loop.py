@@ -235,18 +235,12 @@ def run_sequences(
             run.record_s += time.perf_counter() - r0
         return finished
 
-    # self-contact in some worlds only: the entry kind whose worlds have it on, the others off
-    contact_kind = {"transitions": True, "holds": False}.get(settings.self_contact_during) if settings.self_contact else None
     with streams.stepping():
         while not ws.done.all() or pending:
             t0 = time.perf_counter()
             if ws.changed.any():
                 move_bodies()
             ran = sim.status == WorldStatus.RUNNING  # the worlds this frame advances
-            if contact_kind is not None:
-                sim.control.set_self_contact(np.fromiter(
-                    (not ws.done[w] and (ws.kind(w) == TRANSITION) == contact_kind for w in range(w_count)),
-                    dtype=bool, count=w_count))
             if not ran.any() and not pending:
                 raise RuntimeError("run_sequences stalled: no world is running and no frame is pending "
                                    f"({int((~ws.done).sum())} worlds not done)")

@@ -133,8 +133,7 @@ class Worlds:
     at the current entry), ``done`` (no task left: frozen), ``changed`` (needs the body of its
     current entry and a restart before the next frame), ``streak`` (explosions in a row),
     ``rejects`` (rejected target frames in a row); ``last_good`` (state at the last finished hold),
-    ``home`` (settled canonical drape on the task's shape), ``last_kept`` (state at the last
-    accepted target frame, with ``restart_to="last_kept"``).
+    ``home`` (settled canonical drape on the task's shape).
     """
 
     def __init__(self, tasks: list[SequenceTask], assignment: Assignment, schedules: list[Schedule],
@@ -166,9 +165,7 @@ class Worlds:
         self.rejects = np.zeros(w_count, dtype=np.int64)
         self.last_good: list[SavedState | None] = [None] * w_count
         self.home: list[SavedState | None] = [None] * w_count
-        self.last_kept: list[SavedState | None] = [None] * w_count
         self.plans = PlanCache(tasks, settings.interpolation_threshold)
-        self.restart_to_kept = settings.restart_to == "last_kept"
 
     def __len__(self) -> int:
         return len(self.cur)
@@ -267,7 +264,6 @@ class Worlds:
         t = self.cur[w] = self.queues[self.group[w]].popleft()
         self.stats.task_switches += 1
         self.streak[w] = self.rejects[w] = 0
-        self.last_kept[w] = None
         self.plans.drop(int(before))
         if self.home[w] is not None:  # from the settled drape: a slerp from the canonical pose to the first target
             self.put_back(w, self.home[w])
@@ -341,11 +337,11 @@ class Worlds:
         for j, w in enumerate(ready):
             _, poses_w, kinds_w, _ = self.schedules[w]
             kind = kinds_w[self.ptr[w]]
-            if s.recover_explosions or kind == SETTLE or self.restart_to_kept:
+            if s.recover_explosions or kind == SETTLE:
                 state = SavedState(positions[j].copy(), self.body_now["vertices"][w].clone(),
                                    self.body_now["skin"][w].clone(), self.body_now["rest"][w].clone(),
                                    pose=poses_w[self.ptr[w]])
-                if s.recover_explosions or self.restart_to_kept:
+                if s.recover_explosions:
                     self.last_good[w] = state
                 if kind == SETTLE:
                     self.home[w] = state
@@ -364,27 +360,17 @@ class Worlds:
         return list(zip(worlds_k, frames))
 
     def route(self, worlds: list[int], verdicts: list[bool]) -> None:
-        """Worlds whose target frames were handed over move on by the answers: home (or to the last
-        kept frame) after ``restart_after_rejects`` rejections in a row, home after every target
-        with ``home_between_targets``, else to their next entry."""
+        """Worlds whose target frames were handed over move on by the answers: home after
+        ``restart_after_rejects`` rejections in a row, else to their next entry."""
         s = self.settings
         for w, accepted in zip(worlds, verdicts):
             self.streak[w] = 0
             self.rejects[w] = 0 if accepted else self.rejects[w] + 1
-            if accepted and self.restart_to_kept:
-                self.last_kept[w] = self.last_good[w]  # the state saved for this hold
             next_key = int(self.schedules[w][3][self.ptr[w]]) + 1
             more = self.home[w] is not None and next_key < len(self.tasks[self.cur[w]].poses)
             if s.restart_after_rejects > 0 and self.rejects[w] >= s.restart_after_rejects and more:
                 self.rejects[w] = 0
                 self.stats.restarts_after_rejects += 1
-                if self.restart_to_kept and self.last_kept[w] is not None:
-                    self.stats.restarts_to_last_kept += 1
-                    self.restart_from(w, self.last_kept[w], next_key)
-                else:
-                    self.go_home(w, next_key)
-            elif s.home_between_targets and more:
-                self.stats.homecomings += 1
                 self.go_home(w, next_key)
             else:
                 self.advance(w)

@@ -7,11 +7,6 @@ import numpy as np
 
 from simulate.quasi_static import SimSettings
 
-#: ``SequenceSettings.self_contact_during``: the frames a world searches for self-contacts on.
-SELF_CONTACT_DURING = ("all", "transitions", "holds")
-#: ``SequenceSettings.restart_to``: where a world goes after rejected frames.
-RESTART_TO = ("home", "last_kept")
-
 
 @dataclass
 class SequenceTask:
@@ -52,11 +47,6 @@ class SequenceSettings:
     coefficient (``Fabric.friction``)."""
     self_contact: bool = False
     """Cloth self-contact (search and response) on."""
-    self_contact_during: str = "all"
-    """With ``self_contact``: on all frames ("all"), only while a world's body moves between poses
-    ("transitions": shape blends, slerp'ed poses, routes home) or only while a pose is held
-    ("holds": target poses and the settles). The layers of a garment cross while a pose is held
-    too, so "all" drops the fewest frames to self-intersection (docs/benchmarks.md)."""
     recover_explosions: bool = True
     """A world that explodes loses only the target pose it was heading to: its last good state
     (garment and body at the previous finished hold) is put back and the world goes on to the
@@ -74,16 +64,6 @@ class SequenceSettings:
     along a slerp from the canonical pose. Without it a tangle is carried along the rest of the
     sequence (self-intersection and distortion grow with the position in the sequence, not with
     any joint angle). 0 = never."""
-    restart_to: str = "home"
-    """Where a world goes after ``restart_after_rejects`` rejected frames: "home" (its settled
-    canonical drape, then a slerp from the canonical pose) or "last_kept" (the garment and body of
-    its last accepted target frame, then a slerp from that pose; home while the world has accepted
-    none). "home" keeps more targets: a frame that passed the filters can still carry the start of
-    a tangle (docs/benchmarks.md)."""
-    home_between_targets: bool = False
-    """Every world goes home (its settled canonical drape) after each target frame, accepted or
-    not, and heads for its next target from the canonical pose: no tangle is carried from one
-    target to the next, at the price of longer moves."""
     body_lookahead: int = 8
     """Schedule entries per world posed ahead; whenever a world runs out, every world short of
     entries is topped up in the same batched body-model call (one call per frame costs more than
@@ -99,13 +79,6 @@ class SequenceSettings:
     target frames over (``on_frames``) and poses the next bodies beside them (see ``run_sequences``).
     Off: every launch goes to the device's stream, in the same order, so the results are the same
     bit for bit (a check for the streams' synchronisation); only slower."""
-
-    def __post_init__(self) -> None:
-        if self.restart_to not in RESTART_TO:
-            raise ValueError(f"SequenceSettings.restart_to must be one of {', '.join(RESTART_TO)} (got {self.restart_to!r})")
-        if self.self_contact_during not in SELF_CONTACT_DURING:
-            raise ValueError(f"SequenceSettings.self_contact_during must be one of {', '.join(SELF_CONTACT_DURING)} "
-                             f"(got {self.self_contact_during!r})")
 
 
 @dataclass

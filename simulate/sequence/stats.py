@@ -34,14 +34,12 @@ class SequenceStats:
     plan_calls: int = 0  # batched plan calls (``PlanCache``)
     setup_s: float = 0  # before the loop: the three below
     group_switches: int = 0  # task switches to a task of another group
-    homecomings: int = 0  # trips home between targets (``home_between_targets``)
     setup_schedules_s: float = 0  # visiting orders and routes
     setup_model_s: float = 0  # the batched cloth model
     setup_simulator_s: float = 0  # start bodies, collider and simulator
     task_switches: int = 0  # a world taking a queued task
     restarts: int = 0  # explosion recoveries that started over from home or the canonical drape
     restarts_after_rejects: int = 0  # worlds sent back after ``restart_after_rejects`` rejected frames
-    restarts_to_last_kept: int = 0  # of them to the last accepted frame (``restart_to="last_kept"``)
 
     def start(self, into: dict) -> dict:
         """Lists every statistic in ``into`` (0 where absent) and returns a copy of it: the ``base``

@@ -17,6 +17,9 @@ __all__ = ["SolverXPBD"]
 
 MODES = ("gauss_seidel", "jacobi")
 GS_SWEEPS = ("world_blocks", "colour_launches")
+GS_STEP = 1.0
+"""Share of each Gauss-Seidel multiplier step taken (the kernels' ``relaxation``, which the Jacobi
+sweep scales per element): the full step."""
 SHARED_TILE_MAX_BYTES = 160 * 1024
 """On CUDA, world blocks keep their positions in shared memory when a world's tile (12 bytes per
 particle, rounded up to 64 particles) is at most this (13,600 particles; an H100/H200 SM has
@@ -138,7 +141,6 @@ class SolverXPBD(SolverBase):
         iterations: int = 10,
         mode: str = "gauss_seidel",
         jacobi_relaxation: float = 1.0,
-        gs_relaxation: float = 1.0,
         bending_mode: str | None = None,
         body_contact: bool | None = None,
         extra_damping: float = 0.0,
@@ -156,7 +158,6 @@ class SolverXPBD(SolverBase):
             iterations: constraint iterations per substep (>= 1).
             mode: "gauss_seidel" (graph colouring) or "jacobi" (averaged).
             jacobi_relaxation: over-relaxation of the averaged Jacobi correction (0, 2).
-            gs_relaxation: successive over-relaxation of the Gauss-Seidel multiplier steps (0, 2).
             bending_mode: sweep of the bending elements, "gauss_seidel" (one launch per bending
                 colour) or "jacobi" (one launch, gathered by the particle pass); default = ``mode``.
                 Gauss-Seidel triangles with Jacobi bending cut the launches per iteration from
@@ -191,8 +192,6 @@ class SolverXPBD(SolverBase):
         self.bending_mode = mode if bending_mode is None else bending_mode
         if self.bending_mode not in MODES:
             raise ValueError(f"bending_mode must be one of {MODES} (got {bending_mode!r})")
-        if not 0.0 < gs_relaxation < 2.0:
-            raise ValueError(f"gs_relaxation must be in (0, 2) (got {gs_relaxation!r})")
         if gs_sweep not in GS_SWEEPS:
             raise ValueError(f"gs_sweep must be one of {GS_SWEEPS} (got {gs_sweep!r})")
         if int(gs_block_dim) != gs_block_dim or not 32 <= gs_block_dim <= 1024 or gs_block_dim % 32:
@@ -200,7 +199,6 @@ class SolverXPBD(SolverBase):
         self.gs_sweep = gs_sweep
         self.gs_block_dim = int(gs_block_dim)
         self.jacobi_relaxation = float(jacobi_relaxation)
-        self.gs_relaxation = float(gs_relaxation)
         dev = self.device
         self.tri_lambda = wp.zeros(max(model.tri_count, 1), dtype=wp.vec3, device=dev)
         self.bend_lambda = wp.zeros(max(model.bend_count, 1), dtype=float, device=dev)
@@ -324,7 +322,7 @@ class SolverXPBD(SolverBase):
         m = self.model
         return [self._tri_world_offsets, m.tri_indices, m.tri_dm_inv, m.tri_compliance, self._bend_world_offsets,
                 m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.particle_inv_mass, control.world_active,
-                inv_dt2, self.gs_relaxation]
+                inv_dt2, GS_STEP]
 
     def _shared_args(self, control: ClothControl, inv_dt2: float) -> list:
         """The shared-memory kernel's model arguments, up to the relaxation."""
@@ -333,7 +331,7 @@ class SolverXPBD(SolverBase):
         return [self._world_start, self._world_count, self._tri_world_offsets, tri_shift, tri_local, m.tri_dm_inv,
                 m.tri_compliance, self._bend_world_offsets, bend_shift, bend_local, m.bend_rest_angle,
                 m.bend_compliance, m.particle_inv_mass, *self._element_data, control.world_active, inv_dt2,
-                self.gs_relaxation]
+                GS_STEP]
 
     def _particle_pass_args(self, control: ClothControl) -> list:
         """The shared-memory kernel's particle-pass arguments (attachments, body contact, then
@@ -404,7 +402,7 @@ class SolverXPBD(SolverBase):
                 for offset, count in self._tri_ranges:
                     wp.launch(kernels.solve_triangles_gs, dim=count,
                               inputs=[offset, m.tri_indices, m.tri_dm_inv, m.tri_compliance, m.tri_world,
-                                      m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation,
+                                      m.particle_inv_mass, control.world_active, inv_dt2, GS_STEP,
                                       self.tri_lambda, x],
                               device=dev)
             if bend_jacobi:
@@ -417,7 +415,7 @@ class SolverXPBD(SolverBase):
                 for offset, count in self._bend_ranges:
                     wp.launch(kernels.solve_bending_gs, dim=count,
                               inputs=[offset, m.bend_indices, m.bend_rest_angle, m.bend_compliance, m.bend_world,
-                                      m.particle_inv_mass, control.world_active, inv_dt2, self.gs_relaxation,
+                                      m.particle_inv_mass, control.world_active, inv_dt2, GS_STEP,
                                       self.bend_lambda, x],
                               device=dev)
             if self.self_contact is not None:

@@ -1,0 +1,16 @@
+"""SimSettings of the solver and contact unit tests.
+
+Their small scenes are judged at a light damping (5/s, so motion is not damped away before the
+property under test shows), a tight explosion limit (3x triangle stretch: a unit scene has no
+first-contact transients, so any larger stretch is a solver failure), convergence by the fastest
+particle alone for 5 frames, and a 600-frame budget; the library's defaults are the dataset's."""
+from __future__ import annotations
+
+from simulate.quasi_static import SimSettings
+
+UNIT_SIM = dict(damping=5.0, explosion_stretch=3.0, patience=5, outlier_fraction=0.0, max_frames=600)
+
+
+def unit_settings(**fields) -> SimSettings:
+    """SimSettings with :data:`UNIT_SIM` under the given fields."""
+    return SimSettings(**{**UNIT_SIM, **fields})
