@@ -231,9 +231,8 @@ def in_two_ring(i: int, a: int, b: int, c: int, adj_start: wp.array(dtype=wp.int
 
 
 @wp.func
-def segment_params(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec2:
-    """Parameters (s, t) in [0, 1] of the closest points p1 + s (q1 - p1) and p2 + t (q2 - p2) of two
-    segments (Ericson 2004, 5.1.9)."""
+def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> float:
+    """Distance [m] between segments p1q1 and p2q2 (Ericson 2004, 5.1.9)."""
     d1 = q1 - p1
     d2 = q2 - p2
     r = p1 - p2
@@ -244,7 +243,7 @@ def segment_params(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec
     t = float(0.0)
     eps = 1.0e-20
     if a <= eps and e <= eps:
-        return wp.vec2(0.0, 0.0)
+        return wp.length(r)
     if a <= eps:
         t = wp.clamp(f / e, 0.0, 1.0)
     else:
@@ -263,14 +262,7 @@ def segment_params(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec
             elif t > 1.0:
                 t = 1.0
                 s = wp.clamp((b - c) / a, 0.0, 1.0)
-    return wp.vec2(s, t)
-
-
-@wp.func
-def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> float:
-    """Distance [m] between segments p1q1 and p2q2."""
-    st = segment_params(p1, q1, p2, q2)
-    return wp.length((p1 + (q1 - p1) * st[0]) - (p2 + (q2 - p2) * st[1]))
+    return wp.length((p1 + d1 * s) - (p2 + d2 * t))
 
 
 @wp.kernel
@@ -334,24 +326,13 @@ def edge_edge_bounds(
     world_self_contact: wp.array(dtype=wp.int32),
     world_offset: wp.array(dtype=wp.vec3),
     x: wp.array(dtype=wp.vec3),
-    x_rest: wp.array(dtype=wp.vec3),
     reach: float,
-    thickness: float,
-    floor: float,
     # In/out:
     d_min: wp.array(dtype=float),
-    # Out:
-    other_out: wp.array(dtype=wp.vec2i),
-    normal_out: wp.array(dtype=wp.vec3),
-    thickness_out: wp.array(dtype=float),
 ):
     """Smallest distance [m] from each cloth edge to the edges of triangles within ``reach`` that
-    share no vertex with it, to both ends; and the nearest such edge as the edge's contact: its two
-    particles (-1 where none), the unit direction from it to this edge at the search (the side the
-    contact keeps), and the distance it is held off: ``thickness``, or the pair's rest-shape
-    distance where that is less (at least ``floor``)."""
+    share no vertex with it, to both ends."""
     e = wp.tid()
-    other_out[e] = wp.vec2i(-1, -1)
     i0 = edges[e][0]
     i1 = edges[e][1]
     w = particle_world[i0]
@@ -368,8 +349,6 @@ def edge_edge_bounds(
     query = wp.mesh_query_aabb(mesh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
     face = int(0)
     best = reach
-    best_a = int(-1)
-    best_b = int(-1)
     while wp.mesh_query_aabb_next(query, face):
         if tri_world[face] != w:
             continue
@@ -378,25 +357,9 @@ def edge_edge_bounds(
             b = tri_indices[face, (k + 1) % 3]
             if a == i0 or a == i1 or b == i0 or b == i1:
                 continue
-            d = segment_distance(p, q, x[a], x[b])
-            lo = wp.min(a, b)
-            # nearer, or as near with the lower pair (the BVH's visit order does not matter)
-            if d < best or (d == best and best_a >= 0 and lo < wp.min(best_a, best_b)):
-                best = d
-                best_a = a
-                best_b = b
+            best = wp.min(best, segment_distance(p, q, x[a], x[b]))
     wp.atomic_min(d_min, i0, best)
     wp.atomic_min(d_min, i1, best)
-    if best_a < 0:
-        return
-    st = segment_params(p, q, x[best_a], x[best_b])
-    delta = (p + (q - p) * st[0]) - (x[best_a] + (x[best_b] - x[best_a]) * st[1])
-    if wp.length(delta) < 1.0e-12:
-        return
-    other_out[e] = wp.vec2i(best_a, best_b)
-    normal_out[e] = wp.normalize(delta)
-    rest_d = segment_distance(x_rest[i0], x_rest[i1], x_rest[best_a], x_rest[best_b])
-    thickness_out[e] = wp.min(thickness, wp.max(rest_d, floor))
 
 
 class SelfContact:
@@ -482,20 +445,6 @@ class SelfContact:
             pairs = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
             edges = np.unique(pairs, axis=0) if len(pairs) else np.zeros((1, 2), np.int64)
             self.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
-            """Cloth edges (E, 2), each once."""
-            # particle -> its edges (CSR), for the edge-edge penalty of each particle's Newton step
-            ends = edges.reshape(-1)
-            order = np.argsort(ends, kind="stable")
-            start = np.zeros(count + 1, np.int64)
-            np.cumsum(np.bincount(ends, minlength=count), out=start[1:])
-            self.particle_edge_start = wp.array(start.astype(np.int32), dtype=wp.int32, device=dev)
-            self.particle_edges = wp.array((order // 2).astype(np.int32), dtype=wp.int32, device=dev)
-            self.edge_other = wp.full(len(edges), wp.vec2i(-1, -1), dtype=wp.vec2i, device=dev)
-            """Each edge's nearest edge at the search (its two particles; -1 where none within reach)."""
-            self.edge_normal = wp.zeros(len(edges), dtype=wp.vec3, device=dev)
-            """Unit direction from the nearest edge to the edge at the search (the side kept)."""
-            self.edge_thickness = wp.full(len(edges), self.thickness, dtype=float, device=dev)
-            """Distance [m] each edge is held off its nearest edge (rest-aware, as for triangles)."""
 
     def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
                world_self_contact: wp.array | None = None) -> None:
@@ -527,9 +476,8 @@ class SelfContact:
                       outputs=[self.d_min], device=m.device)
             wp.launch(edge_edge_bounds, dim=self.edges.shape[0],
                       inputs=[self.mesh.id, self.edges, m.tri_indices, m.tri_world, m.particle_world, world_active,
-                              active_sc, self.world_offset, x, self.rest, reach, self.thickness,
-                              3.0 * self.min_separation],
-                      outputs=[self.d_min, self.edge_other, self.edge_normal, self.edge_thickness], device=m.device)
+                              active_sc, self.world_offset, x, reach],
+                      outputs=[self.d_min], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:
         """Corrections for the current positions into ``delta`` (applied by the particle pass)."""

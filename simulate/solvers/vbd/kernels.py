@@ -23,7 +23,6 @@ from __future__ import annotations
 import warp as wp
 
 from simulate.contact.closest import closest_point_barycentric
-from simulate.contact.self_contact import segment_params
 from simulate.solvers.common_kernels import bending_angle_grad, friction_cancel, tile_writer, triangle_coefficients
 from simulate.solvers.xpbd.kernels import block_sync
 
@@ -171,25 +170,6 @@ def self_contact_terms(xi: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, side
     return n * (stiffness * (thickness - gap)), wp.outer(n, n) * stiffness
 
 
-@wp.func
-def edge_contact_terms(xi: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, d: wp.vec3d, first: int,
-                       normal: wp.vec3, thickness: float, stiffness: float):
-    """Penalty force [N] and Hessian block [N/m] on one end of edge ab (``first``: the end a) held
-    ``thickness`` [m] off edge cd along ``normal`` (from cd to ab, fixed at the search): the gap
-    between the closest points, stiffness (thickness - gap) normal shared by the ends as the
-    closest point's weights, with edge cd held where it is."""
-    pa = wp.vec3(a - xi)
-    pb = wp.vec3(b - xi)
-    pc = wp.vec3(c - xi)
-    pd = wp.vec3(d - xi)
-    st = segment_params(pa, pb, pc, pd)
-    gap = wp.dot((pa + (pb - pa) * st[0]) - (pc + (pd - pc) * st[1]), normal)
-    if gap >= thickness:
-        return wp.vec3(0.0), wp.mat33(0.0)
-    w = wp.where(first != 0, 1.0 - st[0], st[0])
-    return normal * (stiffness * (thickness - gap) * w), wp.outer(normal, normal) * (stiffness * w * w)
-
-
 def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool, body_contact: bool,
                           self_contact: bool = False):
     """Kernel running ``iterations`` VBD sweeps of every colour of a world, one thread block per world.
@@ -206,8 +186,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     a scene does not have at compile time.
 
     With ``self_contact``, each particle's Newton step also carries the penalty of its self-contact
-    candidate triangle (``SelfContact``: found at the search, on the side it was found on) and those
-    of its edges against their nearest edges (held apart along the direction found), and the
+    candidate triangle (``SelfContact``: found at the search, on the side it was found on), and the
     step is then kept within the particle's displacement bound of where it was searched, after the
     body-contact plane: where a body part presses two layers together, the layers do not cross and
     the body (whose skin is soft in reality) is what gives."""
@@ -268,12 +247,6 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         sc_d_min: wp.array(dtype=float),
         sc_fraction: float,
         sc_min_separation: float,
-        sc_edge_start: wp.array(dtype=wp.int32),
-        sc_particle_edges: wp.array(dtype=wp.int32),
-        sc_edges: wp.array(dtype=wp.vec2i),
-        sc_edge_other: wp.array(dtype=wp.vec2i),
-        sc_edge_normal: wp.array(dtype=wp.vec3),
-        sc_edge_thickness: wp.array(dtype=float),
         world_self_contact: wp.array(dtype=wp.int32),
         # Out:
         contact_depth: wp.array(dtype=float),
@@ -339,19 +312,6 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                                                         sc_thickness, sc_stiffness)
                             force = force + fc
                             hess = hess + hc
-                        if sc_on != 0:
-                            for se in range(sc_edge_start[i], sc_edge_start[i + 1]):
-                                e = sc_particle_edges[se]
-                                o = sc_edge_other[e]
-                                if o[0] >= 0:
-                                    ea = sc_edges[e][0]
-                                    eb = sc_edges[e][1]
-                                    fe, he = edge_contact_terms(xi, position(xs, x64, ea, base), position(xs, x64, eb, base),
-                                                                position(xs, x64, o[0], base), position(xs, x64, o[1], base),
-                                                                wp.where(ea == i, 1, 0), sc_edge_normal[e],
-                                                                sc_edge_thickness[e], sc_stiffness)
-                                    force = force + fe
-                                    hess = hess + he
                     p = xi
                     if wp.abs(wp.determinant(hess)) > 1.0e-30:
                         p = xi + wp.vec3d(wp.inverse(hess) * force)

@@ -163,9 +163,6 @@ class SolverVBD(SolverBase):
         if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
             self._sc_args = [wp.full(1, -1, dtype=wp.int32, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0,
                              wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
-            self._ee_args = [wp.zeros(2, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev),
-                             wp.zeros(1, dtype=wp.vec2i, device=dev), wp.full(1, wp.vec2i(-1, -1), dtype=wp.vec2i, device=dev),
-                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev)]
         self._finalize_vbd = _finalize_kernel(self.friction, self.self_contact is not None)
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
@@ -177,16 +174,6 @@ class SolverVBD(SolverBase):
         self.gravity_share = wp.ones(n, dtype=float, device=dev)
         """Share of gravity (0..1) each particle's last substep accelerated it by, shape
         (particle_count,); the next substep starts at x + dt v + share dt^2 g."""
-
-    def _no_edges(self) -> list:
-        """Edge-contact arguments with no edge contact (self-contact without bounds)."""
-        if getattr(self, "_ee_none", None) is None:
-            dev = self.device
-            n = self.model.particle_count
-            self._ee_none = [wp.zeros(n + 1, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev),
-                             wp.zeros(1, dtype=wp.vec2i, device=dev), wp.full(1, wp.vec2i(-1, -1), dtype=wp.vec2i, device=dev),
-                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev)]
-        return self._ee_none
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
@@ -209,11 +196,8 @@ class SolverVBD(SolverBase):
                           world_self_contact=control.world_self_contact)
             sc_args = [sc.candidate, sc.side, sc.thickness, self.self_contact_stiffness, sc.x_searched, sc.d_min,
                        sc.bound_fraction, sc.min_separation]
-            ee_args = ([sc.particle_edge_start, sc.particle_edges, sc.edges, sc.edge_other, sc.edge_normal,
-                        sc.edge_thickness] if sc.bounds else self._no_edges())
         else:
             sc_args = self._sc_args
-            ee_args = self._ee_args
         wp.launch_tiled(self._kernel, dim=[m.world_count],
                         inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
                                 m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count), m.tri_indices,
@@ -221,7 +205,7 @@ class SolverVBD(SolverBase):
                                 m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
                                 m.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
                                 control.world_attachment_enabled, self.contact_active, self.contact_normal,
-                                self.contact_offset, self._x64_prev, self._target, *sc_args, *ee_args, control.world_self_contact,
+                                self.contact_offset, self._x64_prev, self._target, *sc_args, control.world_self_contact,
                                 self.contact_depth, self.x64],
                         block_dim=self.block_dim, device=dev)
         wp.launch(self._finalize_vbd, dim=m.particle_count,
