@@ -32,8 +32,10 @@ def error_vs_runtime_figure(points: Sequence[dict[str, Any]], *, title: str = "E
         if not point["ms_per_frame"] > 0:
             raise ValueError(f"points[{i}].ms_per_frame must be > 0 for a log axis, got {point['ms_per_frame']}")
     figure, axis = plt.subplots(figsize=(6.4, 4.2), dpi=120)
+    colors = []
     for point in points:
-        axis.scatter(point["ms_per_frame"], point["error_mm"], s=30)
+        marker = axis.scatter(point["ms_per_frame"], point["error_mm"], s=30)
+        colors.append(marker.get_facecolor()[0])
     axis.set_xscale("log")
     axis.margins(x=0.15, y=0.3)  # room for the labels of the outermost points
     axis.set_xlabel("time per frame [ms] (log)")
@@ -43,7 +45,7 @@ def error_vs_runtime_figure(points: Sequence[dict[str, Any]], *, title: str = "E
     figure.tight_layout()
     # after the layout: the labels are placed where they cover no other label, in window coordinates
     place_labels(axis, [(p["ms_per_frame"], p["error_mm"]) for p in points], [str(p["label"]) for p in points],
-                 fontsize=7)
+                 fontsize=7, colors=colors)
     return figure
 
 

@@ -9,12 +9,14 @@ _SIDES = ((4.0, 3.0), (4.0, -11.0), (-4.0, 3.0), (-4.0, -11.0))
 
 
 def place_labels(ax: Any, xy: Sequence[tuple[float, float]], labels: Sequence[str], *, fontsize: float = 7.0,
-                 color: Any = "black") -> list[Any]:
+                 color: Any = "black", colors: Sequence[Any] | None = None) -> list[Any]:
     """Annotates each point ``xy[i]`` (data coordinates) with ``labels[i]`` where the label covers
     no text of the axes already there and no label placed before it: the four sides next to the
     point first, then steps of one line further up and down, as far as it takes (points that sit on
     top of each other get their labels stacked), inside the axes where a place there is free.
-    Call after the axes' limits, scales and the figure's layout are set. Returns the annotations."""
+    ``colors`` (one per point, e.g. the markers' colours) colours each label like its point, so a
+    label stacked a line or two away still reads as its point's. Call after the axes' limits,
+    scales and the figure's layout are set. Returns the annotations."""
     renderer = ax.figure.canvas.get_renderer()
     frame = ax.get_window_extent(renderer)
     placed = [t.get_window_extent(renderer) for t in ax.texts]  # window extents of the labels so far
@@ -22,9 +24,11 @@ def place_labels(ax: Any, xy: Sequence[tuple[float, float]], labels: Sequence[st
     offsets = [(dx, dy + step * ((k + 1) // 2) * (1 if k % 2 else -1))
                for k in range(4 * len(labels) + 1) for dx, dy in _SIDES]
     out = []
-    for (x, y), text in zip(xy, labels):
+    if colors is not None and len(colors) != len(labels):
+        raise ValueError(f"colors must give one colour per label ({len(labels)}), got {len(colors)}")
+    for k, ((x, y), text) in enumerate(zip(xy, labels)):
         annotation = ax.annotate(text, (x, y), xytext=offsets[0], textcoords="offset points", fontsize=fontsize,
-                                 color=color, ha="left")
+                                 color=color if colors is None else colors[k], ha="left")
 
         def free(offset: tuple[float, float], inside: bool) -> bool:
             annotation.set_position(offset)
