@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import abc
+
 import numpy as np
 import warp as wp
 
@@ -11,7 +13,7 @@ from simulate.solvers import common_kernels as ck
 __all__ = ["SolverBase"]
 
 
-class SolverBase:
+class SolverBase(abc.ABC):
     """Allocates per-particle contact buffers once; subclasses implement ``step`` (one substep)."""
 
     def __init__(self, model: ClothModel, *, body_contact: bool | None = None, extra_damping: float = 0.0,
@@ -53,6 +55,7 @@ class SolverBase:
         self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
 
+    @abc.abstractmethod
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
              substep: int = 0) -> None:
         """Advances every active world (``control.world_active``) by one substep: reads positions and
@@ -61,7 +64,6 @@ class SolverBase:
         decides whether the body is queried for contact planes (``queries_body``) and, with
         self-contact, whether candidate triangles are searched afresh. Body contact reads
         ``control.collider``, positioned by the driver for this substep."""
-        raise NotImplementedError(f"{type(self).__name__} must implement step")
 
     def garment_changed(self, dst: int, src: int) -> None:
         """World ``dst`` now holds world ``src``'s garment (``ClothModel.copy_world_garment``):
