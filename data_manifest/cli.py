@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 from typing import Any
 
 from .export import EXPORT_FORMATS, export_task
+from .integrity import write_error
 from .schema import DatasetError
 from .validate import info, validate_dataset
 
@@ -59,12 +59,8 @@ def _check_export_out(out: Path, format: str) -> str | None:
         probe_dir = probe_dir.parent
     if not probe_dir.is_dir():
         return f"--out {str(out)!r}: {str(probe_dir)!r} is a file, not a directory"
-    probe = probe_dir / f".drape-write-probe-{os.getpid()}"
-    try:
-        with open(probe, "wb"):
-            pass
-        probe.unlink()
-    except OSError as error:
+    error = write_error(probe_dir)
+    if error is not None:
         return f"--out {str(out)!r}: {str(probe_dir)!r} is not writable ({error.strerror or error})"
     return None
 

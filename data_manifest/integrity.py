@@ -39,19 +39,27 @@ def user_cache_dir() -> Path:
     return Path(base) / "drape"
 
 
-def directory_is_writable(directory: str | os.PathLike[str]) -> bool:
-    """Whether a file can be created in ``directory`` (created with its parents when missing):
-    a probe file, so read-only mounts and ACLs count, not only permission bits."""
-    directory = Path(directory)
+def write_error(directory: str | os.PathLike[str]) -> OSError | None:
+    """The error creating a file in the existing ``directory`` raises, or None when it can: a
+    probe file, so read-only mounts and ACLs count, not only permission bits."""
+    probe = Path(directory) / f".drape-probe-{os.getpid()}-{secrets.token_hex(3)}{TMP_SUFFIX}"
     try:
-        directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / f".drape-probe-{os.getpid()}-{secrets.token_hex(3)}{TMP_SUFFIX}"
         with open(probe, "wb"):
             pass
         probe.unlink()
-        return True
+    except OSError as error:
+        return error
+    return None
+
+
+def directory_is_writable(directory: str | os.PathLike[str]) -> bool:
+    """Whether a file can be created in ``directory`` (created with its parents when missing)."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
     except OSError:
         return False
+    return write_error(directory) is None
 
 
 def cache_dir_for(root: str | os.PathLike[str], name: str) -> Path:

@@ -167,14 +167,12 @@ def _is_dataset_error(error: BaseException) -> bool:
 def _probe_writable(directory: Path, option: str) -> None:
     """Creates and removes a file in ``directory``: catches read-only mounts and ACLs that
     permission bits alone do not show."""
-    probe = directory / f".drape-write-probe-{os.getpid()}"
-    try:
-        with open(probe, "wb"):
-            pass
-        probe.unlink()
-    except OSError as error:
+    from data_manifest.integrity import write_error
+
+    error = write_error(directory)
+    if error is not None:
         raise UsageError(f"{option} {str(directory)!r} is not writable ({error.strerror or error}); "
-                         f"choose a directory you can write to") from None
+                         f"choose a directory you can write to")
 
 
 def check_output_dir(path: str | os.PathLike[str], option: str = "--out") -> Path:

@@ -68,6 +68,23 @@ def place_cloth_points(
         points_out[i] = off
 
 
+@wp.func
+def in_two_ring(i: int, a: int, b: int, c: int, adj_start: wp.array(dtype=wp.int32), adj_slot: wp.array(dtype=wp.int32),
+                tri_slots: int, tri_indices: wp.array2d(dtype=wp.int32)) -> bool:
+    """Whether triangle (a, b, c) shares a vertex with a triangle incident to particle i."""
+    for s in range(adj_start[i], adj_start[i + 1]):
+        slot = adj_slot[s]
+        if slot >= tri_slots:  # a particle's slots ascend: its triangles' come before its bending elements'
+            break
+        t = slot // 3
+        u0 = tri_indices[t, 0]
+        u1 = tri_indices[t, 1]
+        u2 = tri_indices[t, 2]
+        if u0 == a or u0 == b or u0 == c or u1 == a or u1 == b or u1 == c or u2 == a or u2 == b or u2 == c:
+            return True
+    return False
+
+
 @wp.kernel
 def detect_self_contacts(
     mesh: wp.uint64,
@@ -148,19 +165,7 @@ def detect_self_contacts(
         rb = closest_point_barycentric(pr, ra, rb_, rc)
         if wp.length(pr - (ra * rb[0] + rb_ * rb[1] + rc * rb[2])) < rest_exclusion:
             continue
-        near = bool(False)
-        for s in range(adj_start[i], adj_start[i + 1]):
-            slot = adj_slot[s]
-            if slot >= tri_slots:  # a particle's slots ascend: its triangles' come before its bending elements'
-                break
-            t = slot // 3
-            u0 = tri_indices[t, 0]
-            u1 = tri_indices[t, 1]
-            u2 = tri_indices[t, 2]
-            if u0 == a or u0 == b or u0 == c or u1 == a or u1 == b or u1 == c or u2 == a or u2 == b or u2 == c:
-                near = True
-                break
-        if near:
+        if in_two_ring(i, a, b, c, adj_start, adj_slot, tri_slots, tri_indices):
             continue
         best = d
         best_face = face
@@ -211,23 +216,6 @@ def project_self_contacts(
         return
     delta_out[i] = self_contact_correction(x[i], x[tri_indices[t, 0]], x[tri_indices[t, 1]], x[tri_indices[t, 2]],
                                            side[i], thickness, relaxation)
-
-
-@wp.func
-def in_two_ring(i: int, a: int, b: int, c: int, adj_start: wp.array(dtype=wp.int32), adj_slot: wp.array(dtype=wp.int32),
-                tri_slots: int, tri_indices: wp.array2d(dtype=wp.int32)) -> bool:
-    """Whether triangle (a, b, c) shares a vertex with a triangle incident to particle i."""
-    for s in range(adj_start[i], adj_start[i + 1]):
-        slot = adj_slot[s]
-        if slot >= tri_slots:
-            break
-        t = slot // 3
-        u0 = tri_indices[t, 0]
-        u1 = tri_indices[t, 1]
-        u2 = tri_indices[t, 2]
-        if u0 == a or u0 == b or u0 == c or u1 == a or u1 == b or u1 == c or u2 == a or u2 == b or u2 == c:
-            return True
-    return False
 
 
 @wp.func

@@ -170,6 +170,20 @@ def self_contact_terms(xi: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, side
     return n * (stiffness * (thickness - gap)), wp.outer(n, n) * stiffness
 
 
+@wp.func
+def within_bound(p: wp.vec3d, searched: wp.vec3, d_min: float, fraction: float, min_separation: float) -> wp.vec3d:
+    """``p`` [m] pulled back to the particle's self-contact displacement bound around where it was
+    searched: ``fraction`` of its smallest pair distance ``d_min`` less ``min_separation`` (a tenth
+    of ``d_min`` for a pair already closer; ``simulate.contact.self_contact``)."""
+    start = wp.vec3d(searched)
+    step = p - start
+    length = wp.length(step)
+    bound = wp.float64(fraction * wp.where(d_min > min_separation, d_min - min_separation, 0.1 * d_min))
+    if length > bound:
+        return start + step * (bound / length)
+    return p
+
+
 def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool, body_contact: bool,
                           self_contact: bool = False):
     """Kernel running ``iterations`` VBD sweeps of every colour of a world, one thread block per world.
@@ -330,13 +344,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                     # the torso layer, the skin (soft in reality) gives, not the layers
                     if wp.static(self_contact):
                         if sc_on != 0:
-                            start = wp.vec3d(sc_x_searched[i])
-                            step = p - start
-                            length = wp.length(step)
-                            dm = sc_d_min[i]
-                            bound = wp.float64(sc_fraction * wp.where(dm > sc_min_separation, dm - sc_min_separation, 0.1 * dm))
-                            if length > bound:
-                                p = start + step * (bound / length)
+                            p = within_bound(p, sc_x_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
                     if wp.static(shared):
                         tile_write(xs, i - base, p)
                     else:
@@ -407,13 +415,7 @@ def make_finalize_kernel(friction: bool, self_contact: bool = False):
                 p = p - wp.vec3d(cancel)
                 if wp.static(self_contact):
                     if world_self_contact[w] != 0:
-                        start = wp.vec3d(sc_x_searched[i])
-                        step = p - start
-                        length = wp.length(step)
-                        dm = sc_d_min[i]
-                        bound = wp.float64(sc_fraction * wp.where(dm > sc_min_separation, dm - sc_min_separation, 0.1 * dm))
-                        if length > bound:
-                            p = start + step * (bound / length)
+                        p = within_bound(p, sc_x_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
                 disp = wp.vec3(p - x64_prev[i])
                 x64[i] = p
         x_out[i] = wp.vec3(p)
