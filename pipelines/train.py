@@ -123,8 +123,8 @@ def run(args: argparse.Namespace) -> int:
     from data_manifest.reader import DatasetReader
     from learn.data import DrapeDataset
     from learn.registry import get_learner
-    from learn.tailornet.train import (dataset_fingerprint, fit_baseline, fit_tailornet, frame_arrays_from_dataset,
-                                       garment_pose_indices, stages_for_rank)
+    from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_baseline, fit_tailornet,
+                                       frame_arrays_from_dataset, garment_pose_indices, stages_for_rank)
     from simulate.body import load_body_model
 
     entry = get_learner(args.learner)
@@ -146,8 +146,12 @@ def run(args: argparse.Namespace) -> int:
     spec = reader.manifest.spec
     body_spec = spec.get("body", {"backend": "anny", "path": None})
     body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
-    pose_indices = garment_pose_indices(template["skinning_weights"], body.pose_size, parents=body.joint_parents,
-                                        posable_joints=body.pose_joint_indices)
+    model_hyper = {**DEFAULT_HYPERPARAMETERS["model"], **hyper.get("model", {})}
+    # model.pose_mask false feeds every pose entry (the pose-input masking ablation)
+    pose_indices = (garment_pose_indices(template["skinning_weights"], body.pose_size, parents=body.joint_parents,
+                                         posable_joints=body.pose_joint_indices,
+                                         min_weight_sum=float(model_hyper["min_joint_weight_sum"]))
+                    if model_hyper["pose_mask"] else np.arange(body.pose_size))
     fingerprint = dataset_fingerprint(args.data, template)
     t0 = time.perf_counter()
     dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)

@@ -202,3 +202,31 @@ def test_weight_floor_skips_negligible_prototypes_within_bound() -> None:
     assert (skipped - exact).abs().max() <= bound, "skipping exceeded its error bound"
     torch.testing.assert_close(skipped, kept_only, atol=ATOL_FLOAT32_M, rtol=1e-5,
                                msg="subset path differs from the full path with zeroed weights")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_batched_prototypes_give_the_gradients_of_independent_mlps(device: str) -> None:
+    """Same weights -> same per-prototype outputs and the same gradients: the batched network's
+    summed loss gives prototype k exactly the gradient of MLP k's own loss on its own batch."""
+    torch.manual_seed(3)
+    mlps = [high_frequency_model(VERTEX_COUNT, [0, 1, 2, 6, 7, 8], hidden_size=16, dropout=0.0).to(device).train()
+            for _ in range(3)]
+    stacked = HighFrequencyPrototypes.from_mlps(mlps).train()
+    pose = torch.randn(3, 5, POSE_SIZE, device=device)
+    target = torch.randn(3, 5, VERTEX_COUNT, 3, device=device) * 0.01
+    empty = torch.zeros(5, 0, device=device)
+    batched = stacked.forward_each(pose)
+    (batched - target).abs().sum(-1).mean(dim=(1, 2)).sum().backward()
+    for k, mlp in enumerate(mlps):
+        out = mlp(pose[k], empty, empty)
+        torch.testing.assert_close(batched[k].detach(), out.detach(), atol=ATOL_FLOAT32_M, rtol=1e-5)
+        (out - target[k]).abs().sum(-1).mean().backward()
+        first, second, last = mlp.mlp.layers[0], mlp.mlp.layers[3], mlp.mlp.layers[5]
+        h = stacked.hidden_size
+        pairs = [(stacked.weight1.grad[k], first.weight.grad.T), (stacked.bias1.grad[k], first.bias.grad),
+                 (stacked.weight2.grad[k], second.weight.grad.T), (stacked.bias2.grad[k], second.bias.grad),
+                 (stacked.weight3.grad[k * h:(k + 1) * h], last.weight.grad.T), (stacked.bias3.grad[k], last.bias.grad)]
+        for i, (got, expected) in enumerate(pairs):
+            assert expected.abs().sum() > 0, f"prototype {k}: parameter {i} of the MLP got no gradient"
+            torch.testing.assert_close(got, expected, atol=1e-6, rtol=1e-4,
+                                       msg=f"prototype {k}: gradient of parameter {i} differs from its own MLP's")

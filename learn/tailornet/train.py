@@ -10,6 +10,15 @@ and a tqdm bar shows progress.
 
 Checkpoints record the dataset manifest's and the garment template's sha256; resuming or
 loading against a different dataset raises :class:`DatasetMismatchError`.
+
+The step loops keep everything on the training device: the stage's inputs and targets are
+copied there once, each epoch's shuffled order is one host-to-device copy, batches are
+gathered by device-side indexing and the epoch's loss is summed on the device and read once
+at the epoch's end. ``model.mixed_precision`` runs the forward passes under bf16 autocast
+(weights, Adam's moments and the L1 loss stay float32). Each step loop is a plain function of
+(model, optimizer, frame order): a data-parallel wrapper of the model (DDP) goes around
+``model`` before :func:`run_epochs`, and a per-rank shard of the order replaces
+``torch.randperm`` in ``epoch_fn``.
 """
 
 from __future__ import annotations
@@ -61,6 +70,8 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "shape_components": 2,
         "style_components": 2,
         "min_joint_weight_sum": 1.0,
+        "pose_mask": True,
+        "mixed_precision": False,
         "smoothing_iterations": 80,
         "smoothing_lambda": 0.15,
         "checkpoint_interval_s": DEFAULT_CHECKPOINT_INTERVAL_S,
@@ -321,6 +332,13 @@ def load_checkpoint(path: str | os.PathLike[str], *, map_location: str | torch.d
     return torch.load(path, map_location=map_location, weights_only=True)
 
 
+def autocast(device: str | torch.device, enabled: bool) -> torch.autocast:
+    """bf16 autocast on ``device``'s type when ``enabled`` (a no-op context otherwise). Matmuls
+    run in bf16 with float32 accumulation; callers cast the prediction back to float32 before
+    the loss, so the loss and the optimizer see float32."""
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bool(enabled))
+
+
 EpochFn = Callable[[torch.nn.Module, torch.optim.Optimizer, torch.Generator], float]
 
 
@@ -454,6 +472,7 @@ def train_stage(
     if data.frame_count == 0:
         raise ValueError(f"{stage}: no training frames")
     batch_size = int(hyperparameters["batch_size"])
+    mixed = bool(hyperparameters.get("mixed_precision", False))
     pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
     shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
     style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
@@ -464,7 +483,9 @@ def train_stage(
         total = torch.zeros((), device=device)
         for begin in range(0, data.frame_count, batch_size):
             batch = order[begin : begin + batch_size]
-            loss = l1_displacement_loss(net(pose[batch], shape[batch], style[batch]), target_t[batch])
+            with autocast(device, mixed):
+                prediction = net(pose[batch], shape[batch], style[batch])
+            loss = l1_displacement_loss(prediction.float(), target_t[batch])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -508,6 +529,7 @@ def train_stacked_prototypes(
     if min(counts) == 0:
         raise ValueError(f"every prototype needs frames; counts per prototype: {counts}")
     batch_size = int(hyperparameters["batch_size"])
+    mixed = bool(hyperparameters.get("mixed_precision", False))
     pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
     target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
     frames = [torch.as_tensor(np.asarray(f), dtype=torch.int64) for f in frames_per_prototype]
@@ -523,8 +545,9 @@ def train_stacked_prototypes(
         total = torch.zeros((), device=device)
         for step in range(steps):
             batch = sequence[:, step * batch_size : (step + 1) * batch_size]  # (K, b)
-            prediction = net.forward_each(pose[batch])  # (K, b, V, 3)
-            per_prototype = (prediction - target_t[batch]).abs().sum(-1).mean(dim=(1, 2))  # (K,)
+            with autocast(device, mixed):
+                prediction = net.forward_each(pose[batch])  # (K, b, V, 3)
+            per_prototype = (prediction.float() - target_t[batch]).abs().sum(-1).mean(dim=(1, 2))  # (K,)
             loss = per_prototype.sum()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -542,6 +565,7 @@ def _stage_hyper(hyper: Mapping[str, Any], model_hyper: Mapping[str, Any] | None
     stage = {k: hyper[k] for k in ("lr", "weight_decay", "batch_size", "epochs")}
     if model_hyper is not None:
         stage["checkpoint_interval_s"] = float(model_hyper["checkpoint_interval_s"])
+        stage["mixed_precision"] = bool(model_hyper.get("mixed_precision", False))
     return stage
 
 
