@@ -164,6 +164,27 @@ def remove_body_penetration(
     )
 
 
+def _postprocess_frame(job: tuple) -> tuple[np.ndarray, int, int]:
+    """One frame of :func:`remove_body_penetration_batch` in a worker process (queries on the CPU)."""
+    garment, faces, body, body_faces, laplacian, options = job
+    result = remove_body_penetration(garment, faces, mesh_signed_distance_fn(body, body_faces, device="cpu"),
+                                     laplacian=laplacian, **options)
+    return result.vertices, result.collisions_before, result.collisions_after
+
+
+_POOL: dict[int, object] = {}
+
+
+def _pool(workers: int):
+    """A process pool of ``workers`` processes, started once (spawn: safe beside CUDA) and reused."""
+    if workers not in _POOL:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        _POOL[workers] = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    return _POOL[workers]
+
+
 def remove_body_penetration_batch(
     garment_vertices: np.ndarray,
     garment_faces: np.ndarray,
@@ -171,11 +192,15 @@ def remove_body_penetration_batch(
     body_faces: np.ndarray,
     *,
     device: str | None = None,
+    workers: int = 1,
     **options: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`remove_body_penetration` for each frame of a batch.
 
     garment_vertices: [m], shape (B, V, 3); body_vertices: [m], shape (B, Vb, 3).
+    ``workers`` > 1: frames are spread over that many processes (the sparse LU holds the GIL,
+    so threads would not help), whose body queries run on the CPU; the result is the same as
+    in this process up to the float rounding of the query device.
     Returns (corrected vertices (B, V, 3), collisions before (B,), collisions after (B,)).
     """
     garment_vertices = np.asarray(garment_vertices)
@@ -194,6 +219,14 @@ def remove_body_penetration_batch(
     out = np.empty_like(garment_vertices)
     before = np.zeros(garment_vertices.shape[0], dtype=np.int64)
     after = np.zeros(garment_vertices.shape[0], dtype=np.int64)
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    if workers > 1 and garment_vertices.shape[0] > 1:
+        jobs = [(garment_vertices[b], garment_faces, body_vertices[b], body_faces, laplacian, options)
+                for b in range(garment_vertices.shape[0])]
+        for b, (vertices, count_before, count_after) in enumerate(_pool(workers).map(_postprocess_frame, jobs)):
+            out[b], before[b], after[b] = vertices, count_before, count_after
+        return out, before, after
     for b in range(garment_vertices.shape[0]):
         result = remove_body_penetration(
             garment_vertices[b],

@@ -46,6 +46,27 @@ class PosingContext:
     garment_faces: np.ndarray
 
 
+def predict_on_device(
+    model: torch.nn.Module,
+    pose: np.ndarray,
+    shape: np.ndarray,
+    style: np.ndarray,
+    *,
+    batch_size: int = 256,
+    device: str = "cpu",
+) -> torch.Tensor:
+    """Unposed displacements [m] for N frames as one float32 tensor on ``device``, (N, V, 3).
+
+    The inputs go to the device once; batches are slices of them and the predictions stay
+    there (no host copy per batch)."""
+    model = model.to(device).eval()
+    inputs = [torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (pose, shape, style)]
+    with torch.no_grad():
+        out = [model(*(x[start:start + batch_size] for x in inputs)).float()
+               for start in range(0, inputs[0].shape[0], batch_size)]
+    return torch.cat(out, dim=0)
+
+
 @torch.no_grad()
 def predict_displacements(
     model: torch.nn.Module,
@@ -57,18 +78,7 @@ def predict_displacements(
     device: str = "cpu",
 ) -> np.ndarray:
     """Unposed displacements [m], shape (N, V, 3), for N frames (model in eval mode)."""
-    model = model.to(device).eval()
-    out = []
-    for start in range(0, pose.shape[0], batch_size):
-        stop = start + batch_size
-        out.append(
-            model(
-                torch.as_tensor(pose[start:stop], dtype=torch.float32, device=device),
-                torch.as_tensor(shape[start:stop], dtype=torch.float32, device=device),
-                torch.as_tensor(style[start:stop], dtype=torch.float32, device=device),
-            ).cpu().numpy()
-        )
-    return np.concatenate(out, axis=0)
+    return predict_on_device(model, pose, shape, style, batch_size=batch_size, device=device).cpu().numpy()
 
 
 def evaluate_split(
@@ -82,6 +92,9 @@ def evaluate_split(
     collision_device: str | None = None,
     threshold: float = COLLISION_THRESHOLD_M,
     postprocess_frames: int | None = None,
+    postprocess_workers: int = 1,
+    truth_cache: dict[str, Any] | None = None,
+    per_frame: bool = False,
 ) -> dict[str, Any]:
     """Metrics of ``model`` on the frames of one split.
 
@@ -92,87 +105,107 @@ def evaluate_split(
     truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
     ``postprocessed_posed_error_mm``. ``data.translation`` (when set) is added to the
     posed garment and body. The post-process (a sparse solve per frame on the CPU, about
-    a second for 10k vertices) runs on at most ``postprocess_frames`` evenly spaced
-    frames when given; ``postprocess_frames_evaluated`` reports how many, and the
-    post-processed rates and errors refer to those frames (``collision_rate_subset`` and
-    ``posed_error_mm_subset`` give the raw values on the same frames, for a like-for-like
-    comparison).
+    a second for 10k vertices, spread over ``postprocess_workers`` processes) runs on at
+    most ``postprocess_frames`` evenly spaced frames when given;
+    ``postprocess_frames_evaluated`` reports how many, and the post-processed rates and
+    errors refer to those frames (``collision_rate_subset`` and ``posed_error_mm_subset``
+    give the raw values on the same frames, for a like-for-like comparison).
+
+    Prediction, posing and errors run on ``device`` in batches of ``batch_size`` frames; the
+    collision queries (Warp, ``collision_device``) get one host copy of each batch. The
+    ground truth's collision count depends on the split only: pass the same
+    ``truth_cache`` dict for every model evaluated on a split to count it once.
+    ``per_frame``: also return ``unposed_error_mm_per_frame`` (N,) as a numpy array (for the
+    error analysis; not JSON).
     """
     if postprocess_frames is not None and postprocess_frames < 1:
         raise ValueError(f"postprocess_frames must be >= 1 or None, got {postprocess_frames}")
     if data.frame_count == 0:
         raise ValueError("evaluate_split: the split has no frames")
-    predicted = predict_displacements(
-        model, data.pose, data.shape, data.style, batch_size=batch_size, device=device
-    )
-    if predicted.shape != data.displacements.shape:
+    predicted = predict_on_device(model, data.pose, data.shape, data.style, batch_size=batch_size, device=device)
+    if tuple(predicted.shape) != data.displacements.shape:
         raise ValueError(
             f"model predicts {predicted.shape[1]} vertices but the data has {data.vertex_count}"
         )
-    errors = per_vertex_error_mm(torch.from_numpy(predicted), torch.from_numpy(data.displacements))
+    errors = torch.cat([
+        per_vertex_error_mm(predicted[start:start + batch_size],
+                            torch.as_tensor(data.displacements[start:start + batch_size]).to(device))
+        for start in range(0, data.frame_count, batch_size)
+    ])
     result: dict[str, Any] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
+    if per_frame:
+        result["unposed_error_mm_per_frame"] = errors.cpu().numpy()
     if posing is None:
         return result
-    posed_errors, posed_pp_errors, posed_subset_errors, normal_errors = [], [], [], []
-    colliding = colliding_pp = colliding_truth = colliding_subset = 0
-    vertex_total = pp_vertex_total = 0
+    posed_errors, normal_errors = [], []
+    colliding = colliding_truth = 0
+    vertex_total = 0
     if postprocess_frames is None or postprocess_frames >= data.frame_count:
         pp_selected = np.ones(data.frame_count, dtype=bool)
     else:
         pp_selected = np.zeros(data.frame_count, dtype=bool)
         pp_selected[np.linspace(0, data.frame_count - 1, postprocess_frames).round().astype(np.int64)] = True
+    count_truth = data.posed_vertices is not None and (truth_cache is None or "colliding" not in truth_cache)
+    pp_posed, pp_body, pp_truth, pp_colliding = [], [], [], 0
     with torch.no_grad():
         for start in range(0, data.frame_count, batch_size):
             stop = start + batch_size
-            pose = torch.as_tensor(data.pose[start:stop], dtype=torch.float32, device=device)
-            shape = torch.as_tensor(data.shape[start:stop], dtype=torch.float32, device=device)
-            displacements = torch.as_tensor(predicted[start:stop], device=device)
-            posed = pose_displacements(
-                displacements, pose, shape, garment_poser=posing.garment_poser, unposed_body=posing.unposed_body
-            ).cpu().numpy()
-            body = posing.posed_body(pose, shape).cpu().numpy()
+            pose = torch.as_tensor(data.pose[start:stop], dtype=torch.float32).to(device)
+            shape = torch.as_tensor(data.shape[start:stop], dtype=torch.float32).to(device)
+            posed_t = pose_displacements(
+                predicted[start:stop], pose, shape, garment_poser=posing.garment_poser, unposed_body=posing.unposed_body
+            )
+            body_t = posing.posed_body(pose, shape).to(posed_t.device)
             if data.translation is not None:
                 # A root translation moves body and garment rigidly, after skinning.
-                shift = data.translation[start:stop, None, :]
-                posed, body = posed + shift, body + shift
+                shift = torch.as_tensor(data.translation[start:stop, None, :]).to(posed_t.device)
+                posed_t, body_t = posed_t + shift, body_t + shift
+            posed, body = posed_t.cpu().numpy(), body_t.cpu().numpy()
             mask = collision_mask(posed, body, posing.body_faces, threshold=threshold, device=collision_device)
             colliding += int(mask.sum())
             vertex_total += posed.shape[0] * posed.shape[1]
             if data.posed_vertices is not None:
                 truth = data.posed_vertices[start:stop]
-                posed_errors.append(per_vertex_error_mm(torch.from_numpy(posed), torch.from_numpy(truth)).numpy())
-                normal_errors.append(normal_error(torch.from_numpy(posed), torch.from_numpy(truth),
-                                                  posing.garment_faces).numpy())
-                colliding_truth += int(
-                    collision_mask(truth, body, posing.body_faces, threshold=threshold, device=collision_device).sum()
-                )
+                truth_t = torch.as_tensor(truth).to(posed_t.device)
+                posed_errors.append(per_vertex_error_mm(posed_t, truth_t))
+                normal_errors.append(normal_error(posed_t, truth_t, posing.garment_faces))
+                if count_truth:
+                    colliding_truth += int(
+                        collision_mask(truth, body, posing.body_faces, threshold=threshold,
+                                       device=collision_device).sum()
+                    )
             chosen = np.flatnonzero(pp_selected[start:stop])
             if postprocess and chosen.size:
-                fixed, _, after = remove_body_penetration_batch(
-                    posed[chosen], posing.garment_faces, body[chosen], posing.body_faces, device=collision_device,
-                    threshold=threshold,
-                )
-                colliding_pp += int(after.sum())
-                colliding_subset += int(mask[chosen].sum())
-                pp_vertex_total += chosen.size * posed.shape[1]
+                pp_posed.append(posed[chosen])
+                pp_body.append(body[chosen])
+                pp_colliding += int(mask[chosen].sum())
                 if data.posed_vertices is not None:
-                    truth_chosen = torch.from_numpy(data.posed_vertices[start:stop][chosen])
-                    posed_pp_errors.append(per_vertex_error_mm(torch.from_numpy(fixed), truth_chosen).numpy())
-                    posed_subset_errors.append(
-                        per_vertex_error_mm(torch.from_numpy(posed[chosen]), truth_chosen).numpy()
-                    )
+                    pp_truth.append(data.posed_vertices[start:stop][chosen])
     result["collision_rate"] = colliding / vertex_total
     if data.posed_vertices is not None:
-        result["posed_error_mm"] = float(np.concatenate(posed_errors).mean())
-        result["normal_error"] = float(np.concatenate(normal_errors).mean())
+        if count_truth and truth_cache is not None:
+            truth_cache["colliding"] = colliding_truth
+        if truth_cache is not None:
+            colliding_truth = truth_cache["colliding"]
+        result["posed_error_mm"] = float(torch.cat(posed_errors).mean())
+        result["normal_error"] = float(torch.cat(normal_errors).mean())
         result["ground_truth_collision_rate"] = colliding_truth / vertex_total
     if postprocess:
+        posed_chosen, body_chosen = np.concatenate(pp_posed), np.concatenate(pp_body)
+        fixed, _, after = remove_body_penetration_batch(
+            posed_chosen, posing.garment_faces, body_chosen, posing.body_faces, device=collision_device,
+            threshold=threshold, workers=postprocess_workers,
+        )
+        pp_vertex_total = posed_chosen.shape[0] * posed_chosen.shape[1]
         result["postprocess_frames_evaluated"] = int(pp_selected.sum())
-        result["collision_rate_subset"] = colliding_subset / pp_vertex_total
-        result["collision_rate_postprocessed"] = colliding_pp / pp_vertex_total
-        if posed_pp_errors:
-            result["posed_error_mm_subset"] = float(np.concatenate(posed_subset_errors).mean())
-            result["postprocessed_posed_error_mm"] = float(np.concatenate(posed_pp_errors).mean())
+        result["collision_rate_subset"] = pp_colliding / pp_vertex_total
+        result["collision_rate_postprocessed"] = int(after.sum()) / pp_vertex_total
+        if pp_truth:
+            truth_chosen = torch.from_numpy(np.concatenate(pp_truth))
+            result["posed_error_mm_subset"] = float(per_vertex_error_mm(torch.from_numpy(posed_chosen),
+                                                                        truth_chosen).mean())
+            result["postprocessed_posed_error_mm"] = float(per_vertex_error_mm(torch.from_numpy(fixed),
+                                                                               truth_chosen).mean())
     return result
 
 
@@ -269,6 +302,7 @@ def evaluate_models(
     timing_devices: tuple[str, ...] = ("cpu",),
     timing_batch_sizes: tuple[int, ...] = (1, 32),
     collision_device: str | None = None,
+    postprocess_workers: int = 1,
 ) -> dict[str, Any]:
     """Every model on every split plus inference timings: the body of ``drape evaluate``.
 
@@ -282,10 +316,12 @@ def evaluate_models(
         raise ValueError(f"need at least one model and one split, got {sorted(models)} and {sorted(splits)}")
     report: dict[str, Any] = {"splits": {}, "timing": {}}
     for split, data in splits.items():
+        truth_cache: dict[str, Any] = {}  # the ground truth's collisions, counted once per split
         report["splits"][split] = {
             name: evaluate_split(
                 model, data, posing=posing, postprocess=postprocess, postprocess_frames=postprocess_frames,
-                device=device, collision_device=collision_device,
+                device=device, collision_device=collision_device, postprocess_workers=postprocess_workers,
+                truth_cache=truth_cache,
             )
             for name, model in models.items()
         }
