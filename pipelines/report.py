@@ -344,4 +344,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--strict", action="store_true", help="exit 1 when any cell fails, supported or not")
     s.add_argument("--no-progress", action="store_true", help="no progress bar")
     s.set_defaults(func=run_stability_command)
+    from pipelines.floor import register_report as register_floor
+
+    register_floor(rs)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
