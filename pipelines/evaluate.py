@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -75,8 +76,30 @@ def missing_simulator_time(manifest) -> str | None:
     return None
 
 
+def default_postprocess_workers() -> int:
+    """Processes for the post-process: half the usable CPUs, at most 16, 1 below 8 CPUs (a
+    worker's start costs seconds, worth it only where many frames share many cores)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return 1 if cpus < 8 else min(16, cpus // 2)
+
+
+def floor_rows(floor: dict) -> list[tuple[str, str, float]]:
+    """(split, label, mm) rows of a ``drape report floor`` JSON for the evaluation table: the
+    history distance between two drapes halved (their mean is that far from each), and the
+    single-pair error on train_test."""
+    rows = []
+    history = floor.get("history") or {}
+    if history.get("unposed_mm") is not None:
+        rows.append(("all", "floor:history", 0.5 * float(history["unposed_mm"])))
+    single = floor.get("single_pair") or {}
+    if single.get("test_error_mm") is not None:
+        rows.append(("train_test", "floor:1-pair", float(single["test_error_mm"])))
+    return rows
+
+
 def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out: str | Path | None = None,
              postprocess_frames: int | None = 32, renders: int = 3, accuracy_report: str | None = None,
+             postprocess_workers: int | None = None, floor: str | None = None, analysis: bool = False,
              log=print) -> dict:
     import torch
 
@@ -97,6 +120,11 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     if postprocess_frames is not None:
         check_number(postprocess_frames, "--postprocess-frames", minimum=0, integer=True)
     check_number(renders, "--renders", minimum=0, integer=True)
+    if floor and not Path(floor).is_file():
+        raise UsageError(f"--floor {floor!r} does not exist (a floor.json from drape report floor)")
+    if postprocess_workers is None:
+        postprocess_workers = default_postprocess_workers()
+    check_number(postprocess_workers, "--postprocess-workers", minimum=1, integer=True)
     if accuracy_report and not Path(accuracy_report).is_file():
         raise UsageError(f"--accuracy-report {accuracy_report!r} does not exist (an accuracy.json from drape report accuracy)")
     reader = DatasetReader(data)
@@ -116,7 +144,19 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     timing_devices = ("cpu", "cuda") if torch.cuda.is_available() else ("cpu",)
     t0 = time.perf_counter()
     results = evaluate_models(models, splits, posing=posing, postprocess=True, postprocess_frames=postprocess_frames,
-                              device=device, timing_devices=timing_devices, timing_batch_sizes=(1, 32))
+                              device=device, timing_devices=timing_devices, timing_batch_sizes=(1, 32),
+                              postprocess_workers=postprocess_workers)
+    results["evaluation_seconds"] = round(time.perf_counter() - t0, 2)
+    if floor:
+        results["floor"] = json.loads(Path(floor).read_text())
+    if analysis:
+        from learn.tailornet.analysis import error_analysis
+
+        train_split = next((s for s in ("train_train", "train") if s in reader.splits and reader.num_frames(s) > 0), None)
+        if train_split is None:
+            raise ValueError(f"--analysis needs the dataset's training split (train_train), {data} has none")
+        train_frames = frame_arrays_from_dataset(DrapeDataset(data, train_split, frequencies=False))
+        results["analysis"] = error_analysis(models, train_frames, splits, device=device)
     sim_ms = simulator_ms_per_frame(reader.manifest)
     results["simulator"] = {"ms_per_kept_frame": sim_ms, "device": reader.manifest.provenance.get("device"),
                             "audit_mean_mm": (reader.manifest.audit or {}).get("mean_mm")}
@@ -168,7 +208,13 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
             table.append(f"{split:<12}{m:<13}{r['unposed_error_mm']:>11.2f}{r.get('posed_error_mm', float('nan')):>10.2f}"
                          f"{r.get('normal_error', float('nan')):>8.4f}"
                          f"{100 * r.get('collision_rate', float('nan')):>8.2f}{100 * r.get('collision_rate_postprocessed', float('nan')):>10.2f}")
+    for split, label, mm in floor_rows(results.get("floor", {})):
+        table.append(f"{split:<12}{label:<13}{mm:>11.2f}")
     log("\n".join(table))
+    if "analysis" in results:
+        from learn.tailornet.analysis import format_analysis
+
+        log(format_analysis(results["analysis"]))
     if speedups:
         log("speed-up over the simulator: " + ", ".join(f"{k} {v:.0f}x" for k, v in speedups.items()))
     elif sim_ms is None:
@@ -216,7 +262,8 @@ def run(args: argparse.Namespace) -> int:
         evaluate_static_set(args.run, args.data, device=args.device, out=args.out)
         return 0
     evaluate(args.run, args.data, device=args.device, out=args.out, postprocess_frames=args.postprocess_frames,
-             renders=args.renders, accuracy_report=args.accuracy_report)
+             renders=args.renders, accuracy_report=args.accuracy_report, postprocess_workers=args.postprocess_workers,
+             floor=args.floor, analysis=args.analysis)
     return 0
 
 
@@ -230,5 +277,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", default=None, help="report directory (default RUN/evaluation)")
     p.add_argument("--postprocess-frames", type=int, default=32, help="frames per split to post-process (slow part)")
     p.add_argument("--renders", type=int, default=3, help="predicted-vs-simulated renders to write")
+    p.add_argument("--postprocess-workers", type=int, default=None,
+                   help="processes for the post-process (default: half the CPUs up to 16; 1 below 8 CPUs)")
+    p.add_argument("--floor", default=None, help="floor.json from drape report floor (printed beside the learners)")
+    p.add_argument("--analysis", action="store_true",
+                   help="error analysis: train vs test error, error per pair and against the distance to the nearest "
+                        "training pose (adds 'analysis' to evaluation.json)")
     p.add_argument("--accuracy-report", default=None, help="accuracy.json from drape report accuracy (adds the simulator sweep)")
     p.set_defaults(func=run)

@@ -95,3 +95,21 @@ def test_single_pair_mlp_overfits_a_tiny_pair(tmp_path: Path) -> None:
     assert on_train["error_mm"] < 0.15 * mean_error, (on_train, mean_error)
     on_test = single_pair_errors(model, keys, test)
     assert on_test["frames"] == 6 and on_test["error_mm"] > on_train["error_mm"], (on_test, on_train)
+
+
+def test_floor_command_refuses_bad_options_in_one_line(tmp_path: Path, capsys) -> None:
+    from pipelines.cli import main
+
+    for args, fragment in ((["--pairs", "0"], "--pairs"), (["--skip-history", "--skip-single-pair"], "nothing"),
+                           (["--train-device", "gpu"], "--train-device")):
+        status = main(["report", "floor", "--data", str(tmp_path), "--out", str(tmp_path / "out"), *args])
+        err = capsys.readouterr().err
+        assert status == 2 and err.count("\n") == 1 and fragment in err and "Traceback" not in err, err
+
+
+def test_floor_rows_halve_the_history_distance() -> None:
+    from pipelines.evaluate import floor_rows
+
+    rows = floor_rows({"history": {"unposed_mm": 3.0}, "single_pair": {"test_error_mm": 7.5}})
+    assert rows == [("all", "floor:history", 1.5), ("train_test", "floor:1-pair", 7.5)]
+    assert floor_rows({"history": {"unposed_mm": None}}) == []

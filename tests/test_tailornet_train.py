@@ -440,3 +440,28 @@ def test_mixed_precision_is_switchable_and_keeps_the_error(tmp_path: Path) -> No
         predictions[mixed] = predict_displacements(model, test.pose, test.shape, test.style)
     assert not np.array_equal(predictions[False], predictions[True]), "mixed_precision had no effect"
     assert abs(errors[True] - errors[False]) < 0.02 * errors[False], errors
+
+
+def test_error_analysis_splits_the_error_by_pair_and_pose_distance(trained: dict) -> None:
+    from learn.tailornet.analysis import error_analysis, format_analysis, nearest_pose_distance
+
+    train, test = trained["train"], trained["test"]
+    models = {"tailornet": trained["tailornet"], "baseline": trained["baseline"]}
+    report = error_analysis(models, train, {"test": test, "train_again": train}, bins=3, train_frames=None)
+    for name in models:
+        part = report["splits"]["test"]["models"][name]
+        assert part["error_mm"] == pytest.approx(evaluate_split(models[name], test)["unposed_error_mm"], rel=1e-6)
+        assert part["generalisation_gap_mm"] == pytest.approx(part["error_mm"] - report["train"][name])
+        assert sum(r["frames"] for r in part["per_pair"]) == test.frame_count
+        weighted = sum(r["frames"] * r["error_mm"] for r in part["per_pair"]) / test.frame_count
+        assert weighted == pytest.approx(part["error_mm"], rel=1e-5), "pair errors do not add up to the split's"
+        assert report["splits"]["train_again"]["models"][name]["generalisation_gap_mm"] == pytest.approx(0.0, abs=1e-4)
+    bins = report["splits"]["test"]["distance_bins"]
+    assert sum(b["frames"] for b in bins) == test.frame_count and len(bins) == 3
+    assert all(a["upper_rad"] <= b["lower_rad"] + 1e-9 for a, b in zip(bins, bins[1:])), bins
+    assert report["splits"]["train_again"]["median_nearest_pose_rad"] == 0.0, "a training pose is its own nearest"
+    # the reference's own poses are at distance 0; a shifted pose at its shift's norm
+    shifted = train.pose[:2] + np.array([0.3, 0.4, 0, 0, 0, 0], np.float32)
+    distance = nearest_pose_distance(np.concatenate([train.pose[:2], shifted]), train.pose, np.arange(POSE_SIZE))
+    assert distance[:2].tolist() == [0.0, 0.0] and (distance[2:] <= 0.5 + 1e-6).all()
+    assert "nearest training pose" in format_analysis(report)
