@@ -1,14 +1,27 @@
-"""Optional cloth self-contact: vertex-triangle repulsion found with a BVH over the cloth.
+"""Cloth self-contact found with a BVH over the cloth: vertex-triangle pushes (``SolverXPBD``)
+or vertex-triangle and edge-edge pair lists for a contact energy (``SolverVBD``).
 
 All worlds' cloth triangles live in one ``wp.Mesh`` whose points are the particles shifted to
 per-world grid cells (as for the body), so one refit and one query launch serve every world
-and a world never sees another world's cloth.  Once per substep each particle finds the
-nearest triangle outside its 2-ring within ``thickness + margin`` (BVH AABB query, exact
-point-triangle distance) and remembers which side of it it was on.  In every solver
-iteration the particle is then pushed part of the way (``relaxation``) back to ``thickness`` on
-that side (one-sided: the particle moves, each triangle's corners are pushed by their own
-queries), written to a per-particle delta so results stay deterministic.  None of this runs unless
+and a world never sees another world's cloth.  None of this runs unless
 ``Features.self_contact`` is on.
+
+**Pushes** (default): once per search each particle finds the nearest triangle outside its
+2-ring within ``thickness + margin`` (BVH AABB query, exact point-triangle distance) and
+remembers which side of it it was on.  In every solver iteration the particle is then pushed
+part of the way (``relaxation``) back to ``thickness`` on that side (one-sided: the particle
+moves, each triangle's corners are pushed by their own queries), written to a per-particle
+delta so results stay deterministic.
+
+**Pairs** (``pairs=True``): each search lists, within the reach, every particle's nearest
+triangles that do not contain it, every triangle's nearest particles and every edge's nearest
+edges that share no vertex with it (at most ``pairs_per_primitive`` each, the nearest, ties
+broken by index, so the lists do not depend on the BVH's visit order). A solver gives each pair
+the energy stiffness / 2 (r - d)^2 while the pair's distance d is below its radius r (the
+thickness, or the pair's distance in the rest geometry where that is less) and every particle of
+the pair its share of the push: as the point, as a triangle's corner, as an edge's end
+(``simulate.solvers.vbd.kernels``). Neighbours are pairs too (only primitives sharing a vertex
+are not): a fold pushes back wherever it closes below its rest distance.
 
 **Displacement bounds** (conservative, as in VBD's and Offset Geometric Contact's cloth contact):
 at each search, every particle also gets ``d_min``, the smallest distance from it to any
@@ -42,6 +55,9 @@ MAX_SWEEP_M = 0.03
 BOUND_FRACTION = 0.45
 """Share of its smallest pair distance a particle may move between searches (< 1/2: two
 primitives moving toward each other then close by at most 90 % of their distance)."""
+
+PAIRS_PER_PRIMITIVE = 8
+"""Contact pairs listed per particle, triangle or edge (the nearest within the reach)."""
 
 MIN_SEPARATION_M = 1.0e-4
 """Distance [m] the bounds keep pairs apart: a particle moves at most ``BOUND_FRACTION`` x (its
@@ -219,8 +235,9 @@ def project_self_contacts(
 
 
 @wp.func
-def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> float:
-    """Distance [m] between segments p1q1 and p2q2 (Ericson 2004, 5.1.9)."""
+def segment_closest(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> wp.vec3:
+    """Closest points of segments p1q1 and p2q2 (Ericson 2004, 5.1.9): ``(s, t, distance [m])``
+    with the points at ``p1 + s (q1 - p1)`` and ``p2 + t (q2 - p2)``."""
     d1 = q1 - p1
     d2 = q2 - p2
     r = p1 - p2
@@ -231,7 +248,7 @@ def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> floa
     t = float(0.0)
     eps = 1.0e-20
     if a <= eps and e <= eps:
-        return wp.length(r)
+        return wp.vec3(0.0, 0.0, wp.length(r))
     if a <= eps:
         t = wp.clamp(f / e, 0.0, 1.0)
     else:
@@ -250,7 +267,244 @@ def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> floa
             elif t > 1.0:
                 t = 1.0
                 s = wp.clamp((b - c) / a, 0.0, 1.0)
-    return wp.length((p1 + d1 * s) - (p2 + d2 * t))
+    return wp.vec3(s, t, wp.length((p1 + d1 * s) - (p2 + d2 * t)))
+
+
+@wp.func
+def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> float:
+    """Distance [m] between segments p1q1 and p2q2."""
+    return segment_closest(p1, q1, p2, q2)[2]
+
+
+@wp.func
+def insert_nearest(ids: wp.array2d(dtype=wp.int32), dist: wp.array2d(dtype=float), row: int, key: int, d: float):
+    """Puts ``key`` at distance ``d`` into row ``row`` of a list kept sorted by (distance, key),
+    the farthest entry falling off a full row; a key already listed is not listed twice. The
+    result does not depend on the order keys arrive in (no atomics, one row per thread)."""
+    n = ids.shape[1]
+    pos = n
+    for k in range(n):
+        kk = ids[row, k]
+        if kk == key:
+            return
+        if pos == n:
+            if kk < 0 or d < dist[row, k] or (d == dist[row, k] and key < kk):
+                pos = k
+    if pos == n:
+        return
+    k = n - 1
+    while k > pos:
+        ids[row, k] = ids[row, k - 1]
+        dist[row, k] = dist[row, k - 1]
+        k -= 1
+    ids[row, pos] = key
+    dist[row, pos] = d
+
+
+@wp.func
+def contact_radius(rest_distance: float, thickness: float) -> float:
+    """Distance [m] a pair's contact energy keeps: ``thickness``, or the pair's distance in the
+    rest geometry where that is less (where panels meet at an acute angle, the rest shape is
+    at rest)."""
+    return wp.min(thickness, rest_distance)
+
+
+@wp.kernel
+def vertex_triangle_pairs(
+    mesh: wp.uint64,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    x_rest: wp.array(dtype=wp.vec3),
+    reach: float,
+    thickness: float,
+    # Out:
+    pair_tri: wp.array2d(dtype=wp.int32),
+    pair_dist: wp.array2d(dtype=float),
+    pair_radius: wp.array2d(dtype=float),
+    # In/out (filled with ``reach`` by the caller):
+    d_min: wp.array(dtype=float),
+):
+    """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
+    -1 past the last; their contact radii in ``pair_radius``), and the bounds' smallest distances
+    of these pairs to the particle and the triangle's corners (float atomic min)."""
+    i = wp.tid()
+    for k in range(pair_tri.shape[1]):
+        pair_tri[i, k] = -1
+    w = particle_world[i]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+        return
+    q = p + world_offset[w]
+    r_box = reach + shift_tolerance(world_offset[w])
+    r = wp.vec3(r_box, r_box, r_box)
+    query = wp.mesh_query_aabb(mesh, q - r, q + r)
+    face = int(0)
+    best = reach
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        a = tri_indices[face, 0]
+        b = tri_indices[face, 1]
+        c = tri_indices[face, 2]
+        if a == i or b == i or c == i:
+            continue
+        bary = closest_point_barycentric(p, x[a], x[b], x[c])
+        d = wp.length(p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2]))
+        if d >= reach:
+            continue
+        best = wp.min(best, d)
+        wp.atomic_min(d_min, a, d)
+        wp.atomic_min(d_min, b, d)
+        wp.atomic_min(d_min, c, d)
+        insert_nearest(pair_tri, pair_dist, i, face, d)
+    wp.atomic_min(d_min, i, best)
+    pr = x_rest[i]
+    for k in range(pair_tri.shape[1]):
+        t = pair_tri[i, k]
+        if t < 0:
+            break
+        ra = x_rest[tri_indices[t, 0]]
+        rb = x_rest[tri_indices[t, 1]]
+        rc = x_rest[tri_indices[t, 2]]
+        bary = closest_point_barycentric(pr, ra, rb, rc)
+        pair_radius[i, k] = contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])), thickness)
+
+
+@wp.kernel
+def triangle_vertex_pairs(
+    mesh: wp.uint64,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    x_rest: wp.array(dtype=wp.vec3),
+    reach: float,
+    thickness: float,
+    # Out:
+    pair_vertex: wp.array2d(dtype=wp.int32),
+    pair_dist: wp.array2d(dtype=float),
+    pair_radius: wp.array2d(dtype=float),
+):
+    """Each triangle's nearest particles within ``reach`` [m] that are not its corners: the
+    vertex-triangle pairs seen from the triangle, so its corners feel the contact too."""
+    t = wp.tid()
+    for k in range(pair_vertex.shape[1]):
+        pair_vertex[t, k] = -1
+    w = tri_world[t]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    a = tri_indices[t, 0]
+    b = tri_indices[t, 1]
+    c = tri_indices[t, 2]
+    xa = x[a]
+    xb = x[b]
+    xc = x[c]
+    if not (wp.isfinite(xa[0] + xa[1] + xa[2]) and wp.isfinite(xb[0] + xb[1] + xb[2])
+            and wp.isfinite(xc[0] + xc[1] + xc[2])):
+        return
+    off = world_offset[w]
+    r_box = reach + shift_tolerance(off)
+    r = wp.vec3(r_box, r_box, r_box)
+    query = wp.mesh_query_aabb(mesh, wp.min(wp.min(xa, xb), xc) + off - r, wp.max(wp.max(xa, xb), xc) + off + r)
+    face = int(0)
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        for m in range(3):
+            j = tri_indices[face, m]
+            if j == a or j == b or j == c:
+                continue
+            p = x[j]
+            bary = closest_point_barycentric(p, xa, xb, xc)
+            d = wp.length(p - (xa * bary[0] + xb * bary[1] + xc * bary[2]))
+            if d < reach:
+                insert_nearest(pair_vertex, pair_dist, t, j, d)
+    ra = x_rest[a]
+    rb = x_rest[b]
+    rc = x_rest[c]
+    for k in range(pair_vertex.shape[1]):
+        j = pair_vertex[t, k]
+        if j < 0:
+            break
+        pr = x_rest[j]
+        bary = closest_point_barycentric(pr, ra, rb, rc)
+        pair_radius[t, k] = contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])), thickness)
+
+
+@wp.kernel
+def edge_edge_pairs(
+    mesh: wp.uint64,
+    edges: wp.array(dtype=wp.vec2i),
+    tri_edges: wp.array2d(dtype=wp.int32),
+    tri_indices: wp.array2d(dtype=wp.int32),
+    tri_world: wp.array(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    world_offset: wp.array(dtype=wp.vec3),
+    x: wp.array(dtype=wp.vec3),
+    x_rest: wp.array(dtype=wp.vec3),
+    reach: float,
+    thickness: float,
+    # Out:
+    pair_edge: wp.array2d(dtype=wp.int32),
+    pair_dist: wp.array2d(dtype=float),
+    pair_radius: wp.array2d(dtype=float),
+    # In/out:
+    d_min: wp.array(dtype=float),
+):
+    """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (``tri_edges[f,
+    k]``: the edge from corner k to corner k + 1 of face f), and the bounds' smallest distance at
+    both its ends."""
+    e = wp.tid()
+    for k in range(pair_edge.shape[1]):
+        pair_edge[e, k] = -1
+    i0 = edges[e][0]
+    i1 = edges[e][1]
+    w = particle_world[i0]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i0]
+    q = x[i1]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]) and wp.isfinite(q[0]) and wp.isfinite(q[1])
+            and wp.isfinite(q[2])):
+        return
+    off = world_offset[w]
+    r_box = reach + shift_tolerance(off)
+    r = wp.vec3(r_box, r_box, r_box)
+    query = wp.mesh_query_aabb(mesh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
+    face = int(0)
+    best = reach
+    while wp.mesh_query_aabb_next(query, face):
+        if tri_world[face] != w:
+            continue
+        for k in range(3):
+            a = tri_indices[face, k]
+            b = tri_indices[face, (k + 1) % 3]
+            if a == i0 or a == i1 or b == i0 or b == i1:
+                continue
+            d = segment_distance(p, q, x[a], x[b])
+            best = wp.min(best, d)
+            if d < reach:
+                insert_nearest(pair_edge, pair_dist, e, tri_edges[face, k], d)
+    wp.atomic_min(d_min, i0, best)
+    wp.atomic_min(d_min, i1, best)
+    rp = x_rest[i0]
+    rq = x_rest[i1]
+    for k in range(pair_edge.shape[1]):
+        f = pair_edge[e, k]
+        if f < 0:
+            break
+        pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[f][0]], x_rest[edges[f][1]]), thickness)
 
 
 @wp.kernel
@@ -356,7 +610,8 @@ class SelfContact:
     def __init__(self, model: ClothModel, *, thickness: float | None = None, margin: float = 5.0e-3,
                  rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
                  bounds: bool = True, bound_fraction: float = BOUND_FRACTION,
-                 min_separation: float = MIN_SEPARATION_M) -> None:
+                 min_separation: float = MIN_SEPARATION_M, pairs: bool = False,
+                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE) -> None:
         """
         Args:
             model: cloth model.
@@ -379,6 +634,13 @@ class SelfContact:
             bound_fraction: share of its smallest pair distance a particle may move between
                 searches, in (0, 0.5).
             min_separation: distance the bounds keep pairs apart [m] (``MIN_SEPARATION_M``).
+            pairs: list every particle's nearest triangles, every triangle's nearest particles
+                and every edge's nearest edges within the reach at each search (``vt_*``,
+                ``tv_*``, ``ee_*``), for a contact energy acting on all particles of a pair
+                (``SolverVBD``), instead of one candidate triangle per particle; the bounds'
+                distances come from the same queries.
+            pairs_per_primitive: the most pairs listed per particle, triangle or edge (the
+                nearest ones).
         """
         self.model = model
         dev = model.device
@@ -403,6 +665,9 @@ class SelfContact:
         if not (np.isfinite(min_separation) and 0.0 <= min_separation < self.thickness):
             raise ValueError(f"self-contact min_separation must be in [0, thickness) [m] (got {min_separation!r})")
         self.bounds = bool(bounds)
+        self.pairs = bool(pairs)
+        if int(pairs_per_primitive) != pairs_per_primitive or pairs_per_primitive < 1:
+            raise ValueError(f"self-contact pairs_per_primitive must be an integer >= 1 (got {pairs_per_primitive!r})")
         self.bound_fraction = float(bound_fraction)
         self.min_separation = float(min_separation)
         rest = model.particle_q_rest_np
@@ -428,15 +693,46 @@ class SelfContact:
         (no bound) without ``bounds``."""
         self.x_searched = wp.zeros(count, dtype=wp.vec3, device=dev)
         """Positions at the last search [m]: the centres of the displacement bounds."""
-        if self.bounds:
+        if self.bounds or self.pairs:
             tris = np.asarray(model.tri_indices_np, np.int64).reshape(-1, 3)
-            pairs = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
-            edges = np.unique(pairs, axis=0) if len(pairs) else np.zeros((1, 2), np.int64)
+            sides = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1)  # (T, 3, 2)
+            keys = np.sort(sides.reshape(-1, 2), axis=1)
+            edges, inverse = np.unique(keys, axis=0, return_inverse=True) if len(keys) else (np.zeros((1, 2), np.int64),
+                                                                                           np.zeros(0, np.int64))
             self.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
+            """Cloth edges (E, 2), each once, lower index first."""
+            self.tri_edges = wp.array(inverse.reshape(-1, 3).astype(np.int32) if len(keys) else np.zeros((1, 3), np.int32),
+                                      dtype=wp.int32, device=dev)
+            """Edge of each face from corner k to corner k + 1, (T, 3)."""
+            if self.pairs:
+                k = int(pairs_per_primitive)
+                n_tri = max(model.tri_count, 1)
+                n_edge = len(edges)
+                self.vt_tri = wp.full((count, k), -1, dtype=wp.int32, device=dev)
+                """Each particle's nearest triangles within the reach, nearest first, -1 after the last."""
+                self.vt_radius = wp.zeros((count, k), dtype=float, device=dev)
+                """Contact radius of each listed pair [m] (``contact_radius``)."""
+                self.tv_vertex = wp.full((n_tri, k), -1, dtype=wp.int32, device=dev)
+                """Each triangle's nearest particles within the reach (not its corners)."""
+                self.tv_radius = wp.zeros((n_tri, k), dtype=float, device=dev)
+                self.ee_edge = wp.full((n_edge, k), -1, dtype=wp.int32, device=dev)
+                """Each edge's nearest edges within the reach (sharing no vertex with it)."""
+                self.ee_radius = wp.zeros((n_edge, k), dtype=float, device=dev)
+                self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_tri, k), dtype=float, device=dev),
+                              wp.zeros((n_edge, k), dtype=float, device=dev)]
+                ends = np.concatenate([edges[:, 0], edges[:, 1]])
+                code = np.concatenate([2 * np.arange(n_edge), 2 * np.arange(n_edge) + 1])
+                order = np.lexsort((code, ends))
+                start = np.searchsorted(ends[order], np.arange(count + 1)).astype(np.int32)
+                self.edge_adj_start = wp.array(start, dtype=wp.int32, device=dev)
+                """CSR start of each particle's edges in ``edge_adj`` (particle_count + 1,)."""
+                self.edge_adj = wp.array(code[order].astype(np.int32), dtype=wp.int32, device=dev)
+                """2 e + end for each edge e a particle ends (end 0: ``edges[e][0]``)."""
 
     def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
                world_self_contact: wp.array | None = None) -> None:
-        """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle.
+        """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle, or
+        with ``pairs`` the pair lists (and with ``bounds`` the displacement bounds).
 
         With velocities ``v`` [m/s] and the substep ``dt`` [s], the search of each particle also
         covers its travel over the ``detect_every - 1`` substeps until the next search.
@@ -446,18 +742,28 @@ class SelfContact:
         wp.launch(place_cloth_points, dim=m.particle_count, inputs=[x, m.particle_world, self.world_offset],
                   outputs=[self.mesh.points], device=m.device)
         self.mesh.refit()
-        wp.launch(detect_self_contacts, dim=m.particle_count,
-                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active,
-                          world_active if world_self_contact is None else world_self_contact, self.world_offset,
-                          x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
-                          self.rest, self.rest_exclusion, self.thickness + self.margin,
-                          x if v is None else v, 0.0 if v is None else float(dt) * (self.detect_every - 1), MAX_SWEEP_M],
-                  outputs=[self.candidate, self.side], device=m.device)
-        if self.bounds:
+        if not self.pairs:
+            self._detect_candidates(x, world_active, v, dt, world_self_contact)
+        if self.bounds or self.pairs:
             reach = self.thickness + self.margin
             active_sc = world_active if world_self_contact is None else world_self_contact
             self.d_min.fill_(reach)
             wp.copy(self.x_searched, x)
+            if self.pairs:
+                wp.launch(vertex_triangle_pairs, dim=m.particle_count,
+                          inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
+                                  self.world_offset, x, self.rest, reach, self.thickness],
+                          outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min], device=m.device)
+                wp.launch(triangle_vertex_pairs, dim=m.tri_count,
+                          inputs=[self.mesh.id, m.tri_indices, m.tri_world, world_active, active_sc, self.world_offset,
+                                  x, self.rest, reach, self.thickness],
+                          outputs=[self.tv_vertex, self._dist[1], self.tv_radius], device=m.device)
+                wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
+                          inputs=[self.mesh.id, self.edges, self.tri_edges, m.tri_indices, m.tri_world,
+                                  m.particle_world, world_active, active_sc, self.world_offset, x, self.rest, reach,
+                                  self.thickness],
+                          outputs=[self.ee_edge, self._dist[2], self.ee_radius, self.d_min], device=m.device)
+                return
             wp.launch(vertex_triangle_bounds, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
                               self.world_offset, x, reach],
@@ -466,6 +772,17 @@ class SelfContact:
                       inputs=[self.mesh.id, self.edges, m.tri_indices, m.tri_world, m.particle_world, world_active,
                               active_sc, self.world_offset, x, reach],
                       outputs=[self.d_min], device=m.device)
+
+    def _detect_candidates(self, x, world_active, v, dt, world_self_contact) -> None:
+        """One candidate triangle and side per particle (the pushes' search)."""
+        m = self.model
+        wp.launch(detect_self_contacts, dim=m.particle_count,
+                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active,
+                          world_active if world_self_contact is None else world_self_contact, self.world_offset,
+                          x, m.particle_adj_start, m.particle_adj_slot, 3 * m.tri_count,
+                          self.rest, self.rest_exclusion, self.thickness + self.margin,
+                          x if v is None else v, 0.0 if v is None else float(dt) * (self.detect_every - 1), MAX_SWEEP_M],
+                  outputs=[self.candidate, self.side], device=m.device)
 
     def project(self, x: wp.array, world_active: wp.array) -> None:
         """Corrections for the current positions into ``delta`` (applied by the particle pass)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import warp as wp
 
 from simulate.contact.closest import closest_point_barycentric
+from simulate.contact.self_contact import segment_closest
 from simulate.solvers.common_kernels import bending_angle_grad, friction_cancel, tile_writer, triangle_coefficients
 from simulate.solvers.xpbd.kernels import block_sync
 
@@ -147,34 +148,48 @@ def bending_vertex_terms(x1: wp.vec3, x2: wp.vec3, x3: wp.vec3, x4: wp.vec3, cor
 
 
 @wp.func
-def self_contact_terms(xi: wp.vec3d, a: wp.vec3d, b: wp.vec3d, c: wp.vec3d, side: float, thickness: float,
-                       stiffness: float):
-    """Penalty force [N] and Hessian block [N/m] of a particle at ``xi`` held ``thickness`` [m] off
-    triangle abc on its ``side`` (+1/-1 along the counter-clockwise normal): stiffness (thickness -
-    gap) n while the gap is short, with the triangle held where it is; positions relative to the
-    particle, so float32 is exact enough."""
-    pa = wp.vec3(a - xi)
-    pb = wp.vec3(b - xi)
-    pc = wp.vec3(c - xi)
-    n = wp.cross(pb - pa, pc - pa)
-    n_len = wp.length(n)
-    if n_len < 1.0e-12:
+def vertex_triangle_contact(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, role: int, radius: float,
+                            stiffness: float):
+    """Force [N] and Hessian block [N/m] on one particle of a vertex-triangle pair from the
+    contact energy stiffness / 2 (radius - d)^2 while the distance d between the point ``p`` and
+    triangle abc is below ``radius`` [m]: the particle is the point (``role`` -1) or the
+    triangle's corner ``role`` (0, 1, 2), which takes its barycentric share of the push. Positions
+    relative to the particle (float32 is exact enough); Gauss-Newton Hessian."""
+    bary = closest_point_barycentric(p, a, b, c)
+    diff = p - (a * bary[0] + b * bary[1] + c * bary[2])
+    d = wp.length(diff)
+    if d >= radius or d < 1.0e-9:
         return wp.vec3(0.0), wp.mat33(0.0)
-    n = n / n_len * side
-    origin = wp.vec3(0.0)
-    bary = closest_point_barycentric(origin, pa, pb, pc)
-    closest = pa * bary[0] + pb * bary[1] + pc * bary[2]
-    gap = -wp.dot(closest, n)
-    if gap >= thickness:
+    n = diff / d
+    share = float(1.0)
+    if role >= 0:
+        share = -bary[role]
+    return n * (stiffness * (radius - d) * share), wp.outer(n, n) * (stiffness * share * share)
+
+
+@wp.func
+def edge_edge_contact(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3, end: int, radius: float,
+                      stiffness: float):
+    """Force [N] and Hessian block [N/m] on end ``end`` (0: p1, 1: q1) of edge p1q1 from the
+    contact energy stiffness / 2 (radius - d)^2 while its distance d to edge p2q2 is below
+    ``radius`` [m]; the end takes its share of the push by its weight at the closest point."""
+    closest = segment_closest(p1, q1, p2, q2)
+    d = closest[2]
+    if d >= radius or d < 1.0e-9:
         return wp.vec3(0.0), wp.mat33(0.0)
-    return n * (stiffness * (thickness - gap)), wp.outer(n, n) * stiffness
+    n = ((p1 + (q1 - p1) * closest[0]) - (p2 + (q2 - p2) * closest[1])) / d
+    share = wp.where(end == 0, 1.0 - closest[0], closest[0])
+    return n * (stiffness * (radius - d) * share), wp.outer(n, n) * (stiffness * share * share)
 
 
 @wp.func
 def within_bound(p: wp.vec3d, searched: wp.vec3, d_min: float, fraction: float, min_separation: float) -> wp.vec3d:
     """``p`` [m] pulled back to the particle's self-contact displacement bound around where it was
     searched: ``fraction`` of its smallest pair distance ``d_min`` less ``min_separation`` (a tenth
-    of ``d_min`` for a pair already closer; ``simulate.contact.self_contact``)."""
+    of ``d_min`` for a pair already closer; ``simulate.contact.self_contact``); ``fraction`` 0: no
+    bound."""
+    if fraction <= 0.0:
+        return p
     start = wp.vec3d(searched)
     step = p - start
     length = wp.length(step)
@@ -199,10 +214,10 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     0 they are read and written in global memory.  One kernel per flag set: the flags remove what
     a scene does not have at compile time.
 
-    With ``self_contact``, each particle's Newton step also carries the penalty of its self-contact
-    candidate triangle (``SelfContact``: found at the search, on the side it was found on), and the
-    step is then kept within the particle's displacement bound of where it was searched, after the
-    body-contact plane: where a body part presses two layers together, the layers do not cross and
+    With ``self_contact``, each particle's Newton step also carries the contact energy of every
+    vertex-triangle and edge-edge pair it belongs to (``SelfContact``'s pair lists of the last
+    search; the pair pushes all of its particles), and the step is then kept within the particle's
+    displacement bound of where it was searched, after the body-contact plane: where a body part presses two layers together, the layers do not cross and
     the body (whose skin is soft in reality) is what gives."""
     shared = tile_particles > 0
     tile_n = max(tile_particles, 1)
@@ -219,6 +234,66 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     position.__annotations__ = {"xs": tile_type, "x64": wp.array(dtype=wp.vec3d), "j": int, "base": int,
                                 "return": wp.vec3d}
     position = wp.func(position, module="unique")
+
+    def self_contact_vertex_terms(xs, x64, i, base, xi, adj_start, adj_slot, tri_count, tri_indices, vt_tri, vt_radius,
+                                  tv_vertex, tv_radius, ee_edge, ee_radius, edges, edge_adj_start, edge_adj, stiffness):
+        """Force [N] and Hessian [N/m] on particle ``i`` (at ``xi``) from every contact pair it
+        belongs to: as the point of its own vertex-triangle pairs, as a corner of its triangles'
+        pairs, as an end of its edges' edge-edge pairs (``SelfContact`` with ``pairs``)."""
+        force = wp.vec3(0.0)
+        hess = wp.mat33(0.0)
+        for k in range(vt_tri.shape[1]):
+            t = vt_tri[i, k]
+            if t < 0:
+                break
+            f, h = vertex_triangle_contact(wp.vec3(0.0), wp.vec3(position(xs, x64, tri_indices[t, 0], base) - xi),
+                                           wp.vec3(position(xs, x64, tri_indices[t, 1], base) - xi),
+                                           wp.vec3(position(xs, x64, tri_indices[t, 2], base) - xi), -1,
+                                           vt_radius[i, k], stiffness)
+            force = force + f
+            hess = hess + h
+        for s in range(adj_start[i], adj_start[i + 1]):
+            slot = adj_slot[s]
+            if slot < 3 * tri_count:
+                t = slot // 3
+                corner = slot - 3 * t
+                for k in range(tv_vertex.shape[1]):
+                    j = tv_vertex[t, k]
+                    if j < 0:
+                        break
+                    f, h = vertex_triangle_contact(wp.vec3(position(xs, x64, j, base) - xi),
+                                                   wp.vec3(position(xs, x64, tri_indices[t, 0], base) - xi),
+                                                   wp.vec3(position(xs, x64, tri_indices[t, 1], base) - xi),
+                                                   wp.vec3(position(xs, x64, tri_indices[t, 2], base) - xi), corner,
+                                                   tv_radius[t, k], stiffness)
+                    force = force + f
+                    hess = hess + h
+        for s in range(edge_adj_start[i], edge_adj_start[i + 1]):
+            code = edge_adj[s]
+            e = code // 2
+            end = code - 2 * e
+            p1 = wp.vec3(position(xs, x64, edges[e][0], base) - xi)
+            q1 = wp.vec3(position(xs, x64, edges[e][1], base) - xi)
+            for k in range(ee_edge.shape[1]):
+                g = ee_edge[e, k]
+                if g < 0:
+                    break
+                f, h = edge_edge_contact(p1, q1, wp.vec3(position(xs, x64, edges[g][0], base) - xi),
+                                         wp.vec3(position(xs, x64, edges[g][1], base) - xi), end, ee_radius[e, k],
+                                         stiffness)
+                force = force + f
+                hess = hess + h
+        return force, hess
+
+    self_contact_vertex_terms.__annotations__ = {
+        "xs": tile_type, "x64": wp.array(dtype=wp.vec3d), "i": int, "base": int, "xi": wp.vec3d,
+        "adj_start": wp.array(dtype=wp.int32), "adj_slot": wp.array(dtype=wp.int32), "tri_count": int,
+        "tri_indices": wp.array2d(dtype=wp.int32), "vt_tri": wp.array2d(dtype=wp.int32),
+        "vt_radius": wp.array2d(dtype=float), "tv_vertex": wp.array2d(dtype=wp.int32),
+        "tv_radius": wp.array2d(dtype=float), "ee_edge": wp.array2d(dtype=wp.int32),
+        "ee_radius": wp.array2d(dtype=float), "edges": wp.array(dtype=wp.vec2i),
+        "edge_adj_start": wp.array(dtype=wp.int32), "edge_adj": wp.array(dtype=wp.int32), "stiffness": float}
+    self_contact_vertex_terms = wp.func(self_contact_vertex_terms, module="unique")
 
     @wp.kernel(module="unique", enable_backward=False)
     def solve_vertices_vbd(
@@ -252,10 +327,16 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         # Substep start:
         x64_prev: wp.array(dtype=wp.vec3d),
         target: wp.array(dtype=wp.vec3),
-        # Self-contact (SelfContact's last search):
-        sc_candidate: wp.array(dtype=wp.int32),
-        sc_side: wp.array(dtype=float),
-        sc_thickness: float,
+        # Self-contact (SelfContact's pair lists of the last search):
+        sc_vt_tri: wp.array2d(dtype=wp.int32),
+        sc_vt_radius: wp.array2d(dtype=float),
+        sc_tv_vertex: wp.array2d(dtype=wp.int32),
+        sc_tv_radius: wp.array2d(dtype=float),
+        sc_ee_edge: wp.array2d(dtype=wp.int32),
+        sc_ee_radius: wp.array2d(dtype=float),
+        sc_edges: wp.array(dtype=wp.vec2i),
+        sc_edge_adj_start: wp.array(dtype=wp.int32),
+        sc_edge_adj: wp.array(dtype=wp.int32),
         sc_stiffness: float,
         sc_x_searched: wp.array(dtype=wp.vec3),
         sc_d_min: wp.array(dtype=float),
@@ -318,12 +399,11 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                     sc_on = int(0)
                     if wp.static(self_contact):
                         sc_on = world_self_contact[w]
-                        tc = sc_candidate[i]
-                        if sc_on != 0 and tc >= 0:
-                            fc, hc = self_contact_terms(xi, position(xs, x64, tri_indices[tc, 0], base),
-                                                        position(xs, x64, tri_indices[tc, 1], base),
-                                                        position(xs, x64, tri_indices[tc, 2], base), sc_side[i],
-                                                        sc_thickness, sc_stiffness)
+                        if sc_on != 0:
+                            fc, hc = self_contact_vertex_terms(xs, x64, i, base, xi, adj_start, adj_slot, tri_count,
+                                                               tri_indices, sc_vt_tri, sc_vt_radius, sc_tv_vertex,
+                                                               sc_tv_radius, sc_ee_edge, sc_ee_radius, sc_edges,
+                                                               sc_edge_adj_start, sc_edge_adj, sc_stiffness)
                             force = force + fc
                             hess = hess + hc
                     p = xi

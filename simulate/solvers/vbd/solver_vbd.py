@@ -119,7 +119,7 @@ class SolverVBD(SolverBase):
         if use_self:
             from simulate.contact.self_contact import SelfContact
 
-            self.self_contact = SelfContact(model, **dict(self_contact_options or {}))
+            self.self_contact = SelfContact(model, **{**dict(self_contact_options or {}), "pairs": True})
         self.iterations = int(iterations)
         self.block_dim = int(block_dim)
         dev = self.device
@@ -161,8 +161,16 @@ class SolverVBD(SolverBase):
         self._kernel = _sweep_kernel(tile if self.shared else 0, bending, self.attachments, self.body_contact,
                                      self.self_contact is not None)
         if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
-            self._sc_args = [wp.full(1, -1, dtype=wp.int32, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0,
-                             wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
+            ids = wp.full((1, 1), -1, dtype=wp.int32, device=dev)
+            radii = wp.zeros((1, 1), dtype=float, device=dev)
+            self._sc_pairs = [ids, radii, ids, radii, ids, radii, wp.zeros(1, dtype=wp.vec2i, device=dev),
+                              wp.zeros(2, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev), 0.0]
+            self._sc_bounds = [wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
+        else:
+            sc = self.self_contact
+            self._sc_pairs = [sc.vt_tri, sc.vt_radius, sc.tv_vertex, sc.tv_radius, sc.ee_edge, sc.ee_radius, sc.edges,
+                              sc.edge_adj_start, sc.edge_adj, self.self_contact_stiffness]
+            self._sc_bounds = [sc.x_searched, sc.d_min, sc.bound_fraction if sc.bounds else 0.0, sc.min_separation]
         self._finalize_vbd = _finalize_kernel(self.friction, self.self_contact is not None)
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
@@ -194,10 +202,6 @@ class SolverVBD(SolverBase):
             if substep % sc.detect_every == 0:
                 sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
                           world_self_contact=control.world_self_contact)
-            sc_args = [sc.candidate, sc.side, sc.thickness, self.self_contact_stiffness, sc.x_searched, sc.d_min,
-                       sc.bound_fraction, sc.min_separation]
-        else:
-            sc_args = self._sc_args
         wp.launch_tiled(self._kernel, dim=[m.world_count],
                         inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
                                 m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count), m.tri_indices,
@@ -205,12 +209,13 @@ class SolverVBD(SolverBase):
                                 m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
                                 m.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
                                 control.world_attachment_enabled, self.contact_active, self.contact_normal,
-                                self.contact_offset, self._x64_prev, self._target, *sc_args, control.world_self_contact,
+                                self.contact_offset, self._x64_prev, self._target, *self._sc_pairs, *self._sc_bounds,
+                                control.world_self_contact,
                                 self.contact_depth, self.x64],
                         block_dim=self.block_dim, device=dev)
         wp.launch(self._finalize_vbd, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
                           m.world_friction, self.extra_damping, self.gravity, float(dt), self.contact_active,
                           self.contact_normal, self.contact_motion, self.contact_depth, self._x64_prev,
-                          state_in.particle_qd, *sc_args[4:], control.world_self_contact, self.x64],
+                          state_in.particle_qd, *self._sc_bounds, control.world_self_contact, self.x64],
                   outputs=[state_out.particle_q, state_out.particle_qd, self.gravity_share], device=dev)
