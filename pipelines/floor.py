@@ -124,14 +124,14 @@ def history_floor(ctx, probes: list[Probe], *, settings=None) -> dict[str, Any]:
     """
     from simulate.quasi_static import WorldStatus
 
-    from pipelines.generate_dataset import _Unskinner, sequence_settings
+    from pipelines.generate_dataset import Unskinner, sequence_settings
 
     if not probes:
         raise ValueError("history_floor needs at least one probe")
     settings = settings or sequence_settings(ctx.spec)
     frames_a = _final_frames(ctx, probes, "a", settings)
     frames_b = _final_frames(ctx, probes, "b", settings)
-    unskin = _Unskinner(ctx.template.skinning_weights, ctx.device)
+    unskin = Unskinner(ctx.template.skinning_weights, ctx.device)
     rows, used, converged = [], [], []
     for i, (probe, a, b) in enumerate(zip(probes, frames_a, frames_b)):
         ok = (np.isfinite(a.positions).all() and np.isfinite(b.positions).all()

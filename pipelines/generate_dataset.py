@@ -184,7 +184,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     return ctx
 
 
-class _Unskinner:
+class Unskinner:
     """Inverse skinning of garment frames (TailorNet Eq. 5's W^-1) in float64, batched, on the
     CUDA device when the simulation runs there (torch on the CPU otherwise)."""
 
@@ -275,7 +275,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     from simulate.quality import triangle_areas
 
     rest_areas = {k: triangle_areas(ctx.style_rest[k], tmpl.faces) for k in {t.style_index for t in tasks}}
-    unskin = _Unskinner(weights, ctx.device)
+    unskin = Unskinner(weights, ctx.device)
 
     def record_frames(frames: list) -> list[bool]:
         """Filters and writes target frames that finished together (one per world); returns

@@ -207,7 +207,6 @@ class QuasiStaticSimulator:
         self.state_0 = model.state()
         self.state_1 = model.state()
         self.control = model.control()
-        self.control.collider = collider
         w = model.world_count
         dev = model.device
         self.world_max_speed = wp.zeros(w, dtype=float, device=dev)
@@ -252,7 +251,7 @@ class QuasiStaticSimulator:
             if self.collider is not None and self.solver.queries_body(sub):  # the body is needed only there
                 self.collider.update((sub + 1) / self.substeps)
             if cpu_graphs is None:
-                self.solver.step(self.state_0, self.state_1, self.control, self.dt, substep=sub)
+                self.solver.step(self.state_0, self.state_1, self.control, self.collider, self.dt, substep=sub)
             else:
                 wp.capture_launch(cpu_graphs[sub % 2])
             self.state_0, self.state_1 = self.state_1, self.state_0
@@ -294,7 +293,7 @@ class QuasiStaticSimulator:
         graphs = []
         for src, dst in ((self.state_0, self.state_1), (self.state_1, self.state_0)):
             with wp.ScopedCapture(device=dev) as capture:
-                self.solver.step(src, dst, self.control, self.dt)  # (no self-contact here: substep unused)
+                self.solver.step(src, dst, self.control, self.collider, self.dt)  # (no self-contact here: substep unused)
             graphs.append(capture.graph)
         with wp.ScopedCapture(device=dev) as capture:
             self._measure()

@@ -400,8 +400,8 @@ def test_driver_and_solver_argument_errors() -> None:
         sim.set_positions(np.zeros((3, 3)), world=1)
     with pytest.raises(ValueError, match=r"worlds must be indices in \[0, 2\)"):
         sim.restart([5])
-    with pytest.raises(ValueError, match="body_contact is on but control.collider is None"):
-        sim.solver.step(sim.state_0, sim.state_1, model.control(), 0.01)
+    with pytest.raises(ValueError, match="body_contact is on but contacts is None"):
+        sim.solver.step(sim.state_0, sim.state_1, model.control(), None, 0.01)
     # set_positions on one world leaves the other untouched and zeroes that world's velocities.
     sim.relax(max_frames=3)
     before = sim.positions()

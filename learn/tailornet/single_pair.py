@@ -21,7 +21,7 @@ import torch
 from learn.tailornet.hf import HighFrequencyPrototypes, high_frequency_model
 from learn.tailornet.train import (
     FrameArrays,
-    _stage_hyper,
+    stage_hyper,
     merged_hyperparameters,
     train_stacked_prototypes,
 )
@@ -64,7 +64,7 @@ def fit_single_pair(
                                             dropout=float(hyper["hf"]["dropout"])))
     model = train_stacked_prototypes(
         HighFrequencyPrototypes.from_mlps(initial), data, data.displacements, frames, run_dir=run_dir,
-        hyperparameters=_stage_hyper(hyper["hf"], hyper["model"]), fingerprint=None, device=device, seed=seed + 1,
+        hyperparameters=stage_hyper(hyper["hf"], hyper["model"]), fingerprint=None, device=device, seed=seed + 1,
         progress=progress, stage=STAGE,
     )
     keys = pair_keys(data)

@@ -561,7 +561,7 @@ def train_stacked_prototypes(
     )
 
 
-def _stage_hyper(hyper: Mapping[str, Any], model_hyper: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def stage_hyper(hyper: Mapping[str, Any], model_hyper: Mapping[str, Any] | None = None) -> dict[str, Any]:
     stage = {k: hyper[k] for k in ("lr", "weight_decay", "batch_size", "epochs")}
     if model_hyper is not None:
         stage["checkpoint_interval_s"] = float(model_hyper["checkpoint_interval_s"])
@@ -602,7 +602,7 @@ def train_shape_style(
     )
     return train_stage(
         "shape_style", model, canonical, canonical.displacements, run_dir=run_dir,
-        hyperparameters=_stage_hyper(hyper["shape_style"], hyper["model"]), fingerprint=fingerprint,
+        hyperparameters=stage_hyper(hyper["shape_style"], hyper["model"]), fingerprint=fingerprint,
         device=device, seed=seed, progress=progress,
     )
 
@@ -629,7 +629,7 @@ def train_lf(
         hidden_size=int(hyper["lf"]["hidden_size"]), dropout=float(hyper["lf"]["dropout"]),
     )
     return train_stage(
-        "lf", model, data, data.low_frequency, run_dir=run_dir, hyperparameters=_stage_hyper(hyper["lf"], hyper["model"]),
+        "lf", model, data, data.low_frequency, run_dir=run_dir, hyperparameters=stage_hyper(hyper["lf"], hyper["model"]),
         fingerprint=fingerprint, device=device, seed=seed, progress=progress,
     )
 
@@ -677,7 +677,7 @@ def train_hf(
     if stacked:
         return train_stacked_prototypes(
             HighFrequencyPrototypes.from_mlps(initial), data, data.displacements - data.low_frequency,
-            frames_per_prototype, run_dir=run_dir, hyperparameters=_stage_hyper(hyper["hf"], hyper["model"]),
+            frames_per_prototype, run_dir=run_dir, hyperparameters=stage_hyper(hyper["hf"], hyper["model"]),
             fingerprint=fingerprint, device=device, seed=seed + 1, progress=progress,
         )
     models = []
@@ -686,7 +686,7 @@ def train_hf(
         models.append(
             train_stage(
                 f"hf_{k:02d}", model, subset, subset.displacements - subset.low_frequency, run_dir=run_dir,
-                hyperparameters=_stage_hyper(hyper["hf"], hyper["model"]), fingerprint=fingerprint, device=device,
+                hyperparameters=stage_hyper(hyper["hf"], hyper["model"]), fingerprint=fingerprint, device=device,
                 seed=seed + 1 + k, progress=progress,
             )
         )
@@ -714,7 +714,7 @@ def train_baseline(
     )
     model = train_stage(
         "baseline", model, data, data.displacements, run_dir=run_dir,
-        hyperparameters=_stage_hyper(hyper["baseline"], hyper["model"]), fingerprint=fingerprint, device=device, seed=seed,
+        hyperparameters=stage_hyper(hyper["baseline"], hyper["model"]), fingerprint=fingerprint, device=device, seed=seed,
         progress=progress,
     )
     save_learner(

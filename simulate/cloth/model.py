@@ -10,15 +10,12 @@ the Gauss-Seidel sweep can run colour by colour.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import warp as wp
 
 from simulate.cloth.fabric import Fabric
-
-if TYPE_CHECKING:
-    from simulate.contact.body_collider import BodyCollider
 
 __all__ = ["Features", "ClothModel", "ClothState", "ClothControl", "world_colour_offsets"]
 
@@ -55,7 +52,9 @@ class ClothState:
 
 
 class ClothControl:
-    """Inputs the caller drives between frames: attachment targets and the body collider."""
+    """Inputs the caller drives between frames: attachment targets, active worlds, self-contact
+    per world. The body a solver collides with is its own argument (``SolverBase.step``'s
+    ``contacts``)."""
 
     def __init__(self, model: ClothModel) -> None:
         device = model.device
@@ -78,8 +77,6 @@ class ClothControl:
         """1 where a world's self-contact (if the solver has it) finds candidates at its next search,
         0 where it is off; (world_count,). See :meth:`set_self_contact`."""
         self._self_contact_host = np.ones(model.world_count, dtype=np.int32)
-        self.collider: BodyCollider | None = None
-        """Body collider (positions interpolated per substep by the driver), or None."""
         self._model = model
 
     def set_attachment_targets(self, targets: np.ndarray) -> None:

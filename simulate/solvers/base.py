@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import abc
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from simulate.cloth.model import ClothControl, ClothModel, ClothState
 from simulate.solvers import common_kernels as ck
+
+if TYPE_CHECKING:
+    from simulate.contact.body_collider import BodyCollider
 
 __all__ = ["SolverBase"]
 
@@ -21,7 +25,8 @@ class SolverBase(abc.ABC):
         """
         Args:
             model: the cloth model.
-            body_contact: contact with ``control.collider``; default ``model.features.body_contact``.
+            body_contact: contact with the body given to ``step`` (``contacts``); default
+                ``model.features.body_contact``.
             extra_damping: velocity damping rate added to every fabric's damping [1/s].
             contact_detect_every: query the body for contact planes on substeps ``0, N, 2N, ...`` of
                 each frame and carry the planes along with the body's motion in between (1 = every
@@ -56,14 +61,14 @@ class SolverBase(abc.ABC):
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
 
     @abc.abstractmethod
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
-             substep: int = 0) -> None:
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
+             contacts: BodyCollider | None, dt: float, *, substep: int = 0) -> None:
         """Advances every active world (``control.world_active``) by one substep: reads positions and
         velocities from ``state_in``, writes them to ``state_out`` (a different buffer: the caller
         swaps the two). ``dt``: substep length [s]; ``substep``: its index within the frame, which
         decides whether the body is queried for contact planes (``queries_body``) and, with
-        self-contact, whether candidate triangles are searched afresh. Body contact reads
-        ``control.collider``, positioned by the driver for this substep."""
+        self-contact, whether candidate triangles are searched afresh. ``contacts``: the body
+        collider, positioned by the driver for this substep (None without body contact)."""
 
     def garment_changed(self, dst: int, src: int) -> None:
         """World ``dst`` now holds world ``src``'s garment (``ClothModel.copy_world_garment``):
@@ -73,12 +78,12 @@ class SolverBase(abc.ABC):
         chosen from the model's stable step stays stable: ``src``'s garment was in the model
         already."""
 
-    def _check(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
+    def _check(self, state_in: ClothState, state_out: ClothState, contacts: BodyCollider | None, dt: float) -> None:
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 [s] (got {dt!r})")
-        if self.body_contact and control.collider is None:
-            raise ValueError("body_contact is on but control.collider is None: set control.collider to a "
-                             "BodyCollider or build the solver with body_contact=False")
+        if self.body_contact and contacts is None:
+            raise ValueError("body_contact is on but contacts is None: pass the BodyCollider to step() or build "
+                             "the solver with body_contact=False")
         if state_in is state_out:
             raise ValueError("state_in and state_out must be different ClothState buffers (double buffering)")
 
@@ -87,7 +92,8 @@ class SolverBase(abc.ABC):
         last query's planes with the body); the driver moves and refits the body only for these."""
         return substep % self.contact_detect_every == 0
 
-    def detect_contacts(self, x: wp.array, control: ClothControl, substep: int = 0) -> None:
+    def detect_contacts(self, x: wp.array, contacts: BodyCollider | None, control: ClothControl,
+                        substep: int = 0) -> None:
         """Find one contact plane per particle at positions ``x`` (skipped without body contact).
 
         On a ``substep`` of the frame that is not a multiple of ``contact_detect_every`` the planes
@@ -96,7 +102,7 @@ class SolverBase(abc.ABC):
             return
         from simulate.contact import kernels as contact_kernels
 
-        col = control.collider
+        col = contacts
         m = self.model
         if not self.queries_body(substep):
             wp.launch(contact_kernels.advance_body_contacts, dim=m.particle_count,

@@ -18,6 +18,7 @@ why XPBD is the production solver and this one the second opinion.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -25,6 +26,9 @@ import warp as wp
 from simulate.cloth.model import ClothControl, ClothModel, ClothState
 from simulate.solvers.base import SolverBase
 from simulate.solvers.mass_spring import kernels
+
+if TYPE_CHECKING:
+    from simulate.contact.body_collider import BodyCollider
 
 __all__ = ["SolverMassSpring"]
 
@@ -37,7 +41,7 @@ class SolverMassSpring(SolverBase):
         """
         Args:
             model: cloth model.
-            body_contact: contact with ``control.collider`` (default from model.features).
+            body_contact: contact with the body passed to ``step`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             safety: fraction of the stable step used by ``substeps_for`` (0, 1].
             contact_detect_every: body queries on every N-th substep (see ``SolverBase``).
@@ -90,10 +94,11 @@ class SolverMassSpring(SolverBase):
         """Substeps per frame of ``frame_dt`` [s] that keep dt below ``safety * stable_dt()``."""
         return max(1, math.ceil(frame_dt / (self.safety * self.stable_dt())))
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
+             contacts: BodyCollider | None, dt: float, *,
              substep: int = 0) -> None:
         """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation)."""
-        self._check(state_in, state_out, control, dt)
+        self._check(state_in, state_out, contacts, dt)
         m = self.model
         dev = self.device
         x = state_in.particle_q
@@ -112,7 +117,7 @@ class SolverMassSpring(SolverBase):
                           x, state_in.particle_qd],
                   outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
         if self.body_contact:
-            self.detect_contacts(state_out.particle_q, control, substep)
+            self.detect_contacts(state_out.particle_q, contacts, control, substep)
             wp.launch(kernels.resolve_body_contacts, dim=m.particle_count,
                       inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_friction, float(dt),
                               self.contact_active, self.contact_normal, self.contact_offset, self.contact_motion],

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -11,6 +12,9 @@ import warp as wp
 from simulate.cloth.model import ClothControl, ClothModel, ClothState
 from simulate.solvers.base import SolverBase
 from simulate.solvers.vbd import kernels
+
+if TYPE_CHECKING:
+    from simulate.contact.body_collider import BodyCollider
 
 __all__ = ["SolverVBD", "colour_vertices"]
 
@@ -87,7 +91,7 @@ class SolverVBD(SolverBase):
         Args:
             model: cloth model.
             iterations: sweeps over all colours per substep (>= 1).
-            body_contact: contact with ``control.collider`` (default from model.features).
+            body_contact: contact with the body passed to ``step`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             block_dim: threads per world block (CUDA; CPU runs one lane per block).
             shared: sweep each world's positions in a shared-memory tile (True) or in global memory
@@ -183,20 +187,21 @@ class SolverVBD(SolverBase):
         """Share of gravity (0..1) each particle's last substep accelerated it by, shape
         (particle_count,); the next substep starts at x + dt v + share dt^2 g."""
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
+             contacts: BodyCollider | None, dt: float, *,
              substep: int = 0) -> None:
         """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation).
 
         ``substep`` is the substep's index in its frame (body contact queries on multiples of
         ``contact_detect_every``)."""
-        self._check(state_in, state_out, control, dt)
+        self._check(state_in, state_out, contacts, dt)
         m = self.model
         dev = self.device
         wp.launch(kernels.predict_particles, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, self.gravity, float(dt),
                           state_in.particle_q, state_in.particle_qd, self.gravity_share, self.x64],
                   outputs=[self._x64_prev, self._target, self._predicted, state_out.particle_q], device=dev)
-        self.detect_contacts(self._predicted, control, substep)
+        self.detect_contacts(self._predicted, contacts, control, substep)
         sc = self.self_contact
         if sc is not None:
             if substep % sc.detect_every == 0:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
@@ -12,6 +13,9 @@ from simulate.cloth.model import ClothControl, ClothModel, ClothState, world_col
 from simulate.solvers import common_kernels as ck
 from simulate.solvers.base import SolverBase
 from simulate.solvers.xpbd import kernels
+
+if TYPE_CHECKING:
+    from simulate.contact.body_collider import BodyCollider
 
 __all__ = ["SolverXPBD"]
 
@@ -162,7 +166,7 @@ class SolverXPBD(SolverBase):
                 colour) or "jacobi" (one launch, gathered by the particle pass); default = ``mode``.
                 Gauss-Seidel triangles with Jacobi bending cut the launches per iteration from
                 (triangle colours + bending colours + 1), e.g. 8 + 14 + 1 on a grid, to 8 + 2.
-            body_contact: contact with ``control.collider`` (default from model.features).
+            body_contact: contact with the body passed to ``step`` (default from model.features).
             extra_damping: damping rate added to each fabric's [1/s].
             self_contact: vertex-triangle self-contact (default from model.features).
             self_contact_options: keyword options of :class:`~simulate.contact.self_contact.SelfContact`
@@ -345,14 +349,15 @@ class SolverXPBD(SolverBase):
                 control.world_attachment_enabled, self.attachment_lambda, self.contact_active, self.contact_normal,
                 self.contact_offset, self.contact_depth, self.model.tri_indices, *self_args]
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, *,
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
+             contacts: BodyCollider | None, dt: float, *,
              substep: int = 0) -> None:
         """Advance one substep of ``dt`` [s] from ``state_in`` into ``state_out`` (no allocation).
 
         ``substep`` is the substep's index in its frame: body contact planes and self-contact
         candidates are found again on substeps that are multiples of ``contact_detect_every`` and
         of the self-contact's ``detect_every`` (always with the default 0)."""
-        self._check(state_in, state_out, control, dt)
+        self._check(state_in, state_out, contacts, dt)
         m = self.model
         dev = self.device
         inv_dt2 = 1.0 / (dt * dt)
@@ -360,7 +365,7 @@ class SolverXPBD(SolverBase):
         wp.launch(ck.integrate_particles, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, self.gravity, float(dt),
                           state_in.particle_q, state_in.particle_qd], outputs=[x], device=dev)
-        self.detect_contacts(x, control, substep)
+        self.detect_contacts(x, contacts, control, substep)
         if self.self_contact is not None and substep % self.self_contact.detect_every == 0:
             self.self_contact.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
                                      world_self_contact=control.world_self_contact)
