@@ -199,11 +199,13 @@ class DataParallelOptimizer:
 
 
 def broadcast_module(module: torch.nn.Module) -> None:
-    """Rank 0's parameters and buffers on every rank (after building or loading a model)."""
+    """Rank 0's parameters and dense buffers on every rank (after building or loading a model;
+    sparse buffers, such as a mesh operator, are built alike on every rank and not sent)."""
     if world_size() <= 1:
         return
     for t in list(module.parameters()) + list(module.buffers()):
-        dist.broadcast(t.data, src=0)
+        if t.layout == torch.strided:
+            dist.broadcast(t.data, src=0)
 
 
 def sum_over_ranks(value: float | Mapping[str, float]) -> float | dict[str, float]:
