@@ -371,6 +371,10 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'dropped: ' + reason:<26}{int(dropped.get(reason, 0)):>6}")
     if seconds > 0:
         lines.append(f"  {'this run':<22}{seconds:>9.1f} s   {frames_simulated_keys / seconds:8.2f} target frames/s")
+    ray = ((manifest.audit or {}).get("simulation") or {}).get("ray")
+    if ray:
+        lines.append(f"  {'Ray workers':<26}{int(ray['workers']):>6}  (on {int(ray['nodes'])} node(s), {int(ray['gpus'])} GPU(s); "
+                     f"{int(ray['batches_rerun'])} batch(es) re-run after a worker died)")
     phases = ((manifest.audit or {}).get("simulation") or {}).get("phases")
     if phases and seconds > 0:
         lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
@@ -456,7 +460,8 @@ def estimated_bytes(tasks: list, template_dict: dict, precision: str) -> int:
 
 
 def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local",
-                     device: str | None = None, ray_address: str | None = None, progress: bool = True,
+                     device: str | None = None, ray_address: str | None = None, ray_cpus: int | None = None,
+                     progress: bool = True,
                      log: Callable[[str], None] = print, heartbeat_s: float = 30.0,
                      on_heartbeat: Callable[[dict], None] | None = None, save_every_s: float = 10.0) -> Any:
     """Runs (or resumes) a dataset generation in ``out_dir`` (whose writer lock the caller holds);
@@ -468,7 +473,9 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
     kept and dropped by reason over the shards listed so far (kept_in_shards, dropped_in_shards),
     and the simulator's running counts (frames, world_frames, sim_s, body_s, record_s, recoveries).
     The manifest is saved after each batch and, within a batch, at most every ``save_every_s`` seconds
-    as shards finish (0: after every shard)."""
+    as shards finish (0: after every shard). ``ray_address``: the Ray cluster of ``executor="ray"``
+    (default: a Ray started for this run with ``ray_cpus`` CPUs, default all); heartbeats and the
+    summary then add up every worker's batches (:mod:`pipelines.executors`)."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -546,14 +553,17 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
 
     from pipelines.errors import raise_if_interrupted
 
-    def on_progress(count: int, batch: list[str] | None = None) -> None:
+    def on_progress(count: int) -> None:
         raise_if_interrupted()  # a Ctrl-C or SIGTERM whose exception a finalizer swallowed
-        if batch is not None:
-            count = sum(len(ctx.tasks[t].poses) for t in batch)
         bar.update(count)
         beat["done"] += count
-        beat["calls"] += 1  # local executor: one call per simulator frame
+        beat["calls"] += 1  # local executor: one call per simulator frame; Ray: per poll of the workers
         heartbeat()
+
+    def add_phases(phases: dict) -> None:
+        """Sums a Ray batch's run_sequences statistics into the run's (the local executor adds to ctx.phases itself)."""
+        for key, value in phases.items():
+            ctx.phases[key] = ctx.phases.get(key, 0.0) + float(value)
 
     def after_batch() -> None:
         save_manifest()
@@ -565,7 +575,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
             # headless runs (logs of cluster or device jobs) still say how far they are
             beat["last"] = now
             elapsed = now - t_sim
-            ph = dict(ctx.phases or {}) if executor == "local" else {}
+            ph = dict(ctx.phases or {})  # Ray: the batches finished so far
             if on_heartbeat is not None:
                 totals = manifest.totals
                 on_heartbeat({"elapsed_s": elapsed, "targets_done": beat["done"], "targets_total": total_keys,
@@ -592,12 +602,14 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
 
     t_sim = time.perf_counter()
     ctx.phases = {}
+    cluster = None
     if executor == "local":
         run_local(ctx, out_dir, batches, simulate_batch=simulate_batch, on_shard=on_shard, on_progress=on_progress,
                   on_batch=after_batch, skip=done)
     else:
-        run_ray(spec, out_dir, batches, build_context=build_context, simulate_batch=simulate_batch, device=ctx.device,
-                on_shard=on_shard, on_progress=on_progress, on_batch=after_batch, address=ray_address, skip=done)
+        cluster = run_ray(spec, out_dir, batches, build_context=build_context, simulate_batch=simulate_batch,
+                          device=ctx.device, on_shard=on_shard, on_progress=on_progress, on_batch=after_batch,
+                          on_phases=add_phases, address=ray_address, num_cpus=ray_cpus, skip=done)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     audit = dict(manifest.audit or {})
@@ -606,7 +618,9 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
         audit["simulation"] = {"seconds": round(sim_seconds, 3), "target_frames": int(total_keys),
                                "kept_frames": int(kept_this_run[0]), "device": ctx.device,
                                "worlds": int(spec["simulation"]["worlds"])}
-        if executor == "local" and ctx.phases:
+        if cluster is not None:  # where the batches ran: worker processes, nodes, GPUs, batches re-run
+            audit["simulation"]["ray"] = cluster
+        if ctx.phases:
             # where the simulation time went (frames: simulator frames; *_s: seconds stepping,
             # posing bodies, recording frames; recoveries: explosions survived)
             audit["simulation"]["phases"] = {k: round(float(v), 3) for k, v in ctx.phases.items()}
@@ -638,7 +652,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="dataset directory")
     p.add_argument("--executor", default="local", choices=["local", "ray"], help="where batches run (default local)")
     p.add_argument("--device", default=None, help="override simulation.device (auto, cpu, cuda:0)")
-    p.add_argument("--ray-address", default=None, help="Ray cluster address (default: start a local Ray)")
+    p.add_argument("--ray-address", default=None, help="Ray cluster address, e.g. 10.0.0.1:6379 or auto (default: "
+                   "start a Ray on this host for the run); one batch per GPU, see docs/scale-out.md")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=lambda a: (generate(a.spec, a.out, executor=a.executor, device=a.device, ray_address=a.ray_address,
                                             progress=not a.no_progress), 0)[1])

@@ -5,10 +5,12 @@ MLP, the K high-frequency prototype MLPs (stacked) and the baseline MLP, each st
 resumable from its checkpoint in RUN (rerun the same command to continue), with losses
 in ``RUN/<stage>_loss.csv`` and a progress bar. RUN also gets ``template.npz`` (the
 garment template the model predicts) and ``run.json`` (dataset, hashes, settings).
-Several GPUs: launch with ``torchrun --nproc-per-node N -m pipelines.cli train ...``;
-stages are spread over the ranks (the K prototypes are independent networks, so
-stage parallelism scales better here than data-parallel DDP on one small MLP) and
-rank 0 assembles the model.
+Several GPUs: launch with ``torchrun --nproc-per-node N -m pipelines.cli train ... --device cuda``
+(each process takes ``cuda:LOCAL_RANK``; docs/scale-out.md). For ``tailornet`` the stages are
+spread over the ranks (the K prototypes are independent networks, so stage parallelism scales
+better here than data parallelism on one small MLP) and rank 0 assembles the model; every other
+learner trains data-parallel (:mod:`learn.distributed`: each global batch dealt out over the
+ranks, gradients summed, rank 0 writing checkpoints), and a run resumes on any process count.
 
 ``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
 the canonical body's SDF, the canonical projection of the training frames (cached per shard under
@@ -120,16 +122,32 @@ def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu
 
 
 def run(args: argparse.Namespace) -> int:
-    from data_manifest.reader import DatasetReader
-    from learn.data import DrapeDataset
+    from learn import distributed
     from learn.registry import get_learner
-    from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_baseline, fit_tailornet,
-                                       frame_arrays_from_dataset, garment_pose_indices, stages_for_rank)
-    from simulate.body import load_body_model
 
     entry = get_learner(args.learner)
     args.learner = entry.name
     check_torch_device(args.device)
+    try:  # under torchrun: join the process group, one device per rank
+        args.device = distributed.init(args.device, data_parallel=entry.name != "tailornet")
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    try:
+        status = _run(args, entry)
+    except BaseException:
+        distributed.finish(wait=False)  # the other ranks may be inside a collective: no barrier
+        raise
+    distributed.finish()
+    return status
+
+
+def _run(args: argparse.Namespace, entry) -> int:
+    from data_manifest.reader import DatasetReader
+    from learn.data import DrapeDataset
+    from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_baseline, fit_tailornet,
+                                       frame_arrays_from_dataset, garment_pose_indices, stages_for_rank)
+    from simulate.body import load_body_model
+
     check_number(args.seed, "--seed", minimum=0, integer=True)
     hyper = _overrides(args, entry.stages)
     if Path(args.out).resolve() == Path(args.data).resolve():
@@ -169,8 +187,9 @@ def run(args: argparse.Namespace) -> int:
         if requested > pairs:
             print(f"note: {requested} prototypes requested but the training split has {pairs} style-shape pairs; using {pairs}")
             hyper["model"]["prototype_count"] = pairs
-    np.savez(out / "template.npz", **template)
     rank, world = int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1))
+    if rank == 0:
+        np.savez(out / "template.npz", **template)
     common = dict(run_dir=out, pose_indices=pose_indices, canonical_pose=body.canonical_pose, hyperparameters=hyper,
                   fingerprint=fingerprint, device=args.device, seed=args.seed, progress=not args.no_progress)
     if args.learner == "tailornet":
@@ -206,6 +225,10 @@ def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path
     model = entry.fit(data, run_dir=out, hyperparameters=hyper, device=args.device, seed=args.seed,
                       progress=not args.no_progress)
     train_samples, validation_samples = model.split_sizes
+    from learn import distributed
+
+    if not distributed.is_main():
+        return 0
     info = {"learner": args.learner, "data": str(Path(data.path).resolve()), "samples": len(data),
             "train_samples": train_samples, "validation_samples": validation_samples, "types": data.types,
             "best_epoch": model.best_epoch, "hyperparameters": model.hyperparameters, "device": args.device,

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn import distributed
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import pose_garment, unpose_garment
 from learn.collision_aware.sdf import BodySDF, collision_penalty
@@ -248,8 +249,11 @@ def project_split(reader: Any, split: str, frames: Any, *, body: Any, fields: Di
             pending.append((path, rows))
     totals: dict[str, float] = {}
     done = 0
-    for begin in range(0, len(pending), batch_sequences):
-        group = pending[begin:begin + batch_sequences]
+    # data-parallel training (learn.distributed): each rank projects every N-th pending shard
+    parallel = distributed.active()
+    mine = pending[distributed.rank()::distributed.world_size()] if parallel else pending
+    for begin in range(0, len(mine), batch_sequences):
+        group = mine[begin:begin + batch_sequences]
         sequences = []
         for _, rows in group:
             target = frames.posed_vertices[rows]
@@ -266,5 +270,12 @@ def project_split(reader: Any, split: str, frames: Any, *, body: Any, fields: Di
             totals[k] = totals.get(k, 0.0) + v * count
         done += count
         if log is not None:
-            log(f"projected {begin + len(group)}/{len(pending)} shards to the canonical space")
+            log(f"projected {begin + len(group)}/{len(mine)} shards to the canonical space")
+    if parallel:  # the other ranks' shards, from the cache files they wrote
+        distributed.barrier()
+        for k, (path, rows) in enumerate(pending):
+            if k % distributed.world_size() != distributed.rank():
+                out[rows] = np.load(path)
+        totals = distributed.sum_over_ranks({**totals, "frames": float(done)})
+        done = int(totals.pop("frames"))
     return out, {k: v / done for k, v in totals.items()} if done else {}

@@ -133,6 +133,7 @@ def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Pa
                progress: bool = True) -> DiffusedBody:
     """Distil ``targets`` into ``fields`` (stage ``fields``): per batch of points, L1 of the
     weights (summed over joints) plus L1 of the shape offset [m] for one random shape per point."""
+    from learn import distributed
     from learn.tailornet.train import run_epochs
 
     points = torch.as_tensor(targets.points, device=device)
@@ -147,8 +148,8 @@ def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Pa
         which = torch.randint(shapes.shape[0], (count,), generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, count, batch_size):
-            batch = order[begin:begin + batch_size]
-            k = which[begin:begin + batch_size]
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's points (all in one process)
+            k = distributed.shard(which[begin:begin + batch_size])
             p = points[batch][None]  # (1, b, 3)
             weight_loss = (net.skinning_weights(p)[0] - weights[batch]).abs().sum(-1).mean()
             predicted = net.shape_offset(p.transpose(0, 1), shapes[k])[:, 0]  # (b, 3): one shape per point

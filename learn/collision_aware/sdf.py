@@ -69,6 +69,7 @@ def fit_body_sdf(sdf: BodySDF, points: np.ndarray, distance: np.ndarray, *, run_
                  progress: bool = True) -> BodySDF:
     """Fit ``sdf`` (stage ``sdf``): L1 of the signed distance [m], points within
     :data:`NEAR_SURFACE_M` of the surface weighted by ``near_weight``."""
+    from learn import distributed
     from learn.tailornet.train import run_epochs
 
     p = torch.as_tensor(points, device=device)
@@ -80,7 +81,7 @@ def fit_body_sdf(sdf: BodySDF, points: np.ndarray, distance: np.ndarray, *, run_
         order = torch.randperm(p.shape[0], generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, p.shape[0], batch_size):
-            batch = order[begin:begin + batch_size]
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's points (all in one process)
             loss = (weight[batch] * (net(p[batch]) - d[batch]).abs()).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn import distributed
 from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
 from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
@@ -111,7 +112,7 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
         order = torch.randperm(x.shape[0], generator=generator).to(device)
         sums: dict[str, float] = {}
         for begin in range(0, x.shape[0], batch_size):
-            batch = order[begin:begin + batch_size]
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             terms = vae_loss(net, x[batch], laplacian=laplacian, sdf=sdf, weights=weights,
                              epsilon_m=float(hyper["epsilon_m"]), random_samples=int(hyper["random_samples"]))
             optimizer.zero_grad(set_to_none=True)
@@ -119,13 +120,14 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
             optimizer.step()
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + float(v.detach()) * batch.numel()
-        log_rows.append({k: v / x.shape[0] for k, v in sums.items()})
-        return log_rows[-1]["reconstruction"]
+        mine = {k: v / x.shape[0] for k, v in sums.items()}  # this rank's part of the epoch means (all in one process)
+        log_rows.append(distributed.sum_over_ranks(mine))
+        return mine["reconstruction"]  # run_epochs sums the ranks' parts
 
     vae = run_epochs("vae", vae, epoch_fn, run_dir=run_dir,
                      hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
-    if log_rows:
+    if log_rows and distributed.writes_files():
         (Path(run_dir) / "vae_terms.json").write_text(json.dumps(log_rows[-1], indent=2))
     return vae
 
@@ -149,7 +151,7 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
         order = torch.randperm(target.shape[0], generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, target.shape[0], batch_size):
-            batch = order[begin:begin + batch_size]
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             loss = (net(pose[batch], shape[batch], style[batch]) - target[batch]).abs().sum(-1).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -252,7 +254,7 @@ def fit_collision_aware(
         canonical = np.empty(data.displacements.shape, np.float32)
         for g, x in zip(groups, results):
             canonical[g] = x
-    if info:
+    if info and distributed.writes_files():
         (run_dir / "projection.json").write_text(json.dumps(info, indent=2))
 
     vae = train_vae(canonical, faces, sdf, hyperparameters=hyper["vae"], seed=seed + 2, checkpoint_interval_s=interval,

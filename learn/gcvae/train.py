@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn import distributed
 from learn.gcvae.body_mesh import DUAL_TYPES, BodyMesh
 from learn.gcvae.hyperparameters import merged
 from learn.gcvae.losses import gcvae_loss, kl_weight
@@ -104,9 +105,10 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
     faces = torch.as_tensor(data.mesh.faces, device=device)
     dual_faces = torch.as_tensor(data.mesh.dual_faces, device=device)
     terms_path, best_path = run_dir / "gcvae_terms.csv", run_dir / BEST_FILE
-    if not (run_dir / "gcvae.pt").exists():
+    if not (run_dir / "gcvae.pt").exists() and distributed.writes_files():
         for stale in (terms_path, best_path):
             stale.unlink(missing_ok=True)
+    distributed.barrier()  # no rank reads a stale file rank 0 removes
     best = [float(load_checkpoint(best_path)["validation_error_m"]) if best_path.exists() else float("inf")]
     batch_size = int(tr["batch_size"])
 
@@ -117,7 +119,7 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
         sums: dict[str, float] = {}
         errors = []
         for start in range(0, len(order), batch_size):
-            idx = order[start:start + batch_size]
+            idx = distributed.shard(order[start:start + batch_size])  # this rank's samples (all in one process)
             batch = {k: v[idx] for k, v in train_batch.items()}
             out = model(batch["body"], batch["offsets"], batch["mask"], batch["condition"])
             loss, terms = gcvae_loss(model, out, batch, faces, dual_faces, lo, beta)
@@ -127,6 +129,7 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
             errors.append(surface_error_m(model, out, batch).detach())
             for k, v in terms.items():
                 sums[k] = sums.get(k, 0.0) + v * len(idx)
+        sums = distributed.sum_over_ranks(sums)  # this rank's sums in one process
         model.eval()
         with torch.no_grad():
             val = []
@@ -137,17 +140,19 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
             val_error = float(torch.cat(val).mean())
         model.train()
         model.epochs_done += 1
-        new_file = not terms_path.exists()
-        with terms_path.open("a", newline="") as fh:
-            w = csv.writer(fh)
-            if new_file:
-                w.writerow(["epoch"] + sorted(sums) + ["validation_error_m"])
-            w.writerow([epoch + 1] + [f"{sums[k] / len(order):.6g}" for k in sorted(sums)] + [f"{val_error:.6g}"])
+        if distributed.writes_files():
+            new_file = not terms_path.exists()
+            with terms_path.open("a", newline="") as fh:
+                w = csv.writer(fh)
+                if new_file:
+                    w.writerow(["epoch"] + sorted(sums) + ["validation_error_m"])
+                w.writerow([epoch + 1] + [f"{sums[k] / len(order):.6g}" for k in sorted(sums)] + [f"{val_error:.6g}"])
         if val_error < best[0]:
             best[0] = val_error
             atomic_save({"epoch": epoch + 1, "validation_error_m": val_error, "model_state": model.state_dict()},
                          best_path)
-        return float(torch.cat(errors).mean())
+        # this rank's part of the epoch's mean error (run_epochs sums the ranks' parts)
+        return float(torch.cat(errors).sum()) / len(order)
 
     stage_hyper = {"lr": tr["lr"], "weight_decay": tr["weight_decay"], "batch_size": batch_size, "epochs": tr["epochs"],
                    "checkpoint_interval_s": 0.0}

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from learn import distributed
 from learn.common.losses import l1_displacement_loss
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
 from learn.tailornet.baseline import baseline_model
@@ -318,7 +319,10 @@ def _set_rng_state(state: Mapping[str, Any], generator: torch.Generator) -> None
 
 def atomic_save(obj: Any, path: Path) -> None:
     """``torch.save`` to a temporary file renamed onto ``path``: a crash leaves the previous file or
-    none, never half of one."""
+    none, never half of one. In a data-parallel run (:mod:`learn.distributed`) only rank 0 writes:
+    every rank holds the same objects."""
+    if not distributed.writes_files():
+        return
     tmp = path.with_suffix(path.suffix + ".tmp")
     torch.save(obj, tmp)
     os.replace(tmp, path)
@@ -366,6 +370,13 @@ def run_epochs(
     epochs: the stacked HF checkpoint of a 7.7k-vertex garment (K = 20) is about 6 GB
     with Adam's moments. An existing checkpoint is resumed after checking the
     fingerprint and the model configuration. Returns the model in eval mode.
+
+    Under torchrun with data parallelism (:mod:`learn.distributed`) every rank runs this loop on
+    the same model: ``epoch_fn`` deals each global batch out with ``distributed.shard`` and returns
+    this rank's part of the epoch's mean loss (its frames' loss sum / all frames); the optimizer
+    sums the gradients over the ranks, the losses are summed, rank 0 writes the log and the
+    checkpoint, and the global torch RNG is seeded per (seed, epoch, rank). The checkpoint is the
+    one of a single process, so a run resumes on any number of processes.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -399,28 +410,40 @@ def run_epochs(
         start_epoch = int(checkpoint["epoch"])
     if start_epoch > epochs:
         raise ValueError(f"{checkpoint_path} already holds {start_epoch} epochs, more than epochs={epochs}")
+    parallel = distributed.active()
+    if parallel:
+        distributed.broadcast_module(model)
+        optimizer = distributed.DataParallelOptimizer(optimizer)
+    writes = distributed.writes_files()
 
     # Keep the log consistent with the checkpoint: drop rows of epochs never checkpointed.
     rows: list[list[str]] = []
-    if log_path.exists() and start_epoch > 0:
+    if writes and log_path.exists() and start_epoch > 0:
         with log_path.open() as handle:
             rows = [r for r in csv.reader(handle)][1:]
         rows = [r for r in rows if r and int(r[0]) <= start_epoch]
-    with log_path.open("w", newline="") as handle:
-        writer = csv.writer(handle)
-        writer.writerow(["epoch", "train_l1_m", "seconds"])
-        writer.writerows(rows)
+    if writes:
+        with log_path.open("w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["epoch", "train_l1_m", "seconds"])
+            writer.writerows(rows)
 
     bar = tqdm(
-        range(start_epoch, epochs), desc=stage, initial=start_epoch, total=epochs, disable=not progress, leave=False
+        range(start_epoch, epochs), desc=stage, initial=start_epoch, total=epochs, disable=not progress or not writes,
+        leave=False,
     )
     last_save = time.monotonic()
     for epoch in bar:
         model.train()
         started = time.perf_counter()
+        if parallel:
+            torch.manual_seed(distributed.epoch_seed(seed, epoch))
         mean_loss = epoch_fn(model, optimizer, generator)
-        with log_path.open("a", newline="") as handle:
-            csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
+        if parallel:
+            mean_loss = distributed.sum_over_ranks(mean_loss)
+        if writes:
+            with log_path.open("a", newline="") as handle:
+                csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
         bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}", refresh=False)  # redrawn at tqdm's pace, not per epoch
         if epoch + 1 < epochs and time.monotonic() - last_save < checkpoint_interval_s:
             continue
@@ -443,7 +466,10 @@ def run_epochs(
             checkpoint_path,
         )
     bar.close()
-    (run_dir / f"{stage}.done").write_text(json.dumps({"stage": stage, "epochs": epochs}))
+    if writes:
+        (run_dir / f"{stage}.done").write_text(json.dumps({"stage": stage, "epochs": epochs}))
+    if parallel:
+        distributed.barrier()  # every rank sees the finished stage's files
     return model.eval()
 
 
@@ -482,7 +508,7 @@ def train_stage(
         order = torch.randperm(data.frame_count, generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, data.frame_count, batch_size):
-            batch = order[begin : begin + batch_size]
+            batch = distributed.shard(order[begin : begin + batch_size])  # this rank's frames (all in one process)
             with autocast(device, mixed):
                 prediction = net(pose[batch], shape[batch], style[batch])
             loss = l1_displacement_loss(prediction.float(), target_t[batch])

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn import distributed
 from learn.common.normals import vertex_normals
 from learn.tailornet.train import (
     DatasetFingerprint,
@@ -101,7 +102,7 @@ def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays, *, run
         order = torch.randperm(data.frame_count, generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, data.frame_count, batch_size):
-            batch = order[begin:begin + batch_size]
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             features = net.features(pose[batch], shape[batch], style[batch])
             if net.kind == "image":
                 images = net.network(features)

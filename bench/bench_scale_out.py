@@ -1,0 +1,157 @@
+"""Scale-out on one host: (a) kept frames per second of ``generate-dataset`` with the local
+executor on one GPU against Ray on N GPUs, same spec, in the same run; (b) epoch time of a
+learner at world size 1 against N (``torchrun``). Prints one JSON object.
+
+    python bench/bench_scale_out.py --spec tailornet-tshirt --gpus 4 --out /scratch/scale
+    python bench/bench_scale_out.py --spec tiny.yaml --gpus 2 --device cpu --epochs 2   # CPU smoke
+
+(a) writes OUT/local and OUT/ray (the Ray run reuses the local run's garment cache, so both
+time the simulation of the same tasks); the rate is kept frames / the simulation seconds each
+run records (manifest ``audit.simulation``; for Ray this includes starting the workers and
+building their contexts), and ``identical_shards`` compares the two datasets' shard hashes.
+(b) trains ``--learner`` on ``--data`` (default: OUT/local) for ``--epochs`` epochs into
+OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the epoch time is
+the mean of the logged epoch seconds after the first (rank 0's clock: it includes the gradient
+exchange), and ``speedup`` is the epoch rate at N over the rate at 1.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The stage whose epochs are timed for each learner (its longest).
+TIMED_STAGE = {"baseline": "baseline", "tailornet": "hf", "uvimage": "uvimage", "uvimage_pca": "uvimage_pca",
+               "collision_aware": "vae", "gcvae": "gcvae"}
+
+
+def _shard_hashes(root: Path) -> dict[str, str]:
+    manifest = json.loads((root / "manifest.json").read_text())
+    return {s["task_id"]: s["sha256"] for s in manifest["shards"]}
+
+
+def _generate(spec: dict, out: Path, *, executor: str, device: str, gpus: int, cpus: int | None) -> dict:
+    from pipelines.generate_dataset import generate
+
+    started = time.perf_counter()
+    if executor == "ray":
+        import ray
+
+        ray.init(num_gpus=gpus if device.startswith("cuda") else 0, num_cpus=cpus or max(gpus, os.cpu_count() or 1),
+                 include_dashboard=False, log_to_driver=False)
+    try:
+        manifest = generate(spec, out, executor=executor, device=device, progress=False, log=lambda m: None)
+    finally:
+        if executor == "ray":
+            ray.shutdown()
+    simulation = manifest.audit["simulation"]
+    seconds = float(simulation["seconds"])
+    return {"executor": executor, "gpus": gpus if executor == "ray" else min(gpus, 1), "device": device,
+            "kept_frames": int(simulation["kept_frames"]), "target_frames": int(simulation["target_frames"]),
+            "simulation_s": round(seconds, 2), "wall_s": round(time.perf_counter() - started, 2),
+            "kept_frames_per_s": round(simulation["kept_frames"] / seconds, 3) if seconds > 0 else None,
+            **({"ray": simulation.get("ray")} if executor == "ray" else {})}
+
+
+def bench_generate(args: argparse.Namespace) -> dict:
+    from pipelines.spec import load_spec
+
+    spec = load_spec(args.spec)
+    spec["audit"]["samples"] = 0  # the audit is not part of the simulation rate
+    local_out, ray_out = args.out / "local", args.out / "ray"
+    for d in (local_out, ray_out):
+        if d.exists() and not args.keep:
+            shutil.rmtree(d)
+    local = _generate(spec, local_out, executor="local", device=args.sim_device(0), gpus=1, cpus=None)
+    if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
+        shutil.copytree(local_out / "cache", ray_out / "cache")
+    ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=args.gpus, cpus=args.cpus)
+    rate = (ray_run["kept_frames_per_s"] or 0) / (local["kept_frames_per_s"] or float("nan"))
+    return {"spec": str(args.spec), "local": local, "ray": ray_run, "speedup": round(rate, 3),
+            "identical_shards": _shard_hashes(local_out) == _shard_hashes(ray_out)}
+
+
+def _epoch_seconds(run: Path, stage: str) -> list[float]:
+    with (run / f"{stage}_loss.csv").open() as fh:
+        return [float(row["seconds"]) for row in csv.DictReader(fh)]
+
+
+def bench_train(args: argparse.Namespace, data: Path) -> dict:
+    stage = TIMED_STAGE[args.learner.replace("-", "_")]
+    results = {}
+    for world in sorted({1, args.gpus}):
+        run = args.out / f"train-w{world}"
+        if run.exists():
+            shutil.rmtree(run)
+        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={world}",
+                   "-m", "pipelines.cli", "train", args.learner, "--data", str(data), "--out", str(run),
+                   "--epochs", str(args.epochs), "--device", args.train_device, "--no-progress"]
+        if args.config:
+            command += ["--config", str(args.config)]
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        if args.train_device == "cpu":
+            env.setdefault("OMP_NUM_THREADS", "1")
+        started = time.perf_counter()
+        done = subprocess.run(command, env=env, cwd=ROOT, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise SystemExit(f"torchrun with {world} process(es) failed ({done.returncode}):\n{done.stderr[-4000:]}")
+        seconds = _epoch_seconds(run, stage)
+        timed = seconds[1:] or seconds
+        results[world] = {"epoch_s": round(sum(timed) / len(timed), 4), "epochs": len(seconds),
+                          "wall_s": round(time.perf_counter() - started, 2)}
+    one, many = results[1]["epoch_s"], results[max(results)]["epoch_s"]
+    return {"learner": args.learner, "stage": stage, "data": str(data), "world_sizes": results,
+            "speedup": round(one / many, 3) if many > 0 else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--spec", default="tailornet-tshirt", help="dataset spec (shipped name or YAML path)")
+    parser.add_argument("--gpus", type=int, default=None, help="N: Ray workers and torchrun processes (default: the GPUs)")
+    parser.add_argument("--out", type=Path, default=Path("scale-out-bench"), help="scratch directory")
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cuda or cpu")
+    parser.add_argument("--cpus", type=int, default=None, help="CPUs of the Ray started for (a) (default: all)")
+    parser.add_argument("--learner", default="baseline", help=f"learner of (b): {', '.join(TIMED_STAGE)}")
+    parser.add_argument("--data", type=Path, default=None, help="dataset of (b) (default: OUT/local from (a))")
+    parser.add_argument("--epochs", type=int, default=5)
+    parser.add_argument("--config", type=Path, default=None, help="drape train --config of (b)")
+    parser.add_argument("--skip-generate", action="store_true")
+    parser.add_argument("--skip-train", action="store_true")
+    parser.add_argument("--keep", action="store_true", help="resume (a)'s datasets instead of starting over")
+    args = parser.parse_args(argv)
+    import torch
+
+    cuda = torch.cuda.is_available() if args.device == "auto" else args.device.startswith("cuda")
+    if cuda and not torch.cuda.is_available():
+        parser.error("--device cuda but torch sees no CUDA device")
+    args.gpus = args.gpus or (torch.cuda.device_count() if cuda else 2)
+    if args.gpus < 1 or (cuda and args.gpus > torch.cuda.device_count()):
+        parser.error(f"--gpus must be 1..{torch.cuda.device_count() if cuda else 'N'} (got {args.gpus})")
+    args.sim_device = lambda k: f"cuda:{k}" if cuda else "cpu"
+    args.train_device = "cuda" if cuda else "cpu"
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {"machine": {"host": platform.node(), "cpus": os.cpu_count(),
+                          "gpus": [torch.cuda.get_device_name(k) for k in range(torch.cuda.device_count())] if cuda else []},
+              "date": time.strftime("%Y-%m-%d"), "n": args.gpus}
+    if not args.skip_generate:
+        report["generate"] = bench_generate(args)
+    if not args.skip_train:
+        data = args.data or args.out / "local"
+        if not (data / "manifest.json").is_file() and not (data / "static_set.npz").is_file():
+            parser.error(f"--data {data} is not a dataset (run (a) first or give --data)")
+        report["train"] = bench_train(args, data)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
