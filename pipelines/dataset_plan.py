@@ -62,6 +62,14 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
 
     seed = int(spec["seed"])
     gtype = spec["garment"]["type"]
+    # The spec validates these (simulate.garment.cloth3d, simulate.garment.tightness give the sampling
+    # and the shape blend); the dataset's simulation runs one fabric and no tightness offset per run.
+    if isinstance(spec["garment"]["fabric"], list):
+        raise ValueError(f"spec.garment.fabric is a list ({spec['garment']['fabric']}) but generate-dataset simulates "
+                         f"one fabric per run; give one fabric name")
+    if spec["garment"].get("tightness") is not None:
+        raise ValueError(f"spec.garment.tightness is {spec['garment']['tightness']} but generate-dataset sizes every "
+                         f"garment for the neutral shape; remove the field (null)")
     styles = []
     for k, group in enumerate(("train", "test")):
         given = spec["styles"][group]
