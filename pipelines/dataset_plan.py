@@ -44,6 +44,14 @@ class Plan:
     tasks: list[Task] = field(default_factory=list)
 
 
+def default_pose_joints(garment_type: str) -> str:
+    """The joints a garment type's sampled poses move by default: lower for bottoms, all for the
+    full-body dress and jumpsuit, upper for tops."""
+    if garment_type in ("pants", "shorts", "skirt"):
+        return "lower"
+    return "all" if garment_type in ("dress", "jumpsuit") else "upper"
+
+
 def _rng(seed: int, *stream: int) -> np.random.Generator:
     return np.random.default_rng([seed, *stream])
 
@@ -54,6 +62,14 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
 
     seed = int(spec["seed"])
     gtype = spec["garment"]["type"]
+    # The spec validates these (simulate.garment.cloth3d, simulate.garment.tightness give the sampling
+    # and the shape blend); the dataset's simulation runs one fabric and no tightness offset per run.
+    if isinstance(spec["garment"]["fabric"], list):
+        raise ValueError(f"spec.garment.fabric is a list ({spec['garment']['fabric']}) but generate-dataset simulates "
+                         f"one fabric per run; give one fabric name")
+    if spec["garment"].get("tightness") is not None:
+        raise ValueError(f"spec.garment.tightness is {spec['garment']['tightness']} but generate-dataset sizes every "
+                         f"garment for the neutral shape; remove the field (null)")
     styles = []
     for k, group in enumerate(("train", "test")):
         given = spec["styles"][group]
@@ -103,7 +119,7 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         pick = _rng(seed, 31 + k).permutation(len(candidates))[:want]
         pairs.extend((group, *candidates[i]) for i in sorted(pick))
 
-    joints = spec["poses"]["joints"] or ("lower" if gtype in ("pants", "shorts", "skirt") else "upper")
+    joints = spec["poses"]["joints"] or default_pose_joints(gtype)
     joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
     total = int(spec["poses"]["train_count"]) + int(spec["poses"]["test_count"])
     if spec["poses"]["source"] == "file":
@@ -117,7 +133,7 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     else:
         sampler = PoseSampler(joints=joints, range_scale=float(spec["poses"]["range_scale"]), base_pose=body.canonical_pose)
         kind = spec["poses"]["joints"] if spec["poses"]["joints"] in ("upper", "lower", "all") else \
-            ("lower" if gtype in ("pants", "shorts", "skirt") else "upper")
+            default_pose_joints(gtype)
         min_clearance = spec["poses"]["min_clearance"]
         reasons = []
         all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42),

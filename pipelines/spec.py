@@ -9,9 +9,13 @@ records and hashes. Schema (every key optional unless marked required)::
     name: str (required)                dataset name
     seed: int = 0                       seeds every RNG of the run
     garment:
-      type: tshirt|shirt|pants|shorts|skirt (required)
+      type: tshirt|shirt|pants|shorts|skirt|top|dress|jumpsuit (required)
       resolution: int = 1500            target garment vertex count
-      fabric: cotton|silk|denim|leather = cotton
+      fabric: cotton|silk|denim|leather | list = cotton   one fabric, or a list to sample from
+                                        (seed 004: tshirt, shirt and top only cotton or silk)
+      tightness: null | [lo, hi] | [[lo, hi], [lo, hi]] = null   tightness range (seed 004): one
+                                        range for both offsets or one per offset (anny height,
+                                        weight; simulate.garment.cloth3d), each within [-0.5, 0.5]
     body:
       backend: anny|smpl = anny
       path: str | null                  SMPL-family file for backend smpl
@@ -102,8 +106,13 @@ from typing import Any
 
 import yaml
 
-GARMENT_TYPES = ("tshirt", "shirt", "pants", "shorts", "skirt")
+GARMENT_TYPES = ("tshirt", "shirt", "pants", "shorts", "skirt", "top", "dress", "jumpsuit")
 FABRIC_NAMES = ("cotton", "silk", "denim", "leather")
+TOP_TYPES = ("tshirt", "shirt", "top")
+"""Upper-body types: a fabric list may name only cotton and silk for them (seed 004, Sec. 3.3)."""
+TOP_FABRICS = ("cotton", "silk")
+TIGHTNESS_LIMIT = 0.5
+"""Largest |tightness| offset a spec may ask for [anny shape parameter units]."""
 SPLITS = ("train_train", "train_test", "test_train", "test_test")
 
 DEFAULTS: dict[str, Any] = {
@@ -130,7 +139,10 @@ DEFAULTS: dict[str, Any] = {
 
 
 REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)}
-"""Keys a spec may (or must) give that have no default, by section path ("" = top level)."""
+"""Keys a spec must give (they have no default), by section path ("" = top level)."""
+
+OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",)}
+"""Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
 
 MAX_RESOLUTION = 200_000
 """Largest garment.resolution accepted [vertices] (the TailorNet t-shirt has 7.7k)."""
@@ -152,7 +164,7 @@ def _check_structure(raw: dict, defaults: dict, section: str, source: str, error
     Returns a copy of ``raw`` without the offending keys (so value checks can go on and every
     problem is reported at once). A section given as null (e.g. all its lines commented out)
     counts as empty."""
-    known = sorted(set(defaults) | set(REQUIRED_KEYS.get(section, ())))
+    known = sorted(set(defaults) | set(REQUIRED_KEYS.get(section, ())) | set(OPTIONAL_KEYS.get(section, ())))
     clean: dict = {}
     for key, value in raw.items():
         path = f"{section}.{key}" if section else str(key)
@@ -234,7 +246,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer("seed", 0)
     c.choice("garment.type", GARMENT_TYPES)
     c.integer("garment.resolution", 64, maximum=MAX_RESOLUTION)
-    c.choice("garment.fabric", FABRIC_NAMES)
+    _check_fabric(c, spec["garment"].get("fabric"), spec["garment"].get("type"))
+    _check_tightness(c, spec["garment"].get("tightness"))
     c.choice("body.backend", ("anny", "smpl"))
     if spec["body"]["backend"] == "smpl" and not spec["body"].get("path"):
         c.fail("body.path", "the path of an SMPL-family model file when body.backend is smpl")
@@ -330,11 +343,46 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     return spec
 
 
+def _check_fabric(c: _Checker, fabric: Any, garment_type: Any) -> None:
+    """garment.fabric: one preset name, or a non-empty list of distinct names (upper-body types:
+    cotton or silk only)."""
+    if not isinstance(fabric, list):
+        c.choice("garment.fabric", FABRIC_NAMES)
+        return
+    if not fabric:
+        c.fail("garment.fabric", f"one of {', '.join(FABRIC_NAMES)} or a non-empty list of them")
+        return
+    for k, name in enumerate(fabric):
+        if name not in FABRIC_NAMES:
+            c.fail(f"garment.fabric[{k}]", f"one of {', '.join(FABRIC_NAMES)}{nearest_name(name, FABRIC_NAMES)}", name)
+        elif garment_type in TOP_TYPES and name not in TOP_FABRICS:
+            c.fail(f"garment.fabric[{k}]", f"{' or '.join(TOP_FABRICS)} for a {garment_type} (upper-body garments "
+                                           f"are cotton or silk, seed 004)", name)
+    if len(set(map(str, fabric))) != len(fabric):
+        c.fail("garment.fabric", "a list without repeated fabrics")
+
+
+def _check_tightness(c: _Checker, value: Any) -> None:
+    """garment.tightness: null, [lo, hi], or [[lo, hi], [lo, hi]] with -0.5 <= lo <= hi <= 0.5."""
+    if value is None:
+        return
+
+    def is_range(r: Any) -> bool:
+        return (isinstance(r, list) and len(r) == 2 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+            and -TIGHTNESS_LIMIT <= x <= TIGHTNESS_LIMIT for x in r) and r[0] <= r[1])
+
+    ranges = value if isinstance(value, list) and value and isinstance(value[0], list) else [value]
+    if len(ranges) not in (1, 2) or not all(is_range(r) for r in ranges):
+        c.fail("garment.tightness", f"null, a range [lo, hi] or two ranges [[lo, hi], [lo, hi]] (height, weight) "
+                                    f"with -{TIGHTNESS_LIMIT} <= lo <= hi <= {TIGHTNESS_LIMIT}")
+
+
 def _check_styles(c: _Checker, path: str, styles: list[dict], garment_type: str) -> None:
     """Explicit style dicts: parameter names of the garment type, finite values in range."""
-    from simulate.garment.style import STYLE_SPECS
+    from simulate.garment.style import parameter_specs
 
-    params = STYLE_SPECS[garment_type]
+    params = parameter_specs(garment_type)
     for k, style in enumerate(styles):
         for name, value in style.items():
             where = f"{path}[{k}].{name}"

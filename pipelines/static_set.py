@@ -32,12 +32,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from simulate.garment.style import GARMENT_TYPES
+    from simulate.garment.style import TAILORNET_TYPES
 
     p = sub.add_parser("static-set", help="rest-pose garments on sampled bodies, registered to the body mesh "
                        "(gcvae's data)", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--types", default=",".join(GARMENT_TYPES), help="comma-separated garment types")
+    p.add_argument("--types", default=",".join(TAILORNET_TYPES), help="comma-separated garment types")
     p.add_argument("--count", type=int, default=100, help="samples per type")
     p.add_argument("--test-fraction", type=float, default=0.2, help="share of each type's samples in the test split")
     p.add_argument("--subdivisions", type=int, default=None,

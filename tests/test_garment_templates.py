@@ -6,9 +6,12 @@ import numpy as np
 import pytest
 
 from simulate.garment import mesh_ops
-from simulate.garment.style import GARMENT_TYPES, STYLE_SPECS, StyleParams
+from simulate.garment.style import STYLE_SPECS, TAILORNET_TYPES, StyleParams
 from simulate.garment.templates import BOUNDARY_NAMES, GarmentTemplate, apply_style, body_joints, make_template
 
+#: The single-piece types these assertions are written for (the top, dress and jumpsuit:
+#: tests/test_garment_cloth3d.py).
+GARMENT_TYPES = TAILORNET_TYPES
 #: Low resolution (subdivision level 0 / a small skirt grid) keeps the tests fast.
 TEST_RESOLUTION = 500
 #: Max distance from a garment vertex to its body vertex I beyond looseness + flare [m]
@@ -118,8 +121,8 @@ def test_save_load_and_hash(templates, tmp_path):
 
 
 def test_bad_inputs(anny_body):
-    with pytest.raises(ValueError, match="tshirt, shirt, pants, shorts, skirt"):
-        make_template("dress", anny_body)
+    with pytest.raises(ValueError, match="tshirt, shirt, pants, shorts, skirt, top, dress, jumpsuit"):
+        make_template("gown", anny_body)
     with pytest.raises(ValueError, match="resolution"):
         make_template("skirt", anny_body, resolution=3)
 

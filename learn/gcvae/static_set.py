@@ -30,7 +30,7 @@ import numpy as np
 
 from learn.gcvae.body_mesh import BodyMesh, build_body_mesh, canonical_body_vertices
 from learn.gcvae.registration import MAX_OFFSET_M, register, registration_error
-from simulate.garment.style import GARMENT_TYPES, STYLE_SPECS, check_garment_type, sample_styles
+from simulate.garment.style import STYLE_SPECS, TAILORNET_TYPES, check_garment_type, sample_styles
 
 FILE_NAME = "static_set.npz"
 STYLE_WIDTH = max(len(s) for s in STYLE_SPECS.values())
@@ -45,7 +45,7 @@ def sample_shapes(count: int, rng: np.random.Generator, size: int = 6) -> np.nda
     return shapes
 
 
-def build_static_set(out: str | os.PathLike, *, types: tuple[str, ...] = GARMENT_TYPES, count: int = 100,
+def build_static_set(out: str | os.PathLike, *, types: tuple[str, ...] = TAILORNET_TYPES, count: int = 100,
                      test_fraction: float = 0.2, seed: int = 0, representation: dict | None = None,
                      body=None, log=print) -> Path:
     """Builds ``count`` samples per type into ``out/static_set.npz`` and returns its path."""

@@ -13,7 +13,8 @@ so the shoulder and the hip are covered from both sides and a cloth vertex near 
 does not fall through the cut.
 
 Which scheme a garment uses (``GARMENT_SCHEMES``): tops split arms from the torso, pants and shorts
-legs from the torso; a skirt, whose panels hang across both legs, collides with the whole body.
+legs from the torso; a skirt, whose panels hang across both legs, collides with the whole body, and
+so do the sleeveless top and the dress; a jumpsuit splits its legs from the torso like trousers.
 """
 
 from __future__ import annotations
@@ -33,6 +34,9 @@ GARMENT_SCHEMES: dict[str, tuple[str, ...]] = {
     "pants": ("torso", "left_leg", "right_leg"),
     "shorts": ("torso", "left_leg", "right_leg"),
     "skirt": ("torso",),
+    "top": ("torso",),  # sleeveless: no sleeve is held off an arm
+    "dress": ("torso",),
+    "jumpsuit": ("torso", "left_leg", "right_leg"),
 }
 """Collision parts per garment type; a body vertex of a part not listed counts as the first (torso)."""
 

@@ -26,6 +26,9 @@ COLLISION_PARTS: dict[str, tuple[str, ...]] = {
     "pants": ("torso", "legs", "feet"),
     "shorts": ("torso", "legs"),
     "skirt": ("torso", "legs"),
+    "top": ("torso", "arms", "legs", "head"),
+    "dress": ("torso", "arms", "legs", "head"),
+    "jumpsuit": ("torso", "arms", "legs", "head", "feet"),  # long legs reach the ankle cut
 }
 #: A garment vertex deeper than this inside the body counts as penetrating [m]
 #: (HOOD-style evaluations use 1 mm).

@@ -528,3 +528,64 @@ def collapse_short_edges(vertices: np.ndarray, faces: np.ndarray, min_length: fl
     kept = np.zeros(len(v), dtype=bool)
     kept[f.ravel()] = True
     return f, kept
+
+
+# ------------------------------------------------------------------------- sewing
+def sew_loops(vertices_a: np.ndarray, faces_a: np.ndarray, loop_a: np.ndarray, vertices_b: np.ndarray,
+              faces_b: np.ndarray, loop_b: np.ndarray, *, tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sews mesh b to mesh a along a boundary loop of each: the loops' vertices are matched one
+    to one (b's loop is shifted and, if need be, reversed so that corresponding vertices are
+    nearest) and b's are merged into a's, so the seam has no duplicate vertices.
+
+    b's faces are reversed when its orientation disagrees with a's across the seam (a seam
+    half-edge running the same way in both), so the sewn mesh is consistently oriented like a.
+
+    Args:
+        vertices_a, faces_a, loop_a: mesh a [m] (Va, 3), (Fa, 3) and its ordered boundary loop (N,).
+        vertices_b, faces_b, loop_b: mesh b and its loop, of the same length N.
+        tolerance: largest distance [m] between matched loop vertices.
+    Returns:
+        (vertices (Va + Vb - N, 3): a's then b's non-seam vertices in their order, faces
+        (Fa + Fb, 3): a's then b's, index_b (Vb,): each b vertex's index in the sewn mesh).
+    Raises:
+        ValueError when the loops differ in length or a matched pair is farther apart than
+        ``tolerance``.
+    """
+    la, lb = np.asarray(loop_a, np.int64), np.asarray(loop_b, np.int64)
+    va, vb = np.asarray(vertices_a, np.float64), np.asarray(vertices_b, np.float64)
+    if len(la) != len(lb) or len(la) < 3:
+        raise ValueError(f"seam loops must have the same length >= 3, got {len(la)} and {len(lb)} vertices")
+    best = (np.inf, None)
+    for order in (lb, lb[::-1]):
+        k = int(np.argmin(np.linalg.norm(vb[order] - va[la[0]], axis=1)))
+        cand = np.roll(order, -k)
+        gap = float(np.linalg.norm(va[la] - vb[cand], axis=1).max())
+        if gap < best[0]:
+            best = (gap, cand)
+    gap, matched = best
+    if gap > tolerance:
+        raise ValueError(f"seam loops do not match: matched vertices are up to {gap:.3g} m apart "
+                         f"(tolerance {tolerance:.3g} m)")
+    index_b = np.full(len(vb), -1, np.int64)
+    index_b[matched] = la
+    rest = np.setdiff1d(np.arange(len(vb)), matched)
+    index_b[rest] = len(va) + np.arange(len(rest))
+    fa = np.asarray(faces_a, np.int64)
+    fb = index_b[np.asarray(faces_b, np.int64)]
+
+    def half_edges(f: np.ndarray) -> set[tuple[int, int]]:
+        return set(map(tuple, np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2).tolist()))
+
+    seam = set(zip(la.tolist(), np.roll(la, -1).tolist())) | set(zip(np.roll(la, -1).tolist(), la.tolist()))
+    along_a = half_edges(fa) & seam
+    if along_a & half_edges(fb):
+        fb = fb[:, ::-1]
+    return np.concatenate([va, vb[rest]]), np.concatenate([fa, fb]), index_b
+
+
+def oriented_consistently(faces: np.ndarray) -> bool:
+    """True when every edge shared by two faces is traversed in opposite directions by them."""
+    f = np.asarray(faces, np.int64)
+    half = np.stack([f, np.roll(f, -1, axis=1)], -1).reshape(-1, 2)
+    _, counts = np.unique(half, axis=0, return_counts=True)
+    return bool((counts == 1).all())

@@ -1,5 +1,7 @@
-"""Garment templates on the canonical body: t-shirt, shirt, pants, shorts (body-surface
-regions, TailorNet's indicator I) and skirt (its own surface, attached at the waist).
+"""Garment templates on the canonical body: t-shirt, shirt, sleeveless top, pants, shorts
+(body-surface regions, TailorNet's indicator I), skirt (its own surface, attached at the
+waist), and the dress and jumpsuit sewn from an upper and a lower piece at the waist
+(:mod:`simulate.garment.sewing`).
 
 A body-topology garment is cut out of the canonical body mesh (neutral shape, canonical
 A-pose) along level sets defined from joint positions (planes through the hips, a
@@ -29,12 +31,14 @@ from scipy.spatial import cKDTree
 
 from simulate.body.base import PARTS, POSE_JOINTS
 from simulate.garment import mesh_ops
+from simulate.garment.cloth3d import CLOTH3D
 from simulate.garment.style import GARMENT_TYPES, STYLE_SPECS, StyleParams, check_garment_type
 
 #: Default target vertex count per type (TailorNet's counts: t-shirt 7,702, shirt 9,723,
 #: pants 4,718, skirt 7,130). Body-topology garments take the subdivision level whose
 #: count is nearest in log scale, so actual counts differ (see the template).
-DEFAULT_RESOLUTION: dict[str, int] = {"tshirt": 7700, "shirt": 9700, "pants": 4700, "shorts": 3000, "skirt": 7100}
+DEFAULT_RESOLUTION: dict[str, int] = {"tshirt": 7700, "shirt": 9700, "pants": 4700, "shorts": 3000, "skirt": 7100,
+                                      "top": 6000, "dress": 9000, "jumpsuit": 9000}
 
 #: Expected boundary loop names per type.
 BOUNDARY_NAMES: dict[str, tuple[str, ...]] = {
@@ -43,7 +47,14 @@ BOUNDARY_NAMES: dict[str, tuple[str, ...]] = {
     "pants": ("waist", "left_hem", "right_hem"),
     "shorts": ("waist", "left_hem", "right_hem"),
     "skirt": ("waist", "hem"),
+    "top": ("neck", "hem", "left_armhole", "right_armhole"),
+    "dress": ("neck", "hem", "left_armhole", "right_armhole"),
+    "jumpsuit": ("neck", "left_armhole", "right_armhole", "left_hem", "right_hem"),
 }
+#: Types whose upper part is a top: a neck cut and (tshirt, shirt) sleeves or armholes.
+UPPER_TYPES = ("tshirt", "shirt", "top", "dress", "jumpsuit")
+#: Types cut at the arm roots (sleeveless).
+ARMHOLE_TYPES = ("top", "dress", "jumpsuit")
 
 #: Segment ids stored per vertex (which length parameter slides it).
 SEGMENT_NONE, SEGMENT_TORSO, SEGMENT_LEFT, SEGMENT_RIGHT = 0, 1, 2, 3
@@ -55,6 +66,7 @@ LIMB_CUTS: dict[str, tuple[str, float, float, float]] = {
     "shirt": ("arm", 0.2, 1.3, 1.92),
     "pants": ("leg", 0.25, 1.3, 1.92),
     "shorts": ("leg", 0.25, 0.35, 0.8),
+    "jumpsuit": ("leg", 0.25, 0.35, 1.92),  # from shorts' shortest to pants' longest
 }
 #: Torso hem of tops in units of (spine2 height - hip height) below spine2: (anchor, shortest, longest).
 TORSO_CUT: tuple[float, float, float] = (0.3, 0.55, 1.05)
@@ -151,6 +163,11 @@ class GarmentTemplate:
         resolution: subdivision level (body-topology) or target vertex count (skirt).
         body_name: body backend the template was cut from.
         default_style: the style ``vertices`` were generated with.
+        piece: of sewn types (dress, jumpsuit), which piece each vertex comes from, (V,):
+            0 the upper garment (top), 1 the lower (skirt or trousers); seam vertices count
+            as the upper's. Empty for single-piece types.
+        seam: of sewn types, the ordered waist seam loop (vertex indices) the pieces were
+            sewn along, (N,); empty otherwise.
     """
 
     garment_type: str
@@ -173,6 +190,8 @@ class GarmentTemplate:
     resolution: int = 0
     body_name: str = "anny"
     default_style: dict[str, float] = field(default_factory=dict)
+    piece: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    seam: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def vertex_count(self) -> int:
@@ -201,6 +220,9 @@ class GarmentTemplate:
             "body_vertex_index": np.asarray(self.body_vertex_index, np.int64),
             "body_face": np.asarray(self.body_face, np.int64), "body_bary": np.asarray(self.body_bary, np.float32),
             "segment": np.asarray(self.segment, np.int64),
+            # sewn types only: single-piece templates keep their arrays (and hashes) without them
+            **({"piece": np.asarray(self.piece, np.int64), "seam": np.asarray(self.seam, np.int64)}
+               if len(self.seam) else {}),
         }
 
     def _meta(self) -> dict:
@@ -258,7 +280,7 @@ def _cut_fields(garment_type: str, joints: dict[str, np.ndarray]):
     (field (V,) with the kept side <= 0 [m or bone units], applicable bool (V,))."""
     p = {name: PARTS.index(name) for name in PARTS}
     cuts = []
-    if garment_type in ("tshirt", "shirt"):
+    if garment_type in UPPER_TYPES:
         neck, collar = joints["neck"], 0.5 * (joints["left_collar"] + joints["right_collar"])
         origin = np.array([neck[0], 0.5 * (neck[1] + collar[1]), neck[2]])
         tilt = np.radians(25.0)
@@ -272,18 +294,32 @@ def _cut_fields(garment_type: str, joints: dict[str, np.ndarray]):
         y_top = joints["spine2"][1]
         y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
         y_hem = y_top - TORSO_CUT[2] * (y_top - y_hip)
+        if garment_type == "dress":  # the upper piece ends at the waist seam
+            y_hem = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
 
         def hem_cut(v, part):
             return y_hem - v[:, 1], np.isin(part, [p["torso"], p["legs"]])
 
-        cuts += [neck_cut, hem_cut]
-    else:
+        cuts += [neck_cut] if garment_type == "jumpsuit" else [neck_cut, hem_cut]
+    if garment_type in ARMHOLE_TYPES:
+        for side in (1, -1):
+            chain = [joints[n] for n in _chain("arm", side)]
+            bone = float(np.linalg.norm(chain[1] - chain[0]))
+
+            def armhole_cut(v, part, chain=chain, side=side, bone=bone):
+                u = limb_coordinate(v, chain)
+                return (u - CLOTH3D.top_armhole_u) * bone, np.isin(part, [p["arms"], p["hands"]]) & (np.sign(v[:, 0]) == side)
+
+            cuts.append(armhole_cut)
+    if garment_type not in UPPER_TYPES:
         y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
 
         def waist_cut(v, part):
             return v[:, 1] - y_waist, np.isin(part, [p["torso"], p["arms"], p["hands"]])
 
         cuts.append(waist_cut)
+    if garment_type not in LIMB_CUTS:
+        return cuts
     kind, _, _, u_max = LIMB_CUTS[garment_type]
     limb_parts = [p["arms"], p["hands"]] if kind == "arm" else [p["legs"], p["feet"]]
     for side in (1, -1):
@@ -300,7 +336,7 @@ def _cut_fields(garment_type: str, joints: dict[str, np.ndarray]):
 
 
 def _allowed_parts(garment_type: str) -> list[int]:
-    names = ("torso", "arms", "legs") if garment_type in ("tshirt", "shirt") else ("torso", "legs")
+    names = ("torso", "arms", "legs") if garment_type in UPPER_TYPES else ("torso", "legs")
     return [PARTS.index(n) for n in names]
 
 
@@ -315,11 +351,19 @@ def _name_loops(garment_type: str, v: np.ndarray, loops: list[np.ndarray]) -> tu
     if garment_type == "skirt":
         order = np.argsort(-centre[:, 1])
         names[order[0]], names[order[1]] = "waist", "hem"
-    elif garment_type in ("tshirt", "shirt"):
-        names[side[-1]], names[side[0]] = "left_sleeve", "right_sleeve"
+    elif garment_type in ("tshirt", "shirt", "top", "dress"):
+        sleeve = "sleeve" if garment_type in ("tshirt", "shirt") else "armhole"
+        names[side[-1]], names[side[0]] = f"left_{sleeve}", f"right_{sleeve}"
         mid = [i for i in range(4) if names[i] is None]
         hi, lo = sorted(mid, key=lambda i: -centre[i, 1])
         names[hi], names[lo] = "neck", "hem"
+    elif garment_type == "jumpsuit":
+        low = sorted(range(5), key=lambda i: centre[i, 1])[:2]  # the two leg hems are lowest
+        left_hem = max(low, key=lambda i: centre[i, 0])
+        names[left_hem], names[[i for i in low if i != left_hem][0]] = "left_hem", "right_hem"
+        upper = [i for i in range(5) if names[i] is None]
+        by_x = sorted(upper, key=lambda i: centre[i, 0])
+        names[by_x[-1]], names[by_x[0]], names[by_x[1]] = "left_armhole", "right_armhole", "neck"
     else:
         names[side[-1]], names[side[0]] = "left_hem", "right_hem"
         names[[i for i in range(3) if names[i] is None][0]] = "waist"
@@ -409,6 +453,10 @@ def template_surface(template: GarmentTemplate, body, *, shape=None) -> np.ndarr
 
 def _segments(garment_type: str, part_of_vertex: np.ndarray, side_of_vertex: np.ndarray) -> np.ndarray:
     seg = np.full(len(part_of_vertex), SEGMENT_NONE, dtype=np.int64)
+    if garment_type not in LIMB_CUTS:  # top: only its torso slides; dress's upper piece: nothing
+        if garment_type == "top":
+            seg[np.isin(part_of_vertex, [PARTS.index("torso"), PARTS.index("legs")])] = SEGMENT_TORSO
+        return seg
     kind = LIMB_CUTS[garment_type][0]
     limb = PARTS.index("arms") if kind == "arm" else PARTS.index("legs")
     seg[(part_of_vertex == limb) & (side_of_vertex > 0)] = SEGMENT_LEFT
@@ -432,14 +480,35 @@ def skirt_vertices(body, shape, style: StyleParams, rows: int, cols: int) -> np.
     the hull of the body (torso + legs) between the waist and y_k, plus looseness plus
     ``width_profile * k / (rows - 1)``. Angle 0 faces +z; angles increase toward +x.
     """
-    v, joints = body_joints(body, shape)
-    part = np.asarray(body.vertex_parts)
+    _, joints = body_joints(body, shape)
     y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
     y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
     y_knee = 0.5 * (joints["left_knee"][1] + joints["right_knee"][1])
     lo, hi = SKIRT_CUT
     y_hem = y_hip + (y_knee - y_hip) * (lo + (hi - lo) * style["length"])
     ring_y = y_waist + (y_hem - y_waist) * np.linspace(0.0, 1.0, rows)
+    centre, radius, bins = skirt_hull(body, shape, ring_y)
+    theta = 2 * np.pi * np.arange(cols) / cols - np.pi
+    bin_centres = (np.arange(bins) + 0.5) / bins * 2 * np.pi - np.pi
+    t = np.linspace(0.0, 1.0, rows)
+    out = np.zeros((rows, cols, 3))
+    for k in range(rows):
+        r = np.interp(theta, bin_centres, radius[k], period=2 * np.pi)
+        r = r + style["looseness"] + style["width_profile"] * t[k]
+        out[k, :, 0] = centre[0] + r * np.sin(theta)
+        out[k, :, 1] = ring_y[k]
+        out[k, :, 2] = centre[2] + r * np.cos(theta)
+    return out.reshape(-1, 3)
+
+
+def skirt_hull(body, shape, ring_y: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Hull of the hips and legs below the waist for skirt rings at heights ``ring_y`` (R,) [m]
+    (ring 0 at the waist): (centre (3,) of the waist band [m], radius (R, bins) [m] per angle bin
+    (bin b spans angles from -pi + 2 pi b / bins, angle 0 facing +z, pi/2 facing +x), bins)."""
+    v, joints = body_joints(body, shape)
+    part = np.asarray(body.vertex_parts)
+    y_waist = joints["spine1"][1] - WAIST_BELOW_SPINE1_M
+    rows = len(ring_y)
     # Dense body surface points (twice-subdivided torso/leg faces) for the hull.
     fmask = np.isin(part[body.faces], [PARTS.index("torso"), PARTS.index("legs")]).all(1)
     pts, tri = v, body.faces[fmask]
@@ -469,17 +538,7 @@ def skirt_vertices(body, shape, style: StyleParams, rows: int, cols: int) -> np.
         for _ in range(3):
             r = np.maximum(r, 0.25 * np.roll(r, 1) + 0.5 * r + 0.25 * np.roll(r, -1))
         radius[k] = r
-    theta = 2 * np.pi * np.arange(cols) / cols - np.pi
-    bin_centres = (np.arange(bins) + 0.5) / bins * 2 * np.pi - np.pi
-    t = np.linspace(0.0, 1.0, rows)
-    out = np.zeros((rows, cols, 3))
-    for k in range(rows):
-        r = np.interp(theta, bin_centres, radius[k], period=2 * np.pi)
-        r = r + style["looseness"] + style["width_profile"] * t[k]
-        out[k, :, 0] = centre[0] + r * np.sin(theta)
-        out[k, :, 1] = ring_y[k]
-        out[k, :, 2] = centre[2] + r * np.cos(theta)
-    return out.reshape(-1, 3)
+    return centre, radius, bins
 
 
 def _skirt_faces(rows: int, cols: int) -> np.ndarray:
@@ -601,44 +660,68 @@ def apply_style(template: GarmentTemplate, style: StyleParams, body, *, shape=No
     if gt == "skirt":
         rows, cols = template.grid_shape
         return skirt_vertices(body, shape, style, rows, cols).astype(np.float32)
+    if gt == "dress":
+        from simulate.garment.sewing import dress_vertices
+
+        return dress_vertices(template, style, body, shape)
+    return styled_body_surface(gt, style, body, shape, template.faces, template.body_face, template.body_bary,
+                               template.segment).astype(np.float32)
+
+
+def profile_offset(style: StyleParams, s: np.ndarray) -> np.ndarray:
+    """Seed 004's sleeve/leg width profile as an outward offset [m] at positions s (N,) along
+    the limb (0 at the anchor, 1 at the longest cut): constant or tapering, widening past
+    ``widen_at`` (see :mod:`simulate.garment.style`)."""
+    s = np.asarray(s, np.float64)
+    offset = style["looseness"] * (1.0 - style.get("taper") * s) + style.get("widen") * np.maximum(s - style.get("widen_at"), 0.0)
+    return np.maximum(offset, CLOTH3D.min_offset_m)
+
+
+def styled_body_surface(gt: str, style: StyleParams, body, shape, faces: np.ndarray, body_face: np.ndarray,
+                        body_bary: np.ndarray, segment: np.ndarray) -> np.ndarray:
+    """A body-topology garment of style ``style`` (V, 3) [m] on the canonical body of ``shape``:
+    the embedded surface with hems and cuffs slid to their lengths, offset outward by the
+    looseness and width profiles, kept outside the body."""
     bv, joints = body_joints(body, shape)
-    faces = template.faces
-    surf = embedded_points(bv, body.faces, template.body_face, template.body_bary)
+    surf = embedded_points(bv, body.faces, body_face, body_bary)
     extra = np.zeros(len(surf))
 
     def membership(mask: np.ndarray) -> np.ndarray:
         return np.clip(mesh_ops.smooth_vertex_values(mask.astype(np.float64)[:, None], faces, iterations=8)[:, 0], 0, 1)
 
-    if gt in ("tshirt", "shirt"):
+    if gt in ("tshirt", "shirt", "top"):
         y_top = joints["spine2"][1]
         y_hip = 0.5 * (joints["left_hip"][1] + joints["right_hip"][1])
         height = y_top - y_hip
         anchor, lo, hi = TORSO_CUT
         u = (y_top - surf[:, 1]) / height
-        member = membership(template.segment == SEGMENT_TORSO)
+        member = membership(segment == SEGMENT_TORSO)
         spine = [joints["spine2"], 0.5 * (joints["left_hip"] + joints["right_hip"])]  # u = 1 at hip height
         surf, _ = _slide(surf, member, u, spine, anchor, hi, lo + (hi - lo) * style["length"],
                          length=float(np.linalg.norm(spine[1] - spine[0])))
-        length_name = "sleeve_length"
-    else:
-        length_name = "leg_length"
-    kind, anchor, lo, hi = LIMB_CUTS[gt]
-    u_cut = lo + (hi - lo) * style[length_name]
-    for seg_id, side in ((SEGMENT_LEFT, 1), (SEGMENT_RIGHT, -1)):
+    limbs = [] if gt not in LIMB_CUTS else [(SEGMENT_LEFT, 1), (SEGMENT_RIGHT, -1)]
+    if limbs:
+        kind, anchor, lo, hi = LIMB_CUTS[gt]
+        u_cut = lo + (hi - lo) * style["sleeve_length" if kind == "arm" else "leg_length"]
+        profiled = style.get("taper") > 0.0 or style.get("widen") > 0.0
+    for seg_id, side in limbs:
         chain = [joints[n] for n in _chain(kind, side)]
-        member = membership(template.segment == seg_id)
+        member = membership(segment == seg_id)
         u = limb_coordinate(surf, chain)
         surf, u_new = _slide(surf, member, u, chain, anchor, hi, u_cut,
                              length=float(np.mean([np.linalg.norm(b - a) for a, b in zip(chain[:-1], chain[1:])])))
         ramp = np.clip((u_new - anchor) / max(u_cut - anchor, 1e-9), 0.0, 1.0)
-        extra += member * ramp * style["width_profile"]
+        extra += member * ramp * style.values.get("width_profile", 0.0)
+        if profiled:
+            position = np.clip((u_new - anchor) / (hi - anchor), 0.0, 1.0)
+            extra += member * (profile_offset(style, position) - style["looseness"])
     edges, _ = mesh_ops.unique_edges(faces)
     edge = float(np.median(np.linalg.norm(surf[edges[:, 1]] - surf[edges[:, 0]], axis=1)))
     normals = mesh_ops.smooth_normals(surf, faces, iterations=max(10, int(np.ceil((OFFSET_NORMAL_RADIUS_M / edge) ** 2))))
     body_query = mesh_ops.ClosestPointQuery(bv, body.faces)
     offset = safe_offsets(surf, normals, style["looseness"] + extra, faces, body_query)
     verts = unfold_offset(surf + normals * offset[:, None], surf, faces)
-    return relax_outside(verts, faces, body_query).astype(np.float32)
+    return relax_outside(verts, faces, body_query)
 
 
 def unfold_offset(points: np.ndarray, surface: np.ndarray, faces: np.ndarray, *, rounds: int = 10) -> np.ndarray:
@@ -762,6 +845,10 @@ def make_template(garment_type: str, body, *, resolution: int | None = None,
     if not isinstance(style, StyleParams):
         style = StyleParams.parse(garment_type, style) if style is None or isinstance(style, str) \
             else StyleParams(garment_type, style)
+    if garment_type in ("dress", "jumpsuit"):
+        from simulate.garment.sewing import make_sewn_template
+
+        return make_sewn_template(garment_type, body, int(resolution), style)
     if garment_type == "skirt":
         rows, cols = _skirt_grid_shape(int(resolution))
         faces = _skirt_faces(rows, cols)

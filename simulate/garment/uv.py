@@ -303,7 +303,7 @@ def compute_uv(vertices: np.ndarray, faces: np.ndarray, garment_type: str
     """Panels and packed charts of a mesh: (face_uv (F, 3, 2), face_panel (F,), panel names)."""
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    split_x = garment_type in ("pants", "shorts")
+    split_x = garment_type in ("pants", "shorts", "jumpsuit")
     face_panel = split_panels(v, f, split_x=split_x)
     names = ["front_left", "front_right", "back_left", "back_right"] if split_x else list(PANEL_NAMES)
     charts = []

@@ -22,11 +22,13 @@ Schedule = tuple  # (shapes (M, S) float32, poses (M, 60) float32, kinds (M,), k
 
 def build_schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape: np.ndarray, s: SequenceSettings,
                    first_key: int = 0) -> Schedule:
-    """The schedule of one world from the canonical drape: shape transition, settle, then the
-    target poses from ``first_key`` on."""
+    """The schedule of one world from the canonical drape: shape transition (from
+    ``task.start_shape``, or ``neutral_shape`` when it is None), settle, then the target poses
+    from ``first_key`` on."""
     n = s.shape_transition_frames
     blend = (np.arange(1, n + 1) / n)[:, None]
-    shapes = [neutral_shape[None] * (1 - blend) + task.shape[None] * blend, task.shape[None]]
+    start = neutral_shape if task.start_shape is None else np.asarray(task.start_shape, np.float32)
+    shapes = [start[None] * (1 - blend) + task.shape[None] * blend, task.shape[None]]
     poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
     kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
     keys = [np.full(n, -1), np.array([-1])]

@@ -18,6 +18,8 @@ class SequenceTask:
         shape: body shape, (S,).
         poses: target poses in visiting order, (N, 60).
         fabric: fabric preset name or Fabric.
+        start_shape: body shape the shape transition starts from, (S,); None: the neutral shape.
+            A garment of tightness tau starts on beta + tau (``simulate.garment.tightness``).
     """
 
     rest_vertices: np.ndarray
@@ -25,6 +27,7 @@ class SequenceTask:
     shape: np.ndarray
     poses: np.ndarray
     fabric: object = "cotton"
+    start_shape: np.ndarray | None = None
 
 
 @dataclass
