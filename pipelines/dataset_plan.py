@@ -165,6 +165,21 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     return plan
 
 
+def load_motions(spec: dict) -> list:
+    """The motion files of a motion spec with ``motion.source: file``, each at ``motion.fps``
+    (``simulate.motion.Motion``; [] for procedural motions). Raises ValueError (FileNotFoundError)
+    naming ``motion.path`` (``motion.path[k]``), the file, the value and what was expected."""
+    from simulate.motion import load_motion
+
+    m = spec["motion"]
+    if m["source"] != "file":
+        return []
+    paths = [m["path"]] if isinstance(m["path"], str) else list(m["path"])
+    fields = ["motion.path"] if isinstance(m["path"], str) else [f"motion.path[{k}]" for k in range(len(paths))]
+    return [load_motion(path, field=field).at_rate(float(m["fps"]), field="motion.fps")
+            for path, field in zip(paths, fields)]
+
+
 #: The TailorNet split of a motion task by its pair's group: train pairs' sequences train, test
 #: pairs' (unseen styles and shapes, their own motions) test.
 MOTION_SPLITS = {"train": "train_train", "test": "test_test"}
@@ -179,17 +194,12 @@ def plan_motions(spec: dict, body: BodyModel, plan: Plan) -> Plan:
     (CLOTH3D simulates its 300-frame splits the same way). Task ids: ``<split>-p<pair>-m<s>``
     (``-c<piece>`` for pieces); ``pose_ids`` are the frames' numbers in the motion."""
     from pipelines.spec import motion_steps
-    from simulate.motion import load_motion, procedural_motion
+    from simulate.motion import procedural_motion
 
     m = spec["motion"]
     seed, fps, frames = int(spec["seed"]), float(m["fps"]), m["frames"]
     steps = motion_steps(spec)
-    files = []
-    if m["source"] == "file":
-        paths = [m["path"]] if isinstance(m["path"], str) else list(m["path"])
-        for k, path in enumerate(paths):
-            field = "motion.path" if isinstance(m["path"], str) else f"motion.path[{k}]"
-            files.append(load_motion(path, field=field).at_rate(fps))
+    files = load_motions(spec)
     canonical = np.asarray(body.canonical_pose, np.float32)
     chunk = spec["simulation"]["poses_per_task"]
     for p, (group, si, hi) in enumerate(plan.pairs):

@@ -428,6 +428,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
     from pipelines.errors import check_output_dir
 
     spec = validate_spec(dict(spec_or_path)) if isinstance(spec_or_path, dict) else load_spec(spec_or_path)
+    if spec["poses"]["source"] == "motion":  # motion files are read (and checked) before any work
+        from pipelines.dataset_plan import load_motions
+
+        load_motions(spec)
     if options.get("device") is not None:
         resolve_device(options["device"], option="--device")
     out_dir = check_output_dir(out_dir, "--out")

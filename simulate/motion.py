@@ -9,9 +9,10 @@ left_wrist, right_wrist), one row per frame, ``1 / fps`` seconds apart.
 
 Procedural motions move a few joints along one axis each, as smooth periodic functions of time
 about the base pose (the body's canonical pose): two-sided channels ``base + A sin(w t + phase)``
-and one-sided ones ``base +- A (1 - cos(w t + phase)) / 2``, with ``A`` a share (``amplitude``) of
-the room between the base angle and the joint limit (:data:`simulate.body.base.JOINT_LIMITS`) on
-that side (the nearer side for two-sided channels), so every frame stays within the limits. The seed draws the tempo (x0.8 to x1.2) and each
+and one-sided ones ``base +- A (1 - cos(w t + phase)) / 2``, with ``A`` a share (``amplitude``
+times the channel's reach) of the room between the base angle and the joint limit
+(:data:`simulate.body.base.JOINT_LIMITS`) on that side (the nearer side for two-sided channels),
+so every frame stays within the limits. The seed draws the tempo (x0.8 to x1.2) and each
 channel's amplitude (x0.7 to x1.0).
 """
 from __future__ import annotations
@@ -28,35 +29,36 @@ from simulate.body.base import JOINT_LIMITS, POSE_JOINTS, POSE_SIZE
 #: far beyond it are degrees or another convention.
 MAX_ANGLE_RAD = 2.0 * math.pi
 
-#: A channel: (joint, axis 0/1/2 = x/y/z, form, phase [rad], harmonic). Forms: "two" = base + A
-#: sin(h w t + phase) with A the room to the nearer limit; "pos" / "neg" = one-sided towards the
-#: upper / lower limit, A (1 - cos(h w t + phase)) / 2.
+#: A channel: (joint, axis 0/1/2 = x/y/z, form, phase [rad], reach). Forms: "two" = base + A
+#: sin(w t + phase) with A the room to the nearer limit; "pos" / "neg" = one-sided towards the
+#: upper / lower limit, A (1 - cos(w t + phase)) / 2. ``reach`` (0, 1] scales the room: the share
+#: of it the channel uses at ``amplitude`` 1 (a walk bends the knee half way, not to its limit).
 Channel = tuple
 
 #: Procedural motion kinds: cycle frequency [Hz] and channels. Axes follow the body frame (x the
 #: body's left, y up, z forward): a hip flexes forward by a negative x rotation, a knee by a
 #: positive one, the spine leans forward by a positive x rotation and twists about y, the left arm
-#: rises sideways by a positive z rotation.
+#: rises sideways by a positive z rotation, the left elbow bends by a negative y rotation.
 MOTION_KINDS: dict[str, tuple[float, tuple[Channel, ...]]] = {
     "walk": (1.0, (
-        ("left_hip", 0, "two", 0.0, 1), ("right_hip", 0, "two", math.pi, 1),
-        ("left_knee", 0, "pos", 0.0, 1), ("right_knee", 0, "pos", math.pi, 1),
-        ("left_shoulder", 0, "two", math.pi, 1), ("right_shoulder", 0, "two", 0.0, 1),
-        ("left_elbow", 1, "neg", 0.0, 2), ("right_elbow", 1, "pos", 0.0, 2),
-        ("spine2", 1, "two", 0.0, 1),
+        ("left_hip", 0, "two", 0.0, 1.0), ("right_hip", 0, "two", math.pi, 1.0),
+        ("left_knee", 0, "pos", 0.0, 0.5), ("right_knee", 0, "pos", math.pi, 0.5),
+        ("left_shoulder", 0, "two", math.pi, 0.5), ("right_shoulder", 0, "two", 0.0, 0.5),
+        ("left_elbow", 1, "neg", 0.0, 0.3), ("right_elbow", 1, "pos", math.pi, 0.3),
+        ("spine2", 1, "two", 0.0, 0.5),
     )),
     "arm_raise": (0.5, (
-        ("left_shoulder", 2, "pos", 0.0, 1), ("right_shoulder", 2, "neg", 0.0, 1),
-        ("left_collar", 2, "pos", 0.0, 1), ("right_collar", 2, "neg", 0.0, 1),
+        ("left_shoulder", 2, "pos", 0.0, 1.0), ("right_shoulder", 2, "neg", 0.0, 1.0),
+        ("left_collar", 2, "pos", 0.0, 1.0), ("right_collar", 2, "neg", 0.0, 1.0),
     )),
     "torso_twist": (0.5, (
-        ("spine1", 1, "two", 0.0, 1), ("spine2", 1, "two", 0.0, 1), ("spine3", 1, "two", 0.0, 1),
-        ("neck", 1, "two", math.pi, 1),
+        ("spine1", 1, "two", 0.0, 1.0), ("spine2", 1, "two", 0.0, 1.0), ("spine3", 1, "two", 0.0, 1.0),
+        ("neck", 1, "two", math.pi, 0.5),
     )),
     "squat": (0.5, (
-        ("left_hip", 0, "neg", 0.0, 1), ("right_hip", 0, "neg", 0.0, 1),
-        ("left_knee", 0, "pos", 0.0, 1), ("right_knee", 0, "pos", 0.0, 1),
-        ("spine1", 0, "pos", 0.0, 1),
+        ("left_hip", 0, "neg", 0.0, 1.0), ("right_hip", 0, "neg", 0.0, 1.0),
+        ("left_knee", 0, "pos", 0.0, 1.0), ("right_knee", 0, "pos", 0.0, 1.0),
+        ("spine1", 0, "pos", 0.0, 1.0),
     )),
 }
 
@@ -168,12 +170,12 @@ def procedural_motion(kind: str, frames: int, fps: float, rng: np.random.Generat
     t = np.arange(int(frames)) / float(fps)
     w = 2.0 * math.pi * frequency * tempo
     poses = np.tile(base.reshape(len(POSE_JOINTS), 3), (int(frames), 1, 1))
-    for (joint, axis, form, phase, harmonic), scale in zip(channels, scales):
+    for (joint, axis, form, phase, reach), scale in zip(channels, scales):
         lo, hi = JOINT_LIMITS[joint][axis]
         k = POSE_JOINTS.index(joint)
         b = float(np.clip(base[3 * k + axis], lo, hi))
-        a = amplitude * scale
-        arg = harmonic * w * t + phase
+        a = amplitude * reach * scale
+        arg = w * t + phase
         if form == "two":
             angle = b + a * min(hi - b, b - lo) * np.sin(arg)
         elif form == "pos":
