@@ -56,6 +56,8 @@ def run_sequences(
     frame out, frozen, so each world passes through the same states as if frames were handed over
     between simulator frames. On CUDA the frames step on a non-blocking stream of their own
     (``SequenceSettings.concurrent_streams``), so the host work runs beside the device's.
+    A motion frame (``SequenceTask.motion_steps``) is handed over the same way, but its world does
+    not sit out: it steps on towards the next motion frame at once (the answer does not route it).
 
     Args:
         body: body model (its canonical pose and neutral shape start every world).
