@@ -222,7 +222,7 @@ def export_task(
     pc2: ``out`` is the file to write (``.pc2`` appended if missing); the start frame is the
     first kept frame's sequence index. pc16: ``out`` is the ``.pc16`` file (appended if missing),
     written with its faces and root trajectory beside it (``write_pc16``); the shard must store the
-    root joint per frame (``body_translation``: motion datasets do) and its kept frames must be
+    root joint per frame (``root_joint``: motion datasets do) and its kept frames must be
     consecutive (a point cache has no gaps). Returns the written paths.
     """
     if format not in EXPORT_FORMATS:
@@ -240,8 +240,8 @@ def export_task(
         start = float(frame_index[0]) if frame_index.size else 0.0
         return [write_pc2(out, positions, start_frame=start, sample_rate=sample_rate)]
     if format == "pc16":
-        if "body_translation" not in arrays:
-            raise ValueError(f"task {task_id!r}: its shard stores no root joint per frame (body_translation), and "
+        if "root_joint" not in arrays:
+            raise ValueError(f"task {task_id!r}: its shard stores no root joint per frame (root_joint), and "
                              f"PC16 positions are relative to it; datasets of motion sequences store it "
                              f"(docs/motion.md), or export --format pc2")
         if frame_index.size == 0:
@@ -254,7 +254,7 @@ def export_task(
                              f"frames) and a point cache holds consecutive samples; export --format pc2 or obj")
         if out.suffix != ".pc16":
             out = out.with_name(out.name + ".pc16")
-        return write_pc16(out, positions, arrays["body_translation"], template["faces"],
+        return write_pc16(out, positions, arrays["root_joint"], template["faces"],
                           start_frame=float(frame_index[0]), sample_rate=sample_rate)
     out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []

@@ -26,10 +26,11 @@ import numpy as np
 
 SCHEMA_VERSION = 2
 """Version of both the manifest JSON schema and the shard layout this code writes; bump on any
-change. Version 2 added the optional ``velocities`` dataset (motion sequences)."""
+change. Version 2 added the optional ``velocities`` and ``root_joint`` datasets (motion sequences)."""
 
 READABLE_SCHEMA_VERSIONS = (1, 2)
-"""Versions this code reads: a version-1 dataset is a version-2 one without ``velocities``."""
+"""Versions this code reads: a version-1 dataset is a version-2 one without ``velocities`` and
+``root_joint``."""
 
 MANIFEST_FORMAT = "drape-dataset"
 """Value of ``manifest["format"]``: tells a drape manifest from any other JSON file."""
@@ -70,6 +71,7 @@ UNPOSED_DISPLACEMENTS = "unposed_displacements"
 POSITION_ORIGIN = "position_origin"
 POSE = "pose"
 VELOCITIES = "velocities"
+ROOT_JOINT = "root_joint"
 BODY_TRANSLATION = "body_translation"
 SHAPE = "shape"
 STYLE = "style"
@@ -112,6 +114,8 @@ SHARD_LAYOUT: tuple[DatasetLayout, ...] = (
                   "Displacements D from the unposed body under the garment [m] (TailorNet Eq. 5)."),
     DatasetLayout(VELOCITIES, ("F", "V", 3), "position", "optional",
                   "Garment vertex velocities [m/s] at each frame (motion sequences; schema version >= 2)."),
+    DatasetLayout(ROOT_JOINT, ("F", 3), "float32", "optional",
+                  "The body's root joint (pelvis) in world space [m] per frame (motion sequences; schema >= 2)."),
     DatasetLayout(POSITION_ORIGIN, ("F", 3), "float32", "float16",
                   "Per-frame origin [m] that float16 posed_vertices are stored relative to."),
     DatasetLayout(POSE, ("F", "P"), "float32", "always", "Body pose parameters [rad] per frame."),

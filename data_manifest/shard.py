@@ -47,6 +47,7 @@ from .schema import (
     PRECISIONS,
     QUALITY_GROUP,
     READABLE_SCHEMA_VERSIONS,
+    ROOT_JOINT,
     SCHEMA_VERSION,
     SHAPE,
     SHARD_DIR,
@@ -284,6 +285,7 @@ class ShardWriter:
         self._frame_index: list[int] = []
         self._quality: dict[str, list[float]] = {}
         self._body_translation: list[np.ndarray] = []
+        self._root_joint: list[np.ndarray] = []
         self._has_velocities: bool | None = None  # fixed by the first frame
         self._origin: list[np.ndarray] = []
         self._extra_shapes: dict[str, tuple[int, ...]] = {}
@@ -443,6 +445,7 @@ class ShardWriter:
         frame_index: int | None = None,
         body_translation: Any | None = None,
         velocities: Any | None = None,
+        root_joint: Any | None = None,
         **extra: Any,
     ) -> int:
         """Append one kept frame; returns its row in the shard.
@@ -457,6 +460,8 @@ class ShardWriter:
             in none; float16 shards store posed vertices relative to it.
         velocities: garment vertex velocities [m/s], shape (V, 3): in every frame or in none
             (stored in the shard's precision, as given: not relative to anything).
+        root_joint: the body's root joint (pelvis) in world space [m], shape (3,): in every frame
+            or in none (PC16 exports positions relative to it).
         extra: further per-frame float arrays (same shape every frame), stored as extra/<name>.
         """
         handle = self._ensure_open()
@@ -503,6 +508,14 @@ class ShardWriter:
         if row > 0 and (body_translation is not None) != bool(self._body_translation):
             raise ValueError(f"body_translation of {where} must be given in every frame or in none "
                              f"(earlier frames {'had' if self._body_translation else 'had no'} it)")
+        if row > 0 and (root_joint is not None) != bool(self._root_joint):
+            raise ValueError(f"root_joint of {where} must be given in every frame or in none "
+                             f"(earlier frames {'had' if self._root_joint else 'had no'} it)")
+        root = None
+        if root_joint is not None:
+            root = _vector(root_joint, where=f"root_joint of {where}")
+            if root.shape != (3,):
+                raise ValueError(f"root_joint of {where} must have shape (3,) (got {root.shape})")
         translation = None
         if body_translation is not None:
             translation = _vector(body_translation, where=f"body_translation of {where}")
@@ -584,6 +597,8 @@ class ShardWriter:
             self._quality[name].append(value)
         if translation is not None:
             self._body_translation.append(translation.astype(np.float32))
+        if root is not None:
+            self._root_joint.append(root.astype(np.float32))
         if origin32 is not None:
             self._origin.append(origin32)
         self.frame_count = row + 1
@@ -614,6 +629,8 @@ class ShardWriter:
             small(FRAME_INDEX, np.array(self._frame_index, dtype=np.int32).reshape(frames))
             if self._body_translation:
                 small(BODY_TRANSLATION, np.array(self._body_translation, dtype=np.float32).reshape(frames, 3))
+            if self._root_joint:
+                small(ROOT_JOINT, np.array(self._root_joint, dtype=np.float32).reshape(frames, 3))
             if self.precision == "float16":
                 small(POSITION_ORIGIN, np.array(self._origin, dtype=np.float32).reshape(frames, 3))
             group = handle.create_group(QUALITY_GROUP)
@@ -777,8 +794,10 @@ def check_shard_layout(handle: h5py.File) -> list[str]:
     if attrs["schema_version"] not in READABLE_SCHEMA_VERSIONS:
         problems.append(f"attribute schema_version is {attrs['schema_version']}, expected one of "
                         f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}")
-    elif attrs["schema_version"] < 2 and VELOCITIES in handle:
-        problems.append(f"dataset {VELOCITIES!r} needs schema version >= 2 (the shard says {attrs['schema_version']})")
+    elif attrs["schema_version"] < 2:
+        for name in (VELOCITIES, ROOT_JOINT):
+            if name in handle:
+                problems.append(f"dataset {name!r} needs schema version >= 2 (the shard says {attrs['schema_version']})")
     precision = attrs["precision"]
     if precision not in PRECISIONS:
         problems.append(f"attribute precision is {precision!r}, expected one of {PRECISIONS}")

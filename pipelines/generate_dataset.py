@@ -322,7 +322,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
                 # (a motion's frame number); motion frames add velocities and the root joint
                 moving = {} if frame.velocities is None else {
-                    "velocities": frame.velocities, "body_translation": root_position(frame, roots[frame.task], ctx.body)}
+                    "velocities": frame.velocities, "root_joint": root_position(frame, roots[frame.task], ctx.body)}
                 background.call(shards, ShardWriterSet.write_frame, frame.task, x, unposed[unposed_row[i]] - base,
                                 t.poses[frame.key], row, frame_index=int(frame.key),
                                 pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)

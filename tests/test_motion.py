@@ -272,13 +272,18 @@ def test_velocities_are_written_in_every_frame_or_none(tmp_path):
     v = template["rest_vertices"].shape[0]
     task = {"task_id": "t", "garment": "tube", "splits": ["train"], "seed": 0, "shape": [0.0], "style": [0.0]}
     with ShardWriter(shard_path(tmp_path, "t"), template=template, task=task, precision="float16") as writer:
-        writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, velocities=np.full((v, 3), 1.5))
+        writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, velocities=np.full((v, 3), 1.5),
+                           root_joint=[0.0, 0.9, 0.1])
         with pytest.raises(ValueError, match=r"velocities of task 't' frame 1 must be given in every frame or in none"):
-            writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {})
+            writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, root_joint=[0.0, 0.9, 0.1])
+        with pytest.raises(ValueError, match=r"root_joint of task 't' frame 1 must be given in every frame or in none"):
+            writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, velocities=np.zeros((v, 3)))
         with pytest.raises(ValueError, match=r"velocities of task 't' frame 1 must have shape"):
-            writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, velocities=np.zeros((v, 2)))
+            writer.write_frame(np.zeros((v, 3)), np.zeros((v, 3)), [0.0], {}, velocities=np.zeros((v, 2)),
+                               root_joint=[0.0, 0.9, 0.1])
     with h5py.File(shard_path(tmp_path, "t"), "r") as handle:
         assert handle["velocities"].dtype == np.float16 and (handle["velocities"][()] == 1.5).all()
+        assert handle["root_joint"].shape == (1, 3) and handle["root_joint"].dtype == np.float32
         assert int(handle.attrs["schema_version"]) == 2 and check_shard_layout(handle) == []
 
 
@@ -337,7 +342,8 @@ def test_every_motion_frame_is_recorded_once_with_its_pose_root_and_velocities(m
     np.testing.assert_array_equal(arrays["pose"], task.poses)  # the motion's frames, in order
     assert np.ptp(arrays["pose"], axis=0).max() > 0.05, "the body moves through the motion"
     # the root joint per frame: the pelvis of the task's body (it does not translate under a pose)
-    assert np.ptp(arrays["body_translation"], axis=0).max() < 1e-5 and abs(arrays["body_translation"][0, 1]) < 0.5
+    assert np.ptp(arrays["root_joint"], axis=0).max() < 1e-5 and abs(arrays["root_joint"][0, 1]) < 0.5
+    assert "body_translation" not in arrays, "the body is not translated (learners add body_translation after skinning)"
     # velocities [m/s] agree with the positions' finite differences over the frame time 1/30 s far
     # better than a neighbour's frame does (a wrong frame, zeros or m/frame would not)
     x = arrays["posed_vertices"].astype(np.float64)
@@ -394,7 +400,7 @@ def test_pc16_export_of_a_motion_round_trips_within_float16_precision(motion_dat
     with DatasetReader(motion_dataset) as reader:
         arrays = reader.load_task(TASK)
         faces = reader.template["faces"]
-    x, root = arrays["posed_vertices"], arrays["body_translation"]
+    x, root = arrays["posed_vertices"], arrays["root_joint"]
     assert (h["magic"], h["version"], h["points"], h["samples"], h["start"]) == (b"POINTCACHE2\x00", 1, x.shape[1], MOTION_FRAMES, 0.0)
     back = import_pc16(tmp_path / "seq.pc16")
     relative = x.astype(np.float64) - root[:, None].astype(np.float64)
@@ -420,4 +426,4 @@ def test_pc16_export_of_a_motion_round_trips_within_float16_precision(motion_dat
     manifest.save()
     assert main(["dataset", "export", str(holds), "--task", "t0", "--format", "pc16", "--out", str(tmp_path / "h.pc16")]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "stores no root joint per frame (body_translation)" in err, err
+    assert len(err.splitlines()) == 1 and "stores no root joint per frame (root_joint)" in err, err
