@@ -427,3 +427,34 @@ def test_pc16_export_of_a_motion_round_trips_within_float16_precision(motion_dat
     assert main(["dataset", "export", str(holds), "--task", "t0", "--format", "pc16", "--out", str(tmp_path / "h.pc16")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "stores no root joint per frame (root_joint)" in err, err
+
+
+def test_an_exploding_motion_hands_its_remaining_frames_over_as_failed(motion_dataset):
+    """No recovery for a motion: the frame it exploded on and every later one come back EXPLODED,
+    in order, while a calm motion in the next world records all its frames."""
+    import dataclasses
+
+    from pipelines.generate_dataset import build_context, sequence_settings
+    from pipelines.spec import validate_spec
+    from simulate.quasi_static import WorldStatus
+    from simulate.sequence import SequenceTask, run_sequences
+
+    spec = validate_spec(MOTION_SPEC)
+    ctx = build_context(spec, motion_dataset)  # the fixture's context: body, garment and drape made once
+    task = ctx.plan.tasks[0]
+    calm = task.poses[:5]
+    jump = calm.copy()
+    jump[2:] += ctx.body.pose_from_dict({"spine1": [0.0, 1.2, 0.0]})  # a 1.2 rad twist within one frame
+    tasks = [SequenceTask(ctx.style_rest[task.style_index], ctx.style_start[task.style_index], task.shape, poses,
+                          motion_steps=1) for poses in (jump, calm)]
+    settings = sequence_settings(spec)
+    settings = dataclasses.replace(settings, recover_explosions=True,
+                                   sim=dataclasses.replace(settings.sim, explosion_speed=3.0))
+    frames = []
+    stats = run_sequences(ctx.body, ctx.template.faces, tasks, body_faces=ctx.body_faces, settings=settings,
+                          device="cpu", on_frame=frames.append, material_uv=ctx.template.face_uv)
+    exploded = [(f.key, f.status == WorldStatus.EXPLODED) for f in frames if f.task == 0]
+    assert exploded == [(0, False), (1, False), (2, True), (3, True), (4, True)], exploded
+    assert stats["recoveries"] == 0 and stats["exploded_speed"] + stats["exploded_stretch"] + stats["exploded_non_finite"] == 1
+    assert [(f.key, f.status == WorldStatus.EXPLODED, f.velocities is not None) for f in frames if f.task == 1] == \
+        [(k, False, True) for k in range(5)]
