@@ -49,10 +49,11 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 def _check_export_out(out: Path, format: str) -> str | None:
     """Why ``--out`` cannot take the export (None when it can)."""
-    target = out.parent if format == "pc2" else out
-    if format == "pc2" and out.is_dir():
-        return f"--out {str(out)!r} is a directory; pc2 writes one file (e.g. {str(out / 'task.pc2')!r})"
-    if format != "pc2" and out.exists() and not out.is_dir():
+    one_file = format in ("pc2", "pc16")
+    target = out.parent if one_file else out
+    if one_file and out.is_dir():
+        return f"--out {str(out)!r} is a directory; {format} writes one file (e.g. {str(out / ('task.' + format))!r})"
+    if not one_file and out.exists() and not out.is_dir():
         return f"--out {str(out)!r} is a file; {format} writes one file per frame into a directory"
     probe_dir = target
     while not probe_dir.exists() and probe_dir != probe_dir.parent:
@@ -111,15 +112,17 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
     info_parser.add_argument("dir", help="dataset directory (holding manifest.json)")
     info_parser.set_defaults(func=_cmd_info)
 
-    export = commands.add_parser("export", help="export one task's sequence as OBJ, PLY or a PC2 point cache",
+    export = commands.add_parser("export", help="export one task's sequence as OBJ, PLY or a PC2 / PC16 point cache",
                                  description="Export the posed garment of every kept frame of one task: "
                                              "obj/ply write one file per frame into the --out directory, pc2 "
-                                             "writes one Blender point-cache file.")
+                                             "writes one Blender point-cache file, pc16 CLOTH3D's float16 point "
+                                             "cache relative to the root joint with NAME.faces.npy (uint16) and "
+                                             "NAME.root.npy beside it (docs/motion.md).")
     export.add_argument("dir", help="dataset directory (holding manifest.json)")
     export.add_argument("--task", required=True, help="task id (see `drape dataset info`)")
     export.add_argument("--format", required=True, choices=EXPORT_FORMATS, help="output format")
-    export.add_argument("--out", required=True, help="output directory (obj, ply) or file (pc2)")
-    export.add_argument("--sample-rate", type=float, default=1.0, help="PC2 frames per sample (default 1)")
+    export.add_argument("--out", required=True, help="output directory (obj, ply) or file (pc2, pc16)")
+    export.add_argument("--sample-rate", type=float, default=1.0, help="PC2 / PC16 frames per sample (default 1)")
     export.set_defaults(func=_cmd_export)
     return dataset
 

@@ -172,6 +172,9 @@ class Manifest:
         self._shards: dict[str, dict[str, Any]] = {}
         self.loaded_totals: dict[str, Any] | None = None
         """Totals as read from disk by ``load`` (the validator compares them with ``totals``)."""
+        self.schema_version = SCHEMA_VERSION
+        """Schema version of the dataset: as loaded (an older dataset stays readable), else the
+        version this code writes (also after a resume, which writes shards of that version)."""
         for split, task_ids in (splits or {}).items():
             self.plan_split(split, task_ids)
         for entry in shards:
@@ -233,6 +236,7 @@ class Manifest:
                     f"dataset {str(root)!r} was made with {field_name} {getattr(manifest, field_name)!r}, this run "
                     f"has {value!r}; resume only with the same spec, template and precision, or write to a new "
                     f"directory")
+        manifest.schema_version = SCHEMA_VERSION  # the shards this run adds are written at this version
         previous = manifest.provenance
         updated = _json_value(dict(provenance), where="provenance")
         updated["resumed"] = list(previous.get("resumed", [])) + [updated["start_time"]]
@@ -256,6 +260,7 @@ class Manifest:
                        precision=data["precision"], provenance=data["provenance"], splits=data["splits"],
                        shards=data["shards"], audit=data.get("audit"), root=root)
         manifest.loaded_totals = copy.deepcopy(data["totals"])
+        manifest.schema_version = int(data["schema_version"])
         return manifest
 
     @classmethod
@@ -281,7 +286,7 @@ class Manifest:
         """The manifest as JSON-ready data (shards sorted by task id, split lists sorted)."""
         data: dict[str, Any] = {
             "format": MANIFEST_FORMAT,
-            "schema_version": SCHEMA_VERSION,
+            "schema_version": self.schema_version,
             "name": self.name,
             "precision": self.precision,
             "spec": copy.deepcopy(self.spec),

@@ -28,7 +28,9 @@ from .schema import (
     QUALITY_GROUP,
     SHAPE,
     STYLE,
+    ROOT_JOINT,
     UNPOSED_DISPLACEMENTS,
+    VELOCITIES,
     CorruptShardError,
     MissingShardError,
 )
@@ -232,7 +234,8 @@ class DatasetReader:
         """Frame ``i`` of ``split`` (negative counts from the end): a dict with ``pose`` (P,)
         [rad], ``shape`` (S,), ``style`` (G,), ``posed_vertices`` (V, 3) [m] and
         ``unposed_displacements`` (V, 3) [m] as float32, ``quality`` {metric: float32},
-        ``body_translation`` (3,) [m] where stored, ``task_id``, ``shard_no`` and
+        ``body_translation`` (3,) [m], ``root_joint`` (3,) [m] and ``velocities`` (V, 3) [m/s] where
+        stored, ``task_id``, ``shard_no`` and
         ``frame_index`` (index in the task's sequence)."""
         index = self.index(split)
         count = index.shape[0]
@@ -255,6 +258,10 @@ class DatasetReader:
             }
             if BODY_TRANSLATION in handle:
                 item["body_translation"] = np.asarray(handle[BODY_TRANSLATION][row], dtype=np.float32)
+            if VELOCITIES in handle:
+                item["velocities"] = np.asarray(handle[VELOCITIES][row], dtype=np.float32)
+            if ROOT_JOINT in handle:
+                item["root_joint"] = np.asarray(handle[ROOT_JOINT][row], dtype=np.float32)
         except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         return item
@@ -277,6 +284,10 @@ class DatasetReader:
                 arrays[f"{QUALITY_GROUP}/{name}"] = np.asarray(dataset[()], dtype=np.float32)
             if BODY_TRANSLATION in handle:
                 arrays["body_translation"] = np.asarray(handle[BODY_TRANSLATION][()], dtype=np.float32)
+            if VELOCITIES in handle:
+                arrays["velocities"] = np.asarray(handle[VELOCITIES][()], dtype=np.float32)
+            if ROOT_JOINT in handle:
+                arrays["root_joint"] = np.asarray(handle[ROOT_JOINT][()], dtype=np.float32)
         except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         if frames != self._entries[number]["frame_count"]:
@@ -292,8 +303,9 @@ class DatasetReader:
         """All frames of ``split`` stacked, in ``index(split)`` order: ``pose`` (N, P),
         ``shape`` (N, S), ``style`` (N, G), ``posed_vertices`` (N, V, 3) [m],
         ``unposed_displacements`` (N, V, 3) [m], ``quality/<metric>`` (N,) as float32;
-        ``body_translation`` (N, 3) where every shard has it; ``shard_no`` and
-        ``frame_index`` (N,) as int64."""
+        ``body_translation`` (N, 3), ``root_joint`` (N, 3) [m] and ``velocities`` (N, V, 3) [m/s]
+        where every shard has them;
+        ``shard_no`` and ``frame_index`` (N,) as int64."""
         parts: dict[str, list[np.ndarray]] = {}
         keys: set[str] | None = None
         for number in self._split_shards(split):
@@ -313,7 +325,7 @@ class DatasetReader:
                 parts.setdefault(key, []).append(value)
         if keys is None:
             return self._empty_split()
-        # body_translation is kept only when every shard of the split has it
+        # body_translation, root_joint and velocities are kept only when every shard of the split has them
         return {key: np.concatenate(values, axis=0) for key, values in parts.items() if key in keys
                 and len(values) == len(parts["pose"])}
 

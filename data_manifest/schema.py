@@ -24,8 +24,13 @@ from typing import Any, Mapping
 
 import numpy as np
 
-SCHEMA_VERSION = 1
-"""Version of both the manifest JSON schema and the shard layout; bump on any change."""
+SCHEMA_VERSION = 2
+"""Version of both the manifest JSON schema and the shard layout this code writes; bump on any
+change. Version 2 added the optional ``velocities`` and ``root_joint`` datasets (motion sequences)."""
+
+READABLE_SCHEMA_VERSIONS = (1, 2)
+"""Versions this code reads: a version-1 dataset is a version-2 one without ``velocities`` and
+``root_joint``."""
 
 MANIFEST_FORMAT = "drape-dataset"
 """Value of ``manifest["format"]``: tells a drape manifest from any other JSON file."""
@@ -65,6 +70,8 @@ POSED_VERTICES = "posed_vertices"
 UNPOSED_DISPLACEMENTS = "unposed_displacements"
 POSITION_ORIGIN = "position_origin"
 POSE = "pose"
+VELOCITIES = "velocities"
+ROOT_JOINT = "root_joint"
 BODY_TRANSLATION = "body_translation"
 SHAPE = "shape"
 STYLE = "style"
@@ -105,6 +112,10 @@ SHARD_LAYOUT: tuple[DatasetLayout, ...] = (
                   "Garment vertices in world space [m] (float16: relative to position_origin)."),
     DatasetLayout(UNPOSED_DISPLACEMENTS, ("F", "V", 3), "position", "always",
                   "Displacements D from the unposed body under the garment [m] (TailorNet Eq. 5)."),
+    DatasetLayout(VELOCITIES, ("F", "V", 3), "position", "optional",
+                  "Garment vertex velocities [m/s] at each frame (motion sequences; schema version >= 2)."),
+    DatasetLayout(ROOT_JOINT, ("F", 3), "float32", "optional",
+                  "The body's root joint (pelvis) in world space [m] per frame (motion sequences; schema >= 2)."),
     DatasetLayout(POSITION_ORIGIN, ("F", 3), "float32", "float16",
                   "Per-frame origin [m] that float16 posed_vertices are stored relative to."),
     DatasetLayout(POSE, ("F", "P"), "float32", "always", "Body pose parameters [rad] per frame."),
@@ -131,7 +142,7 @@ float32; when present, its reasons count exactly the ``filter_stats_json`` attri
 
 SHARD_ATTRS: dict[str, str] = {
     "format": f"str, always {SHARD_FORMAT!r}",
-    "schema_version": "int, SCHEMA_VERSION",
+    "schema_version": "int, one of READABLE_SCHEMA_VERSIONS (SCHEMA_VERSION when written by this code)",
     "task_id": "str, matches TASK_ID_PATTERN and the manifest entry",
     "garment": "str, garment type name",
     "splits": "array of str, the splits this task belongs to",
@@ -473,7 +484,7 @@ PROVENANCE_SCHEMA = Field("object", "where and how the dataset was made", fields
 
 MANIFEST_SCHEMA = Field("object", "a drape dataset manifest", fields={
     "format": (Field("str", enum=(MANIFEST_FORMAT,)), True),
-    "schema_version": (Field("int", enum=(SCHEMA_VERSION,)), True),
+    "schema_version": (Field("int", enum=READABLE_SCHEMA_VERSIONS), True),
     "name": (Field("str", "dataset name", pattern=_NAME), True),
     "precision": (Field("str", enum=PRECISIONS), True),
     "spec": (Field("object", "the full dataset spec", values=Field("any")), True),
@@ -498,10 +509,11 @@ def validate_manifest_dict(data: Any) -> list[SchemaError]:
     """Check a parsed manifest against ``MANIFEST_SCHEMA`` plus the cross-field rules
     (unique task ids among shards). Returns every violation, empty when valid."""
     errors: list[SchemaError] = []
-    if isinstance(data, dict) and "schema_version" in data and data["schema_version"] != SCHEMA_VERSION:
+    if isinstance(data, dict) and "schema_version" in data and data["schema_version"] not in READABLE_SCHEMA_VERSIONS:
         # A different version has a different schema: report only that, not a cascade.
+        readable = ", ".join(map(str, READABLE_SCHEMA_VERSIONS))
         return [SchemaError("$.schema_version", data["schema_version"],
-                            f"{SCHEMA_VERSION} (this drape reads schema version {SCHEMA_VERSION} only)")]
+                            f"one of {readable} (this drape reads schema versions {readable})")]
     _validate(MANIFEST_SCHEMA, data, "$", errors)
     if isinstance(data, dict) and isinstance(data.get("shards"), list):
         seen: dict[str, int] = {}

@@ -46,6 +46,8 @@ from .schema import (
     POSITION_ORIGIN,
     PRECISIONS,
     QUALITY_GROUP,
+    READABLE_SCHEMA_VERSIONS,
+    ROOT_JOINT,
     SCHEMA_VERSION,
     SHAPE,
     SHARD_DIR,
@@ -56,6 +58,7 @@ from .schema import (
     TEMPLATE_GROUP,
     TMP_SUFFIX,
     UNPOSED_DISPLACEMENTS,
+    VELOCITIES,
     CanonicalTemplate,
     canonical_json,
     canonical_template,
@@ -282,6 +285,8 @@ class ShardWriter:
         self._frame_index: list[int] = []
         self._quality: dict[str, list[float]] = {}
         self._body_translation: list[np.ndarray] = []
+        self._root_joint: list[np.ndarray] = []
+        self._has_velocities: bool | None = None  # fixed by the first frame
         self._origin: list[np.ndarray] = []
         self._extra_shapes: dict[str, tuple[int, ...]] = {}
         self._pose_size: int | None = None
@@ -439,6 +444,8 @@ class ShardWriter:
         *,
         frame_index: int | None = None,
         body_translation: Any | None = None,
+        velocities: Any | None = None,
+        root_joint: Any | None = None,
         **extra: Any,
     ) -> int:
         """Append one kept frame; returns its row in the shard.
@@ -451,6 +458,10 @@ class ShardWriter:
             strictly increasing.
         body_translation: body root (pelvis) translation [m], shape (3,): in every frame or
             in none; float16 shards store posed vertices relative to it.
+        velocities: garment vertex velocities [m/s], shape (V, 3): in every frame or in none
+            (stored in the shard's precision, as given: not relative to anything).
+        root_joint: the body's root joint (pelvis) in world space [m], shape (3,): in every frame
+            or in none (PC16 exports positions relative to it).
         extra: further per-frame float arrays (same shape every frame), stored as extra/<name>.
         """
         handle = self._ensure_open()
@@ -459,7 +470,13 @@ class ShardWriter:
         where = f"task {self.task_id!r} frame {row}"
         posed = np.asarray(posed_vertices, dtype=np.float64)
         unposed = np.asarray(unposed_displacements, dtype=np.float64)
-        for name, array in ((POSED_VERTICES, posed), (UNPOSED_DISPLACEMENTS, unposed)):
+        velocity = None if velocities is None else np.asarray(velocities, dtype=np.float64)
+        if row > 0 and (velocity is not None) != self._has_velocities:
+            raise ValueError(f"velocities of {where} must be given in every frame or in none "
+                             f"(earlier frames {'had' if self._has_velocities else 'had no'} them)")
+        checked = ((POSED_VERTICES, posed), (UNPOSED_DISPLACEMENTS, unposed)) + (
+            () if velocity is None else ((VELOCITIES, velocity),))
+        for name, array in checked:
             if array.shape != (self.vertex_count, 3):
                 raise ValueError(f"{name} of {where} must have shape ({self.vertex_count}, 3) (got {array.shape})")
             if not np.all(np.isfinite(array)):
@@ -491,6 +508,14 @@ class ShardWriter:
         if row > 0 and (body_translation is not None) != bool(self._body_translation):
             raise ValueError(f"body_translation of {where} must be given in every frame or in none "
                              f"(earlier frames {'had' if self._body_translation else 'had no'} it)")
+        if row > 0 and (root_joint is not None) != bool(self._root_joint):
+            raise ValueError(f"root_joint of {where} must be given in every frame or in none "
+                             f"(earlier frames {'had' if self._root_joint else 'had no'} it)")
+        root = None
+        if root_joint is not None:
+            root = _vector(root_joint, where=f"root_joint of {where}")
+            if root.shape != (3,):
+                raise ValueError(f"root_joint of {where} must have shape (3,) (got {root.shape})")
         translation = None
         if body_translation is not None:
             translation = _vector(body_translation, where=f"body_translation of {where}")
@@ -532,13 +557,22 @@ class ShardWriter:
                         f"{FLOAT16_MAX_ABS_M} m to keep sub-millimetre precision (use precision='float32')")
             posed_stored = relative.astype(np.float16)
             unposed_stored = unposed.astype(np.float16)
+            if velocity is not None and float(np.abs(velocity).max()) >= float(np.finfo(np.float16).max):
+                raise ValueError(f"velocities of {where} reach {float(np.abs(velocity).max()):.3g} m/s, beyond "
+                                 f"float16 (use precision='float32')")
         else:
             origin32 = None
             posed_stored = posed.astype(np.float32)
             unposed_stored = unposed.astype(np.float32)
+        velocity_stored = None if velocity is None else velocity.astype(posed_stored.dtype)
 
         # All checks passed: only now does the writer's state change.
         if row == 0:
+            self._has_velocities = velocity is not None
+            if velocity is not None:
+                self._frame_datasets[VELOCITIES] = handle.create_dataset(
+                    VELOCITIES, shape=(self._capacity, self.vertex_count, 3), maxshape=(None, self.vertex_count, 3),
+                    chunks=(1, self.vertex_count, 3), dtype=posed_stored.dtype, **self._dataset_options())
             self._pose_size = pose_array.shape[0]
             self._quality = {name: [] for name in sorted(quality_values)}
             self._extra_shapes = extra_shapes
@@ -553,6 +587,8 @@ class ShardWriter:
         self._grow(row + 1)
         self._frame_datasets[POSED_VERTICES][row] = posed_stored
         self._frame_datasets[UNPOSED_DISPLACEMENTS][row] = unposed_stored
+        if velocity_stored is not None:
+            self._frame_datasets[VELOCITIES][row] = velocity_stored
         for name, array in extra_arrays.items():
             self._frame_datasets[f"{EXTRA_GROUP}/{name}"][row] = array
         self._pose.append(pose_array.astype(np.float32))
@@ -561,6 +597,8 @@ class ShardWriter:
             self._quality[name].append(value)
         if translation is not None:
             self._body_translation.append(translation.astype(np.float32))
+        if root is not None:
+            self._root_joint.append(root.astype(np.float32))
         if origin32 is not None:
             self._origin.append(origin32)
         self.frame_count = row + 1
@@ -591,6 +629,8 @@ class ShardWriter:
             small(FRAME_INDEX, np.array(self._frame_index, dtype=np.int32).reshape(frames))
             if self._body_translation:
                 small(BODY_TRANSLATION, np.array(self._body_translation, dtype=np.float32).reshape(frames, 3))
+            if self._root_joint:
+                small(ROOT_JOINT, np.array(self._root_joint, dtype=np.float32).reshape(frames, 3))
             if self.precision == "float16":
                 small(POSITION_ORIGIN, np.array(self._origin, dtype=np.float32).reshape(frames, 3))
             group = handle.create_group(QUALITY_GROUP)
@@ -751,8 +791,13 @@ def check_shard_layout(handle: h5py.File) -> list[str]:
         return [str(error)]
     if attrs["format"] != SHARD_FORMAT:
         problems.append(f"attribute format is {attrs['format']!r}, expected {SHARD_FORMAT!r}")
-    if attrs["schema_version"] != SCHEMA_VERSION:
-        problems.append(f"attribute schema_version is {attrs['schema_version']}, expected {SCHEMA_VERSION}")
+    if attrs["schema_version"] not in READABLE_SCHEMA_VERSIONS:
+        problems.append(f"attribute schema_version is {attrs['schema_version']}, expected one of "
+                        f"{', '.join(map(str, READABLE_SCHEMA_VERSIONS))}")
+    elif attrs["schema_version"] < 2:
+        for name in (VELOCITIES, ROOT_JOINT):
+            if name in handle:
+                problems.append(f"dataset {name!r} needs schema version >= 2 (the shard says {attrs['schema_version']})")
     precision = attrs["precision"]
     if precision not in PRECISIONS:
         problems.append(f"attribute precision is {precision!r}, expected one of {PRECISIONS}")

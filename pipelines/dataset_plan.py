@@ -1,5 +1,6 @@
 """Turns a validated dataset spec into a deterministic plan: styles, shapes,
-style-shape pairs, pose sets and one task per (pair, TailorNet split).
+style-shape pairs, pose sets and one task per (pair, TailorNet split), or, with
+``poses.source: motion``, one task per (pair, motion) (:func:`plan_motions`).
 
 Everything here is a pure function of the spec (and its seed), so a resumed or
 distributed run plans exactly the same tasks.
@@ -28,8 +29,10 @@ class Task:
     style_index: int
     shape: np.ndarray
     style_vector: np.ndarray
-    pose_ids: np.ndarray
-    poses: np.ndarray  # (N, 60) in visiting order (greedy nearest-pose from the canonical pose)
+    pose_ids: np.ndarray  # (N,) index into the split's pose set; a motion's frame numbers
+    poses: np.ndarray  # (N, 60) in visiting order (greedy nearest-pose from the canonical pose); a motion's frames
+    motion_steps: int = 0  # simulator frames per motion frame (0: held targets; see SequenceTask)
+    motion: str = ""  # the motion's name (a kind or a file name), "" for held targets
 
 
 @dataclass
@@ -119,6 +122,9 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         pick = _rng(seed, 31 + k).permutation(len(candidates))[:want]
         pairs.extend((group, *candidates[i]) for i in sorted(pick))
 
+    if spec["poses"]["source"] == "motion":
+        return plan_motions(spec, body, Plan(all_styles, style_vectors, all_shapes, pairs, {},
+                                             np.zeros((0, body.pose_size), np.float32)))
     joints = spec["poses"]["joints"] or default_pose_joints(gtype)
     joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
     total = int(spec["poses"]["train_count"]) + int(spec["poses"]["test_count"])
@@ -172,4 +178,64 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                 part = ids[start:start + chunk]
                 plan.tasks.append(Task(f"{split}-p{p:03d}-c{c:03d}", split, p, si, all_shapes[hi], style_vectors[si],
                                        part, pose_sets[pose_group][part]))
+    return plan
+
+
+def load_motions(spec: dict) -> list:
+    """The motion files of a motion spec with ``motion.source: file``, each at ``motion.fps``
+    (``simulate.motion.Motion``; [] for procedural motions). Raises ValueError (FileNotFoundError)
+    naming ``motion.path`` (``motion.path[k]``), the file, the value and what was expected."""
+    from simulate.motion import load_motion
+
+    m = spec["motion"]
+    if m["source"] != "file":
+        return []
+    paths = [m["path"]] if isinstance(m["path"], str) else list(m["path"])
+    fields = ["motion.path"] if isinstance(m["path"], str) else [f"motion.path[{k}]" for k in range(len(paths))]
+    return [load_motion(path, field=field).at_rate(float(m["fps"]), field="motion.fps")
+            for path, field in zip(paths, fields)]
+
+
+#: The TailorNet split of a motion task by its pair's group: train pairs' sequences train, test
+#: pairs' (unseen styles and shapes, their own motions) test.
+MOTION_SPLITS = {"train": "train_train", "test": "test_test"}
+
+
+def plan_motions(spec: dict, body: BodyModel, plan: Plan) -> Plan:
+    """The tasks of a motion spec: per style-shape pair ``motion.per_pair`` motions, task ``s`` of
+    pair ``p`` taking motion number ``n = p * per_pair + s``: file motions in turn (``motion.path``,
+    each at ``motion.fps``, its first ``motion.frames``), or a procedural motion of kind
+    ``motion.kinds[n % len(kinds)]`` seeded by (seed, p, s). With ``simulation.poses_per_task`` a
+    motion is split into consecutive pieces, each its own task starting from the canonical drape
+    (CLOTH3D simulates its 300-frame splits the same way). Task ids: ``<split>-p<pair>-m<s>``
+    (``-c<piece>`` for pieces); ``pose_ids`` are the frames' numbers in the motion."""
+    from pipelines.spec import motion_steps
+    from simulate.motion import procedural_motion
+
+    m = spec["motion"]
+    seed, fps, frames = int(spec["seed"]), float(m["fps"]), m["frames"]
+    steps = motion_steps(spec)
+    files = load_motions(spec)
+    canonical = np.asarray(body.canonical_pose, np.float32)
+    chunk = spec["simulation"]["poses_per_task"]
+    for p, (group, si, hi) in enumerate(plan.pairs):
+        split = MOTION_SPLITS[group]
+        for s in range(int(m["per_pair"])):
+            n = p * int(m["per_pair"]) + s
+            if files:
+                motion = files[n % len(files)]
+                poses = motion.poses if frames is None else motion.poses[:int(frames)]
+            else:
+                kind = m["kinds"][n % len(m["kinds"])]
+                motion = procedural_motion(kind, int(frames), fps, _rng(seed, 61, p, s), amplitude=float(m["amplitude"]),
+                                           base_pose=canonical)
+                poses = motion.poses
+            base = f"{split}-p{p:03d}-m{s:02d}"
+            starts = [0] if chunk is None or len(poses) <= chunk else list(range(0, len(poses), int(chunk)))
+            for c, start in enumerate(starts):
+                stop = len(poses) if len(starts) == 1 else start + int(chunk)
+                ids = np.arange(start, min(stop, len(poses)))
+                plan.tasks.append(Task(base if len(starts) == 1 else f"{base}-c{c:03d}", split, p, si, plan.shapes[hi],
+                                       plan.style_vectors[si], ids, np.asarray(poses[ids], np.float32),
+                                       motion_steps=steps, motion=motion.name))
     return plan

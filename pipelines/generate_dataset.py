@@ -7,7 +7,9 @@ of ``simulation.worlds`` worlds (:func:`simulate.sequence.run_sequences`) on the
 local device or on a Ray cluster; filter every frame and write one shard per task
 (temporary name, renamed when complete); list each finished shard in the manifest
 at once (so a kill loses at most the shards in flight); audit a sample of kept
-frames against a much tighter solve; print a summary table.
+frames against a much tighter solve; print a summary table. With ``poses.source:
+motion`` each task is a motion recorded frame by frame at a fixed rate, with the
+garment's velocities and the body's root joint per frame (docs/motion.md).
 """
 from __future__ import annotations
 
@@ -249,6 +251,8 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     on_body = index >= 0
     records = []
     remaining = [len(t.poses) for t in tasks]
+    motion = spec["poses"]["source"] == "motion"
+    roots = root_joints(ctx.body, [t.shape for t in tasks]) if motion else None  # (n, 3) rest root joint per task
     started_at = time.time()
     # shards are written, closed and hashed by a worker of their own while the simulation goes on
     # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
@@ -265,12 +269,16 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             t = tasks[i]
             written[i] = t.task_id not in skip
             if written[i]:
-                background.call(shards, ShardWriterSet.open, i, {
-                    "task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
-                    "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
-                    "fabric": spec["garment"]["fabric"]})
+                about = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
+                         "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
+                         "fabric": spec["garment"]["fabric"]}
+                if t.motion_steps:  # the motion and its frame rate: frames are 1 / fps apart
+                    about.update(motion=t.motion, fps=float(spec["motion"]["fps"]))
+                background.call(shards, ShardWriterSet.open, i, about)
         return written[i]
-    filters = spec["filters"]
+    # a motion frame is recorded after its frames whether or not the garment is at rest: the
+    # convergence filter is for held targets
+    filters = dict(spec["filters"], require_converged=False) if motion else spec["filters"]
     weights = tmpl.skinning_weights
     from simulate.quality import triangle_areas
 
@@ -312,9 +320,12 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
+                # (a motion's frame number); motion frames add velocities and the root joint
+                moving = {} if frame.velocities is None else {
+                    "velocities": frame.velocities, "root_joint": root_position(frame, roots[frame.task], ctx.body)}
                 background.call(shards, ShardWriterSet.write_frame, frame.task, x, unposed[unposed_row[i]] - base,
                                 t.poses[frame.key], row, frame_index=int(frame.key),
-                                pose_id=np.array([t.pose_ids[frame.key]], np.float32))
+                                pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)
             else:
                 background.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
                                 pose=t.poses[frame.key])
@@ -335,14 +346,18 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                 on_shard(record)
 
     seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
-                              shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"]) for t in tasks]
+                              shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"], motion_steps=t.motion_steps)
+                 for t in tasks]
+    settings = sequence_settings(spec)
+    if motion and spec["motion"]["damping"] is not None:  # the sequences' damping; the canonical drapes keep theirs
+        settings = dataclasses.replace(settings, sim=dataclasses.replace(settings.sim, damping=float(spec["motion"]["damping"])))
     try:
         with torch.no_grad():
             if ctx.phases is None:
                 ctx.phases = {}
             # adds to ctx.phases as it goes, so heartbeats can show where the time goes
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, body_face_groups=ctx.body_face_groups,
-                          body_part=ctx.body_part, settings=sequence_settings(spec),
+                          body_part=ctx.body_part, settings=settings,
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases,
                           worlds=int(spec["simulation"]["worlds"]), material_uv=tmpl.face_uv)
         list_finished(background.close())
@@ -351,6 +366,19 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         background.close(raise_error=False, cleanup=ShardWriterSet.abort)  # no temporary file stays behind
         raise
     return [r if isinstance(r, dict) else r.to_dict() if hasattr(r, "to_dict") else r for r in records]
+
+
+def root_joints(body: Any, shapes: list) -> np.ndarray:
+    """The root joint (pelvis) of the shaped, unposed body of each shape [m], (n, 3)."""
+    posed = body.pose(np.asarray(shapes, np.float32), np.tile(np.asarray(body.canonical_pose, np.float32), (len(shapes), 1)))
+    return np.asarray(posed.rest_joints[:, int(body.pose_joint_indices[0])], np.float64)
+
+
+def root_position(frame: Any, rest_root: np.ndarray, body: Any) -> np.ndarray:
+    """The root joint of a recorded frame's posed body in world space [m], (3,): its skinning
+    transform (rest to posed) applied to the rest root joint ``rest_root`` (3,)."""
+    t = np.asarray(frame.skinning_transforms[int(body.pose_joint_indices[0])], np.float64)
+    return t[:3, :3] @ rest_root + t[:3, 3]
 
 
 def _phase_split(phases: dict) -> str:
@@ -404,6 +432,10 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
     from pipelines.errors import check_output_dir
 
     spec = validate_spec(dict(spec_or_path)) if isinstance(spec_or_path, dict) else load_spec(spec_or_path)
+    if spec["poses"]["source"] == "motion":  # motion files are read (and checked) before any work
+        from pipelines.dataset_plan import load_motions
+
+        load_motions(spec)
     if options.get("device") is not None:
         resolve_device(options["device"], option="--device")
     out_dir = check_output_dir(out_dir, "--out")
@@ -450,13 +482,13 @@ class DiskFullError(OSError):
 
 def estimated_bytes(tasks: list, template_dict: dict, precision: str) -> int:
     """Lower estimate of the bytes the shards of ``tasks`` take [B]: every target pose kept,
-    posed and unposed positions compressed to half their size (gzip keeps ~85 % of them on the
+    posed and unposed positions (and a motion's velocities) compressed to half their size (gzip keeps ~85 % of them on the
     t-shirt), the template to a tenth (its skinning weights are mostly zero)."""
     vertices = int(np.asarray(template_dict["rest_vertices"]).shape[0])
     per_value = 2 if precision == "float16" else 4
-    frames = sum(len(t.poses) for t in tasks)
+    frames = sum(len(t.poses) * (3 if getattr(t, "motion_steps", 0) else 2) for t in tasks)  # motions: + velocities
     template = sum(np.asarray(v).nbytes for v in template_dict.values() if v is not None)
-    return int(frames * vertices * 3 * per_value * 2 * 0.5 + len(tasks) * template * 0.1)
+    return int(frames * vertices * 3 * per_value * 0.5 + len(tasks) * template * 0.1)
 
 
 def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, executor: str = "local",

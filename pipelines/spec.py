@@ -30,7 +30,8 @@ records and hashes. Schema (every key optional unless marked required)::
       train: int                        drawn from styles.train x shapes.train
       test: int                         drawn from styles.test x shapes.test
     poses:
-      source: sampled|file = sampled
+      source: sampled|file|motion = sampled   motion: sequences at a fixed frame rate (the motion
+                                        section; docs/motion.md): the rest of poses and splits are not read
       path: str | null                  .npz with `poses` (N, 60) for source=file
       joints: upper|lower|all|list = garment default
       range_scale: float in (0, 1] = 1.0
@@ -87,6 +88,20 @@ records and hashes. Schema (every key optional unless marked required)::
                                         armpits of our body-derived garments briefly exceed the bounds)
       collision_depth [m]: 0.001
       max_penetration_fraction: 0.01    max_self_intersections: 0  require_converged: true
+    motion:                             only with poses.source motion (docs/motion.md); each style-shape
+                                        pair is simulated through per_pair motions, each frame recorded
+      source: procedural|file = procedural
+      path: str | list[str] | null      .npz motion file(s) for source=file: `poses` (F, 20, 3)
+                                        axis-angle [rad] in POSE_JOINTS order and `fps`
+      kinds: list = [walk, arm_raise, torso_twist, squat]   procedural motions, taken in turn
+      fps: float = 30                   the dataset's frame rate: 1 / (fps x simulation.frame_dt)
+                                        must be a whole number of simulator frames; file motions are
+                                        taken every k-th frame to reach it (k whole)
+      frames: int | null = 30           recorded frames per motion (file: at most; null = all)
+      amplitude: float in (0, 1] = 0.5  share of each joint's room to its limit procedural motions use
+      per_pair: int = 1                 motions per style-shape pair
+      damping: float [1/s] | null = null  velocity damping during the sequences (null: the library's
+                                        quasi-static 20/s, SimSettings.damping); the canonical drapes keep it
     output: {precision: float32|float16, compression: gzip|lzf}
     audit: {samples: int = 4,           kept frames re-solved to their static equilibrium (pipelines/audit.py)
             max_iterations: int = 100}  Newton iterations per audited frame at most (~1 s each on a
@@ -137,6 +152,12 @@ DEFAULTS: dict[str, Any] = {
     "audit": {"samples": 4, "max_iterations": 100},
 }
 
+
+MOTION_DEFAULTS: dict[str, Any] = {"source": "procedural", "path": None,
+                                   "kinds": ["walk", "arm_raise", "torso_twist", "squat"], "fps": 30.0, "frames": 30,
+                                   "amplitude": 0.5, "per_pair": 1, "damping": None}
+"""The ``motion`` section, filled in only when ``poses.source`` is motion (a spec without motions
+resolves, and hashes, as it did before the section existed)."""
 
 REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)}
 """Keys a spec must give (they have no default), by section path ("" = top level)."""
@@ -238,7 +259,15 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         raise SpecError(f"the spec in {source} must be a YAML mapping of fields (name, garment, ...) "
                         f"(got {type(raw).__name__})")
     errors: list[str] = []
-    spec = _merge(DEFAULTS, _check_structure(raw, DEFAULTS, "", source, errors))
+    motion_given = "motion" in raw
+    known = {**DEFAULTS, "motion": MOTION_DEFAULTS}  # (for the names an unknown field is matched against)
+    spec = _merge(DEFAULTS, _check_structure({k: v for k, v in raw.items() if k != "motion"}, known, "", source, errors))
+    if motion_given or spec["poses"].get("source") == "motion":
+        motion = {} if raw.get("motion") is None else raw["motion"]
+        if isinstance(motion, dict):
+            spec["motion"] = _merge(MOTION_DEFAULTS, _check_structure(motion, MOTION_DEFAULTS, "motion", source, errors))
+        else:
+            errors.append(f"spec.motion must be a mapping of fields such as fps, frames, kinds (got {motion!r}) in {source}")
     c = _Checker(spec, source)
     c.errors.extend(errors)
     if not isinstance(spec.get("name"), str) or not spec["name"]:
@@ -269,7 +298,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         elif not (group == "train" and shapes == "tailornet9"):
             c.integer(f"shapes.{group}", 1)
         c.integer(f"pairs.{group}", 0 if group == "test" else 1)
-    c.choice("poses.source", ("sampled", "file"))
+    c.choice("poses.source", ("sampled", "file", "motion"))
     if spec["poses"]["source"] == "file" and not spec["poses"].get("path"):
         c.fail("poses.path", "a .npz pose file when poses.source is file")
     joints = spec["poses"]["joints"]
@@ -294,8 +323,9 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number("poses.range_scale", 0.0, 1.0, lo_open=True)
     if spec["poses"]["min_clearance"] is not None:
         c.number("poses.min_clearance", 0.0, 0.2)
-        if spec["poses"]["source"] == "file":
-            c.fail("poses.min_clearance", "null when poses.source is file (only sampled poses are pruned)")
+        if spec["poses"]["source"] in ("file", "motion"):
+            c.fail("poses.min_clearance", f"null when poses.source is {spec['poses']['source']} (only sampled poses "
+                                          "are pruned)")
     c.integer("poses.train_count", 1)
     c.integer("poses.test_count", 0)
     for split in SPLITS:
@@ -336,6 +366,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.choice("output.compression", ("gzip", "lzf"))
     c.integer("audit.samples", 0)
     c.integer("audit.max_iterations", 1)
+    if isinstance(spec.get("motion"), dict):
+        _check_motion(c, spec, motion_given)
     if spec["pairs"]["test"] == 0 and (spec["splits"]["test_train"] or spec["splits"]["test_test"]):
         spec["splits"]["test_train"] = spec["splits"]["test_test"] = 0
     if c.errors:
@@ -376,6 +408,56 @@ def _check_tightness(c: _Checker, value: Any) -> None:
     if len(ranges) not in (1, 2) or not all(is_range(r) for r in ranges):
         c.fail("garment.tightness", f"null, a range [lo, hi] or two ranges [[lo, hi], [lo, hi]] (height, weight) "
                                     f"with -{TIGHTNESS_LIMIT} <= lo <= hi <= {TIGHTNESS_LIMIT}")
+
+
+def _check_motion(c: _Checker, spec: dict, given: bool) -> None:
+    """The ``motion`` section: read only with poses.source motion; its fields, and a frame rate
+    that is a whole number of simulator frames."""
+    from simulate.motion import MOTION_KINDS
+
+    m = spec["motion"]
+    if spec["poses"]["source"] != "motion":
+        c.errors.append(f"spec.motion is read only when poses.source is motion (got poses.source "
+                        f"{spec['poses']['source']!r}); set poses.source: motion or remove the section (in {c.source})")
+        return
+    c.choice("motion.source", ("procedural", "file"))
+    path = m["path"]
+    paths_ok = (isinstance(path, str) and path) or (isinstance(path, list) and path and all(
+        isinstance(p, str) and p for p in path))
+    if m["source"] == "file" and not paths_ok:
+        c.fail("motion.path", "a .npz motion file or a non-empty list of them when motion.source is file")
+    elif m["source"] == "procedural" and path is not None:
+        c.fail("motion.path", "null when motion.source is procedural (set motion.source: file to read motion files)")
+    kinds = m["kinds"]
+    if not (isinstance(kinds, list) and kinds):
+        c.fail("motion.kinds", f"a non-empty list of motion kinds ({', '.join(MOTION_KINDS)})")
+    else:
+        for k, name in enumerate(kinds):
+            if name not in MOTION_KINDS:
+                c.fail(f"motion.kinds[{k}]", f"a motion kind{nearest_name(name, list(MOTION_KINDS))} "
+                                             f"(one of {', '.join(MOTION_KINDS)})", name)
+    c.number("motion.fps", 0.0, 1000.0, lo_open=True)
+    if m["frames"] is None:
+        if m["source"] == "procedural":
+            c.fail("motion.frames", "an integer >= 1 for procedural motions (null, all frames, is for motion files)")
+    else:
+        c.integer("motion.frames", 1)
+    c.number("motion.amplitude", 0.0, 1.0, lo_open=True)
+    c.integer("motion.per_pair", 1)
+    if m["damping"] is not None:
+        c.number("motion.damping", 0.0, 1000.0)
+    fps, dt = m["fps"], spec["simulation"]["frame_dt"]
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in (fps, dt)):
+        steps = 1.0 / (fps * dt)
+        if steps < 1.0 - 1e-6 or abs(steps - round(steps)) > 1e-6 * steps:
+            c.fail("motion.fps", f"a rate whose frame time 1/fps is a whole number of simulation.frame_dt "
+                                 f"({dt:g} s): {1.0 / dt:g}, {0.5 / dt:g}, {1.0 / (3 * dt):g}, ... fps "
+                                 f"(1/fps is {steps:.4g} frames)")
+
+
+def motion_steps(spec: dict) -> int:
+    """Simulator frames per motion frame of a validated motion spec: 1 / (motion.fps x frame_dt)."""
+    return int(round(1.0 / (float(spec["motion"]["fps"]) * float(spec["simulation"]["frame_dt"]))))
 
 
 def _check_styles(c: _Checker, path: str, styles: list[dict], garment_type: str) -> None:

@@ -473,6 +473,15 @@ class QuasiStaticSimulator:
     def worlds_positions(self, worlds) -> np.ndarray:
         """Positions [m] of several worlds with the same particle count, shape (n, V_w, 3): they are
         gathered on the device and leave it in one copy (one wait for the device instead of n)."""
+        return self._gather(self.state_0.particle_q, worlds)
+
+    def worlds_velocities(self, worlds) -> np.ndarray:
+        """Velocities [m/s] of several worlds with the same particle count, shape (n, V_w, 3), gathered
+        like ``worlds_positions``."""
+        return self._gather(self.state_0.particle_qd, worlds)
+
+    def _gather(self, array: wp.array, worlds) -> np.ndarray:
+        """Rows of the per-particle vec3 ``array`` of several worlds with the same particle count, (n, V_w, 3)."""
         slices = [self.model.world_slice(int(w)) for w in worlds]
         sizes = sorted({sl.stop - sl.start for sl in slices})
         if len(sizes) > 1:
@@ -480,7 +489,7 @@ class QuasiStaticSimulator:
         v = sizes[0] if sizes else 0
         gathered = wp.empty(len(slices) * v, dtype=wp.vec3, device=self.model.device)
         for i, sl in enumerate(slices):
-            wp.copy(gathered, self.state_0.particle_q, dest_offset=i * v, src_offset=sl.start, count=v)
+            wp.copy(gathered, array, dest_offset=i * v, src_offset=sl.start, count=v)
         return gathered.numpy().reshape(len(slices), v, 3)
 
     def device_positions(self, positions: np.ndarray) -> wp.array:

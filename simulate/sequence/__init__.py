@@ -7,7 +7,9 @@ then the body visits the target poses in the given order; slerp'ed poses are
 inserted where any joint would turn more than ``interpolation_threshold`` in one
 frame (one frame each), and every target pose is held until the world converges
 (or hits ``max_relax_frames``), when the frame is handed to ``on_frame`` (or, with the
-other worlds' frames that finished with it, to ``on_frames``). A world whose
+other worlds' frames that finished with it, to ``on_frames``). A motion task (``SequenceTask.motion_steps``)
+instead steps through its poses at a fixed frame rate, each recorded after a fixed number of
+frames without waiting for rest (``schedule.motion_entries``). A world whose
 frames ``on_frame`` rejects (``restart_after_rejects``), or that keeps exploding, goes back home
 (its drape at the end of the settle) and heads for its next target from the canonical pose.
 
@@ -27,9 +29,9 @@ loop, ``run_sequences``), ``drape`` (relaxing garments on static bodies).
 from simulate.sequence.drape import drape_static
 from simulate.sequence.loop import run_sequences
 from simulate.sequence.routing import SavedState, allocate_worlds, world_groups
-from simulate.sequence.schedule import KEY, SETTLE, TRANSITION
+from simulate.sequence.schedule import KEY, RECORD, SETTLE, TRANSITION
 from simulate.sequence.settings import RecordedFrame, SequenceSettings, SequenceTask
 from simulate.sequence.stats import SequenceStats
 
 __all__ = ["run_sequences", "drape_static", "SequenceTask", "SequenceSettings", "RecordedFrame", "SequenceStats",
-           "SavedState", "world_groups", "allocate_worlds", "KEY", "SETTLE", "TRANSITION"]
+           "SavedState", "world_groups", "allocate_worlds", "KEY", "RECORD", "SETTLE", "TRANSITION"]

@@ -14,7 +14,7 @@ from simulate.contact import BodyCollider
 from simulate.quasi_static import QuasiStaticSimulator, SimSettings, WorldStatus
 from simulate.sequence.posing import PosedAhead
 from simulate.sequence.routing import Worlds, assign_worlds
-from simulate.sequence.schedule import KEY, SETTLE, TRANSITION, build_schedule
+from simulate.sequence.schedule import KEY, RECORD, SETTLE, TRANSITION, build_schedule
 from simulate.sequence.settings import RecordedFrame, SequenceSettings, SequenceTask
 from simulate.sequence.stats import SequenceStats
 from simulate.sequence.streams import FrameStreams
@@ -56,6 +56,8 @@ def run_sequences(
     frame out, frozen, so each world passes through the same states as if frames were handed over
     between simulator frames. On CUDA the frames step on a non-blocking stream of their own
     (``SequenceSettings.concurrent_streams``), so the host work runs beside the device's.
+    A motion frame (``SequenceTask.motion_steps``) is handed over the same way, but its world does
+    not sit out: it steps on towards the next motion frame at once (the answer does not route it).
 
     Args:
         body: body model (its canonical pose and neutral shape start every world).
@@ -190,7 +192,7 @@ def run_sequences(
     # next. A world whose frame is being handed over sits that frame out, frozen (its state does not
     # change), so every world goes through the same states as when frames were handed over between
     # frames; only the simulator frame each state is reached in differs.
-    pending: list[tuple[int, RecordedFrame]] = []  # (world, frame) of target holds that ended
+    pending: list[tuple[int | None, RecordedFrame]] = []  # (world, frame) of target holds that ended; None: a motion frame
 
     def hand_over() -> int:
         """Hands the pending frames over (one ``on_frames`` call) and routes their worlds on by
@@ -213,6 +215,7 @@ def run_sequences(
         run.transition_world_frames += int((kinds_now == TRANSITION).sum())
         run.hold_world_frames += int((kinds_now == KEY).sum())
         run.settle_world_frames += int((kinds_now == SETTLE).sum())
+        run.motion_world_frames += int((kinds_now == RECORD).sum())
         finished, ready = 0, []  # ready: worlds whose hold (settle or target pose) ended this frame
         for w in busy:
             st = int(status[w])
@@ -222,6 +225,8 @@ def run_sequences(
                 run.recover_s += time.perf_counter() - q0
             elif ws.kind(w) == TRANSITION:
                 ws.advance(w)
+            elif ws.kind(w) == RECORD:  # a motion frame: recorded after its one frame, at rest or not
+                ready.append(w)
             elif st in (WorldStatus.CONVERGED, WorldStatus.MAX_STEPS):
                 if ws.held[w] >= settings.min_hold_frames:
                     ready.append(w)
@@ -230,8 +235,11 @@ def run_sequences(
         if ready:  # they leave the device together and are handed over in one call, beside the next frame
             r0 = time.perf_counter()
             positions = sim.worlds_positions(ready)
+            moving = any(ws.kind(w) == RECORD for w in ready)
+            velocities = sim.worlds_velocities(ready) if moving else None
             run.record_copy_s += time.perf_counter() - r0
-            pending.extend(ws.end_holds(ready, positions, status))  # frozen (converged) until handed over
+            # held targets stay frozen (converged) until handed over; motion worlds move on at once
+            pending.extend(ws.end_holds(ready, positions, status, velocities))
             run.record_s += time.perf_counter() - r0
         return finished
 

@@ -22,7 +22,7 @@ from simulate.body.base import PosedBody
 from simulate.body.kinematics import to_device_async
 from simulate.contact import BodyCollider
 from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
-from simulate.sequence.schedule import KEY, SETTLE, TRANSITION, PlanCache, Schedule, build_schedule, reroute
+from simulate.sequence.schedule import KEY, RECORD, SETTLE, TRANSITION, PlanCache, Schedule, build_schedule, reroute
 from simulate.sequence.settings import RecordedFrame, SequenceSettings, SequenceTask
 from simulate.sequence.stats import SequenceStats
 
@@ -171,18 +171,20 @@ class Worlds:
         return len(self.cur)
 
     def kind(self, w: int) -> int:
-        """Kind of world ``w``'s current schedule entry (TRANSITION, SETTLE or KEY)."""
+        """Kind of world ``w``'s current schedule entry (TRANSITION, SETTLE, KEY or RECORD)."""
         return self.schedules[w][2][self.ptr[w]]
 
     # ----------------------------------------------------------------- frames
     def frames_of(self, worlds: list[int], keys: list[int], positions: np.ndarray,
-                  statuses: list[int]) -> list[RecordedFrame]:
-        """Frames of ``worlds`` at their current bodies, positions (n, V, 3) [m]: each body tensor
-        leaves the device once for all of them (indexing copies, so the next frames cannot alias them)."""
+                  statuses: list[int], velocities: np.ndarray | None = None) -> list[RecordedFrame]:
+        """Frames of ``worlds`` at their current bodies, positions (n, V, 3) [m] (and velocities (n, V, 3)
+        [m/s] of motion frames): each body tensor leaves the device once for all of them (indexing
+        copies, so the next frames cannot alias them)."""
         idx_t = to_device_async(np.asarray(worlds, np.int64), self.torch_device)
         body = {name: self.body_now[name][idx_t].cpu().numpy() for name in ("vertices", "skin", "rest")}
         return [RecordedFrame(int(self.cur[w]), int(k), positions[j], int(st), int(self.held[w]), body["vertices"][j],
-                              body["skin"][j], body["rest"][j]) for j, (w, k, st) in enumerate(zip(worlds, keys, statuses))]
+                              body["skin"][j], body["rest"][j], None if velocities is None else velocities[j])
+                for j, (w, k, st) in enumerate(zip(worlds, keys, statuses))]
 
     def frame_of(self, w: int, key: int, positions: np.ndarray, st: int) -> RecordedFrame:
         return self.frames_of([w], [key], positions[None], [st])[0]
@@ -255,6 +257,8 @@ class Worlds:
             k = self.busiest_group()
             if k is None:
                 self.done[w] = True
+                if self.sim.status[w] == WorldStatus.RUNNING:  # a motion ends on a frame, not a hold: freeze it
+                    self.sim.status[w] = WorldStatus.CONVERGED
                 return
             self.sim.adopt_garment(w, self.group_source[k])  # a world that holds group k's garment
             self.group[w] = k
@@ -286,11 +290,12 @@ class Worlds:
         _, _, kinds_w, keys_w = self.schedules[w]
         failed = np.nonzero(kinds_w[self.ptr[w]:] == KEY)[0]
         can_restart = s.restart_after_explosions > 0
-        if not (s.recover_explosions and (self.last_good[w] is not None or can_restart) and len(failed)):
-            # no good state to go back to: hand over every remaining target pose as failed
+        motion = bool(self.tasks[self.cur[w]].motion_steps)
+        if motion or not (s.recover_explosions and (self.last_good[w] is not None or can_restart) and len(failed)):
+            # no good state to go back to (a motion has none): hand over every remaining target as failed
             handed = 0
             for j in range(self.ptr[w], len(kinds_w)):
-                if kinds_w[j] == KEY:
+                if kinds_w[j] in (KEY, RECORD):
                     self.deliver([self.frame_of(w, keys_w[j], self.sim.world_positions(w), st)])
                     handed += 1
             self.finish(w)
@@ -327,16 +332,22 @@ class Worlds:
         self.changed[w] = True
         return 1
 
-    def end_holds(self, ready: list[int], positions: np.ndarray, status: np.ndarray) -> list[tuple[int, RecordedFrame]]:
-        """Worlds ``ready`` ended a hold (settle or target pose) with ``positions`` (n, V, 3) [m] and
-        ``status`` (the frame's WorldStatus values, (W,)):
-        their states are kept (last good, home), settled worlds move on, and the (world, frame)
-        of every target hold is returned, its world frozen until the frame is handed over."""
+    def end_holds(self, ready: list[int], positions: np.ndarray, status: np.ndarray,
+                  velocities: np.ndarray | None = None) -> list[tuple[int | None, RecordedFrame]]:
+        """Worlds ``ready`` ended a hold (settle or target pose) or a motion frame (RECORD) with
+        ``positions`` (n, V, 3) [m], ``velocities`` (n, V, 3) [m/s] (given when any is a motion frame)
+        and ``status`` (the frame's WorldStatus values, (W,)): their states are kept (last good, home),
+        settled worlds and motion worlds move on, and the (world, frame) of every target hold is
+        returned, its world frozen until the frame is handed over; a motion frame comes as (None,
+        frame): its world has moved on already (nothing to route by the answer)."""
         s = self.settings
-        keyed = []
+        keyed, moving = [], []
         for j, w in enumerate(ready):
             _, poses_w, kinds_w, _ = self.schedules[w]
             kind = kinds_w[self.ptr[w]]
+            if kind == RECORD:
+                moving.append(j)
+                continue
             if s.recover_explosions or kind == SETTLE:
                 state = SavedState(positions[j].copy(), self.body_now["vertices"][w].clone(),
                                    self.body_now["skin"][w].clone(), self.body_now["rest"][w].clone(),
@@ -350,20 +361,28 @@ class Worlds:
                 keyed.append(j)
             else:
                 self.advance(w)
-        if not keyed:
+        if not keyed and not moving:
             return []
-        worlds_k = [ready[j] for j in keyed]
+        rows = keyed + moving
+        worlds_k = [ready[j] for j in rows]
         f0 = time.perf_counter()
-        frames = self.frames_of(worlds_k, [self.schedules[w][3][self.ptr[w]] for w in worlds_k], positions[keyed],
-                                [int(status[w]) for w in worlds_k])
+        frames = self.frames_of(worlds_k, [self.schedules[w][3][self.ptr[w]] for w in worlds_k], positions[rows],
+                                [int(status[w]) for w in worlds_k], None if velocities is None else velocities[rows])
         self.stats.record_frames_s += time.perf_counter() - f0
-        return list(zip(worlds_k, frames))
+        for frame in frames[:len(keyed)]:
+            frame.velocities = None  # a held target's velocities are those of a garment at rest
+        for j in moving:  # on to the next motion frame (or task) now: the answer changes nothing
+            self.advance(ready[j])
+        return [(w if r < len(keyed) else None, frame) for r, (w, frame) in enumerate(zip(worlds_k, frames))]
 
-    def route(self, worlds: list[int], verdicts: list[bool]) -> None:
+    def route(self, worlds: list[int | None], verdicts: list[bool]) -> None:
         """Worlds whose target frames were handed over move on by the answers: home after
-        ``restart_after_rejects`` rejections in a row, else to their next entry."""
+        ``restart_after_rejects`` rejections in a row, else to their next entry (None: a motion
+        frame, whose world has moved on already)."""
         s = self.settings
         for w, accepted in zip(worlds, verdicts):
+            if w is None:  # a motion frame: its world moved on when it was recorded
+                continue
             self.streak[w] = 0
             self.rejects[w] = 0 if accepted else self.rejects[w] + 1
             next_key = int(self.schedules[w][3][self.ptr[w]]) + 1

@@ -2,20 +2,28 @@
 
 A schedule is a tuple ``(shapes (M, S), poses (M, 60), kinds (M,), keys (M,))``: entry ``j`` puts
 the body at shape ``shapes[j]`` and pose ``poses[j]``; its kind says whether the world steps one
-frame there (TRANSITION) or holds it until converged (SETTLE: not recorded; KEY: recorded as
-target ``keys[j]`` of the task, -1 for the other kinds).
+frame there (TRANSITION: not recorded; RECORD: recorded as frame ``keys[j]`` of a motion, at rest
+or not) or holds it until converged (SETTLE: not recorded; KEY: recorded as target ``keys[j]`` of
+the task); ``keys`` is -1 for the kinds not recorded.
+
+A task with ``motion_steps`` n >= 1 is a motion (``SequenceTask``): after the settle its body
+turns from the start pose to the motion's first pose by slerp (steps of at most the interpolation
+threshold, the last one recorded as frame 0), then moves through the motion at its frame rate: n - 1
+slerp'ed simulator frames between consecutive motion poses, then the pose itself, recorded
+(``motion_entries``).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index
+from simulate.poses import interpolate_segments, interpolate_sequence, segment_key_index, slerp_segments
 from simulate.sequence.settings import SequenceSettings, SequenceTask
 
 # Entry kinds of a world's schedule.
 TRANSITION = 0  # one frame toward an intermediate body (shape blend or slerp'ed pose)
 SETTLE = 1  # hold until converged, not recorded (after the shape transition)
 KEY = 2  # hold until converged, then record
+RECORD = 3  # one frame toward a motion pose, then record (at the motion's frame rate)
 
 Schedule = tuple  # (shapes (M, S) float32, poses (M, 60) float32, kinds (M,), keys (M,))
 
@@ -32,7 +40,10 @@ def build_schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape
     poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
     kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
     keys = [np.full(n, -1), np.array([-1])]
-    visit = visit_entries(task, first_key, canonical_pose, s.interpolation_threshold)
+    if task.motion_steps:
+        visit = motion_entries(task, canonical_pose, s.interpolation_threshold)
+    else:
+        visit = visit_entries(task, first_key, canonical_pose, s.interpolation_threshold)
     out = [np.concatenate([*part, v]) for part, v in zip((shapes, poses, kinds, keys), visit)]
     return out[0].astype(np.float32), out[1].astype(np.float32), out[2], out[3]
 
@@ -43,6 +54,31 @@ def visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, th
     poses inserted where a joint would turn more than ``threshold`` [rad] in one frame."""
     seq, key_index = interpolate_sequence(task.poses[first_key:stop], start_pose, threshold)
     return entries(task, seq, key_index, first_key)
+
+
+def motion_entries(task: SequenceTask, start_pose: np.ndarray, threshold: float) -> Schedule:
+    """Schedule entries of motion task ``task`` (``motion_steps`` n >= 1) from ``start_pose``: slerp'ed
+    poses to the motion's first pose, each joint turning at most ``threshold`` [rad] per frame (the
+    first pose itself RECORD as frame 0), then per later motion pose k its n - 1 slerp'ed
+    TRANSITION poses from pose k - 1 (fractions 1/n .. (n-1)/n) and pose k, RECORD as frame k."""
+    poses = np.asarray(task.poses, np.float32)
+    n = int(task.motion_steps)
+    lead, _ = interpolate_segments(np.asarray(start_pose, np.float32).reshape(1, -1), poses[:1], threshold)
+    count = len(poses) - 1
+    if count and n > 1:
+        segment = np.repeat(np.arange(count), n - 1)
+        fractions = np.tile(np.arange(1, n) / n, count)
+        between = slerp_segments(poses[:-1], poses[1:], segment, fractions).reshape(count, n - 1, -1)
+        rest = np.concatenate([between, poses[1:, None]], axis=1).reshape(count * n, -1)
+    else:
+        rest = poses[1:]
+    seq = np.concatenate([lead, rest]).astype(np.float32)
+    recorded = np.zeros(len(seq), dtype=bool)
+    recorded[len(lead) - 1::n] = True  # the first pose, then every n-th entry: a motion pose
+    keys = np.full(len(seq), -1, dtype=np.int64)
+    keys[recorded] = np.arange(len(poses))
+    return (np.tile(task.shape, (len(seq), 1)).astype(np.float32), seq,
+            np.where(recorded, RECORD, TRANSITION), keys)
 
 
 def entries(task: SequenceTask, seq: np.ndarray, key_index: np.ndarray, first_key: int = 0) -> Schedule:
@@ -112,8 +148,12 @@ class PlanCache:
         lack one."""
         pose = np.asarray(pose, np.float32)
         key = (int(task), pose.tobytes())
+        if key not in self.plans and self.tasks[int(task)].motion_steps:  # no routes: a motion is not re-entered
+            self.plans[key] = (motion_entries(self.tasks[int(task)], pose, self.threshold), [])
+            self.calls += 1
         if key not in self.plans:
-            batch = [u for u in dict.fromkeys([int(task)] + [int(u) for u in also]) if (u, key[1]) not in self.plans]
+            batch = [u for u in dict.fromkeys([int(task)] + [int(u) for u in also])
+                     if (u, key[1]) not in self.plans and not self.tasks[u].motion_steps]
             for u, plan in zip(batch, plans_from([self.tasks[u] for u in batch], [pose] * len(batch), self.threshold)):
                 self.plans[(u, key[1])] = plan
             self.calls += 1

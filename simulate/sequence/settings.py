@@ -16,10 +16,16 @@ class SequenceTask:
         rest_vertices: cloth rest geometry (edge lengths, areas) [m], shape (V, 3).
         start_vertices: initial positions on the neutral body, canonical pose [m], (V, 3).
         shape: body shape, (S,).
-        poses: target poses in visiting order, (N, 60).
+        poses: target poses in visiting order, (N, 60); for a motion, its frames in order.
         fabric: fabric preset name or Fabric.
         start_shape: body shape the shape transition starts from, (S,); None: the neutral shape.
             A garment of tightness tau starts on beta + tau (``simulate.garment.tightness``).
+        motion_steps: 0: ``poses`` are targets, each held until the world converges. n >= 1:
+            ``poses`` are a motion's frames, n simulator frames apart (the motion's frame time is
+            n x ``SimSettings.frame_dt``): each is recorded after its n-th frame, at rest or not,
+            with the garment's velocities (see ``simulate.sequence.schedule``). A motion world
+            that explodes hands its remaining frames over as failed (no recovery: a motion's
+            state cannot be put back mid-way), and rejected frames do not send it home.
     """
 
     rest_vertices: np.ndarray
@@ -28,6 +34,7 @@ class SequenceTask:
     poses: np.ndarray
     fabric: object = "cotton"
     start_shape: np.ndarray | None = None
+    motion_steps: int = 0
 
 
 @dataclass
@@ -86,16 +93,19 @@ class SequenceSettings:
 
 @dataclass
 class RecordedFrame:
-    """What ``on_frame`` receives for a target pose that finished relaxing.
+    """What ``on_frame`` receives for a target pose that finished relaxing, or a motion frame.
 
     Attributes:
         task: index of the task in the batch.
-        key: index of the target pose in the task's pose list.
+        key: index of the target pose (motion frame) in the task's pose list.
         positions: garment vertices [m], (V, 3).
-        status: WorldStatus of the world (CONVERGED, MAX_STEPS or EXPLODED).
-        frames: frames the pose was held.
+        status: WorldStatus of the world (CONVERGED, MAX_STEPS or EXPLODED; a motion frame also
+            RUNNING: it is recorded whether or not the garment is at rest).
+        frames: frames the pose was held (a motion frame: 1).
         body_vertices: posed body [m], (Vb, 3).
         skinning_transforms: (J, 4, 4); rest_vertices: shaped unposed body (Vb, 3).
+        velocities: garment vertex velocities [m/s] at the frame's end, (V, 3), for motion frames
+            (None for held targets and failed frames).
     """
 
     task: int
@@ -106,3 +116,4 @@ class RecordedFrame:
     body_vertices: np.ndarray
     skinning_transforms: np.ndarray
     rest_body_vertices: np.ndarray
+    velocities: np.ndarray | None = None

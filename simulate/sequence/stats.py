@@ -15,6 +15,7 @@ class SequenceStats:
     transition_world_frames: int = 0  # of them on transition entries (shape blends, slerp'ed poses, routes home)
     hold_world_frames: int = 0  # ... holding target poses
     settle_world_frames: int = 0  # ... settling after the shape blend
+    motion_world_frames: int = 0  # ... stepping to a motion frame and recording it
     sim_s: float = 0  # stepping: launch plus the wait left after the host work beside the frame
     sim_launch_s: float = 0  # the launch alone
     body_s: float = 0  # posing bodies, moving the collider's targets
