@@ -79,7 +79,8 @@ def writes_files() -> bool:
 def init(device: str, *, data_parallel: bool = True, timeout_s: float = 1800.0) -> str:
     """Joins the torchrun process group when ``WORLD_SIZE`` > 1 and returns this rank's device.
 
-    ``device``: ``cpu`` or ``cuda`` (each rank takes ``cuda:LOCAL_RANK``); a numbered CUDA device
+    ``device``: ``cpu`` or ``cuda`` (each rank takes ``cuda:LOCAL_RANK``, or with ``data_parallel``
+    off ``cuda:(LOCAL_RANK mod GPU count)``, so stages can share one GPU); a numbered CUDA device
     under torchrun raises ValueError naming it. ``data_parallel``: whether :func:`run_epochs
     <learn.tailornet.train.run_epochs>` shares batches over the ranks (False where the learner
     spreads whole stages over them). Single process: returns ``device`` unchanged."""
@@ -93,15 +94,19 @@ def init(device: str, *, data_parallel: bool = True, timeout_s: float = 1800.0) 
         if device not in ("cuda",):
             raise ValueError(f"--device {device} under torchrun: give --device cuda, each of the {world} processes "
                              f"takes cuda:LOCAL_RANK")
-        if local >= torch.cuda.device_count():
-            raise ValueError(f"LOCAL_RANK {local} but this host has {torch.cuda.device_count()} CUDA device(s): "
+        count = torch.cuda.device_count()
+        if local >= count and data_parallel:
+            raise ValueError(f"LOCAL_RANK {local} but this host has {count} CUDA device(s): "
                              f"--nproc-per-node must not exceed the GPU count")
+        # stage-parallel learners exchange no tensors: several ranks may share a GPU
+        local = local % count
         torch.cuda.set_device(local)
         device = f"cuda:{local}"
     if not dist.is_initialized():
-        dist.init_process_group("nccl" if kind == "cuda" else "gloo",
-                                timeout=datetime.timedelta(seconds=timeout_s),
-                                **({"device_id": torch.device(device)} if kind == "cuda" else {}))
+        # the stage-parallel ranks only meet at barriers: gloo, which also works for ranks sharing a GPU
+        backend = "nccl" if kind == "cuda" and data_parallel else "gloo"
+        dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s),
+                                **({"device_id": torch.device(device)} if backend == "nccl" else {}))
     return device
 
 
