@@ -14,9 +14,10 @@ moves, each triangle's corners are pushed by their own queries), written to a pe
 delta so results stay deterministic.
 
 **Pairs** (``pairs=True``): each search lists, within the reach, every particle's nearest
-triangles that do not contain it, every triangle's nearest particles and every edge's nearest
-edges that share no vertex with it (at most ``pairs_per_primitive`` each, the nearest, ties
-broken by index, so the lists do not depend on the BVH's visit order). A solver gives each pair
+triangles that do not contain it and every edge's nearest edges that share no vertex with it (a
+BVH over the edges), at most ``pairs_per_primitive`` each, the nearest, ties broken by index, so
+the lists do not depend on the BVH's visit order; the same vertex-triangle pairs are also listed
+per triangle (CSR rows sorted by particle), so each pair acts on its four particles alike. A solver gives each pair
 the energy stiffness / 2 (r - d)^2 while the pair's distance d is below its radius r (the
 thickness, or the pair's distance in the rest geometry where that is less) and every particle of
 the pair its share of the push: as the point, as a triangle's corner, as an edge's end
@@ -378,75 +379,69 @@ def vertex_triangle_pairs(
 
 
 @wp.kernel
-def triangle_vertex_pairs(
-    mesh: wp.uint64,
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_world: wp.array(dtype=wp.int32),
-    world_active: wp.array(dtype=wp.int32),
-    world_self_contact: wp.array(dtype=wp.int32),
-    world_offset: wp.array(dtype=wp.vec3),
-    x: wp.array(dtype=wp.vec3),
-    x_rest: wp.array(dtype=wp.vec3),
-    reach: float,
-    thickness: float,
-    # Out:
-    pair_vertex: wp.array2d(dtype=wp.int32),
-    pair_dist: wp.array2d(dtype=float),
-    pair_radius: wp.array2d(dtype=float),
-):
-    """Each triangle's nearest particles within ``reach`` [m] that are not its corners: the
-    vertex-triangle pairs seen from the triangle, so its corners feel the contact too."""
-    t = wp.tid()
-    for k in range(pair_vertex.shape[1]):
-        pair_vertex[t, k] = -1
-    w = tri_world[t]
-    if world_active[w] == 0 or world_self_contact[w] == 0:
-        return
-    a = tri_indices[t, 0]
-    b = tri_indices[t, 1]
-    c = tri_indices[t, 2]
-    xa = x[a]
-    xb = x[b]
-    xc = x[c]
-    if not (wp.isfinite(xa[0] + xa[1] + xa[2]) and wp.isfinite(xb[0] + xb[1] + xb[2])
-            and wp.isfinite(xc[0] + xc[1] + xc[2])):
-        return
-    off = world_offset[w]
-    r_box = reach + shift_tolerance(off)
-    r = wp.vec3(r_box, r_box, r_box)
-    query = wp.mesh_query_aabb(mesh, wp.min(wp.min(xa, xb), xc) + off - r, wp.max(wp.max(xa, xb), xc) + off + r)
-    face = int(0)
-    while wp.mesh_query_aabb_next(query, face):
-        if tri_world[face] != w:
-            continue
-        for m in range(3):
-            j = tri_indices[face, m]
-            if j == a or j == b or j == c:
-                continue
-            p = x[j]
-            bary = closest_point_barycentric(p, xa, xb, xc)
-            d = wp.length(p - (xa * bary[0] + xb * bary[1] + xc * bary[2]))
-            if d < reach:
-                insert_nearest(pair_vertex, pair_dist, t, j, d)
-    ra = x_rest[a]
-    rb = x_rest[b]
-    rc = x_rest[c]
-    for k in range(pair_vertex.shape[1]):
-        j = pair_vertex[t, k]
-        if j < 0:
+def count_triangle_pairs(pair_tri: wp.array2d(dtype=wp.int32), count: wp.array(dtype=wp.int32)):
+    """Vertex-triangle pairs listed per triangle (integer atomics: the count does not depend on
+    the order)."""
+    i = wp.tid()
+    for k in range(pair_tri.shape[1]):
+        t = pair_tri[i, k]
+        if t < 0:
             break
-        pr = x_rest[j]
-        bary = closest_point_barycentric(pr, ra, rb, rc)
-        pair_radius[t, k] = contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])), thickness)
+        wp.atomic_add(count, t, 1)
+
+
+@wp.kernel
+def scatter_triangle_pairs(pair_tri: wp.array2d(dtype=wp.int32), pair_radius: wp.array2d(dtype=float),
+                           start: wp.array(dtype=wp.int32), cursor: wp.array(dtype=wp.int32),
+                           tv_vertex: wp.array(dtype=wp.int32), tv_radius: wp.array(dtype=float)):
+    """Each particle's vertex-triangle pairs written into its triangles' rows of the CSR lists (in
+    any order; ``sort_triangle_pairs`` orders them)."""
+    i = wp.tid()
+    for k in range(pair_tri.shape[1]):
+        t = pair_tri[i, k]
+        if t < 0:
+            break
+        slot = start[t] + wp.atomic_add(cursor, t, 1)
+        tv_vertex[slot] = i
+        tv_radius[slot] = pair_radius[i, k]
+
+
+@wp.kernel
+def sort_triangle_pairs(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                        tv_vertex: wp.array(dtype=wp.int32), tv_radius: wp.array(dtype=float)):
+    """Each triangle's row sorted by particle index, so forces sum in the same order every run."""
+    t = wp.tid()
+    a = start[t]
+    b = a + count[t]
+    for k in range(a + 1, b):
+        v = tv_vertex[k]
+        r = tv_radius[k]
+        m = k - 1
+        while m >= a and tv_vertex[m] > v:
+            tv_vertex[m + 1] = tv_vertex[m]
+            tv_radius[m + 1] = tv_radius[m]
+            m -= 1
+        tv_vertex[m + 1] = v
+        tv_radius[m + 1] = r
+
+
+@wp.kernel
+def place_edge_boxes(edges: wp.array(dtype=wp.vec2i), particle_world: wp.array(dtype=wp.int32),
+                     world_offset: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3),
+                     lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    """Bounding box of each edge at its world's grid cell (the edge BVH's leaves)."""
+    e = wp.tid()
+    off = world_offset[particle_world[edges[e][0]]]
+    p = x[edges[e][0]] + off
+    q = x[edges[e][1]] + off
+    lowers[e] = wp.min(p, q)
+    uppers[e] = wp.max(p, q)
 
 
 @wp.kernel
 def edge_edge_pairs(
-    mesh: wp.uint64,
+    edge_bvh: wp.uint64,
     edges: wp.array(dtype=wp.vec2i),
-    tri_edges: wp.array2d(dtype=wp.int32),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_world: wp.array(dtype=wp.int32),
     particle_world: wp.array(dtype=wp.int32),
     world_active: wp.array(dtype=wp.int32),
     world_self_contact: wp.array(dtype=wp.int32),
@@ -462,9 +457,8 @@ def edge_edge_pairs(
     # In/out:
     d_min: wp.array(dtype=float),
 ):
-    """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (``tri_edges[f,
-    k]``: the edge from corner k to corner k + 1 of face f), and the bounds' smallest distance at
-    both its ends."""
+    """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (a BVH over the
+    edges' boxes), and the bounds' smallest distance at both its ends."""
     e = wp.tid()
     for k in range(pair_edge.shape[1]):
         pair_edge[e, k] = -1
@@ -481,30 +475,27 @@ def edge_edge_pairs(
     off = world_offset[w]
     r_box = reach + shift_tolerance(off)
     r = wp.vec3(r_box, r_box, r_box)
-    query = wp.mesh_query_aabb(mesh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
-    face = int(0)
+    query = wp.bvh_query_aabb(edge_bvh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
+    f = int(0)
     best = reach
-    while wp.mesh_query_aabb_next(query, face):
-        if tri_world[face] != w:
+    while wp.bvh_query_next(query, f):
+        a = edges[f][0]
+        b = edges[f][1]
+        if a == i0 or a == i1 or b == i0 or b == i1 or particle_world[a] != w:
             continue
-        for k in range(3):
-            a = tri_indices[face, k]
-            b = tri_indices[face, (k + 1) % 3]
-            if a == i0 or a == i1 or b == i0 or b == i1:
-                continue
-            d = segment_distance(p, q, x[a], x[b])
-            best = wp.min(best, d)
-            if d < reach:
-                insert_nearest(pair_edge, pair_dist, e, tri_edges[face, k], d)
+        d = segment_distance(p, q, x[a], x[b])
+        best = wp.min(best, d)
+        if d < reach:
+            insert_nearest(pair_edge, pair_dist, e, f, d)
     wp.atomic_min(d_min, i0, best)
     wp.atomic_min(d_min, i1, best)
     rp = x_rest[i0]
     rq = x_rest[i1]
     for k in range(pair_edge.shape[1]):
-        f = pair_edge[e, k]
-        if f < 0:
+        g = pair_edge[e, k]
+        if g < 0:
             break
-        pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[f][0]], x_rest[edges[f][1]]), thickness)
+        pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[g][0]], x_rest[edges[g][1]]), thickness)
 
 
 @wp.kernel
@@ -634,9 +625,8 @@ class SelfContact:
             bound_fraction: share of its smallest pair distance a particle may move between
                 searches, in (0, 0.5).
             min_separation: distance the bounds keep pairs apart [m] (``MIN_SEPARATION_M``).
-            pairs: list every particle's nearest triangles, every triangle's nearest particles
-                and every edge's nearest edges within the reach at each search (``vt_*``,
-                ``tv_*``, ``ee_*``), for a contact energy acting on all particles of a pair
+            pairs: list every particle's nearest triangles (also per triangle) and every edge's
+                nearest edges within the reach at each search (``vt_*``, ``tv_*``, ``ee_*``), for a contact energy acting on all particles of a pair
                 (``SolverVBD``), instead of one candidate triangle per particle; the bounds'
                 distances come from the same queries.
             pairs_per_primitive: the most pairs listed per particle, triangle or edge (the
@@ -701,9 +691,6 @@ class SelfContact:
                                                                                            np.zeros(0, np.int64))
             self.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
             """Cloth edges (E, 2), each once, lower index first."""
-            self.tri_edges = wp.array(inverse.reshape(-1, 3).astype(np.int32) if len(keys) else np.zeros((1, 3), np.int32),
-                                      dtype=wp.int32, device=dev)
-            """Edge of each face from corner k to corner k + 1, (T, 3)."""
             if self.pairs:
                 k = int(pairs_per_primitive)
                 n_tri = max(model.tri_count, 1)
@@ -712,14 +699,24 @@ class SelfContact:
                 """Each particle's nearest triangles within the reach, nearest first, -1 after the last."""
                 self.vt_radius = wp.zeros((count, k), dtype=float, device=dev)
                 """Contact radius of each listed pair [m] (``contact_radius``)."""
-                self.tv_vertex = wp.full((n_tri, k), -1, dtype=wp.int32, device=dev)
-                """Each triangle's nearest particles within the reach (not its corners)."""
-                self.tv_radius = wp.zeros((n_tri, k), dtype=float, device=dev)
+                self.tv_count = wp.zeros(n_tri, dtype=wp.int32, device=dev)
+                """Particles listing each triangle (the same pairs seen from the triangle)."""
+                self.tv_start = wp.zeros(n_tri, dtype=wp.int32, device=dev)
+                """Start of each triangle's row in ``tv_vertex`` / ``tv_radius`` (CSR, rows sorted by particle)."""
+                self.tv_vertex = wp.zeros(count * k, dtype=wp.int32, device=dev)
+                self.tv_radius = wp.zeros(count * k, dtype=float, device=dev)
+                self._tv_cursor = wp.zeros(n_tri, dtype=wp.int32, device=dev)
                 self.ee_edge = wp.full((n_edge, k), -1, dtype=wp.int32, device=dev)
                 """Each edge's nearest edges within the reach (sharing no vertex with it)."""
                 self.ee_radius = wp.zeros((n_edge, k), dtype=float, device=dev)
-                self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_tri, k), dtype=float, device=dev),
-                              wp.zeros((n_edge, k), dtype=float, device=dev)]
+                self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_edge, k), dtype=float, device=dev)]
+                lowers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
+                uppers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
+                wp.launch(place_edge_boxes, dim=n_edge if model.particle_count else 0,
+                          inputs=[self.edges, model.particle_world, self.world_offset, self.rest],
+                          outputs=[lowers, uppers], device=dev)
+                self.edge_bvh = wp.Bvh(lowers, uppers)
+                """BVH over the edges' boxes at their world cells, built here at rest and refit at each search."""
                 ends = np.concatenate([edges[:, 0], edges[:, 1]])
                 code = np.concatenate([2 * np.arange(n_edge), 2 * np.arange(n_edge) + 1])
                 order = np.lexsort((code, ends))
@@ -754,15 +751,24 @@ class SelfContact:
                           inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
                                   self.world_offset, x, self.rest, reach, self.thickness],
                           outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min], device=m.device)
-                wp.launch(triangle_vertex_pairs, dim=m.tri_count,
-                          inputs=[self.mesh.id, m.tri_indices, m.tri_world, world_active, active_sc, self.world_offset,
-                                  x, self.rest, reach, self.thickness],
-                          outputs=[self.tv_vertex, self._dist[1], self.tv_radius], device=m.device)
+                self.tv_count.zero_()
+                self._tv_cursor.zero_()
+                wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
+                          device=m.device)
+                wp.utils.array_scan(self.tv_count, self.tv_start, inclusive=False)
+                wp.launch(scatter_triangle_pairs, dim=m.particle_count,
+                          inputs=[self.vt_tri, self.vt_radius, self.tv_start, self._tv_cursor],
+                          outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+                wp.launch(sort_triangle_pairs, dim=m.tri_count, inputs=[self.tv_start, self.tv_count],
+                          outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+                wp.launch(place_edge_boxes, dim=self.edges.shape[0],
+                          inputs=[self.edges, m.particle_world, self.world_offset, x],
+                          outputs=[self.edge_bvh.lowers, self.edge_bvh.uppers], device=m.device)
+                self.edge_bvh.refit()
                 wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
-                          inputs=[self.mesh.id, self.edges, self.tri_edges, m.tri_indices, m.tri_world,
-                                  m.particle_world, world_active, active_sc, self.world_offset, x, self.rest, reach,
-                                  self.thickness],
-                          outputs=[self.ee_edge, self._dist[2], self.ee_radius, self.d_min], device=m.device)
+                          inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
+                                  self.world_offset, x, self.rest, reach, self.thickness],
+                          outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min], device=m.device)
                 return
             wp.launch(vertex_triangle_bounds, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,

@@ -236,7 +236,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     position = wp.func(position, module="unique")
 
     def self_contact_vertex_terms(xs, x64, i, base, xi, adj_start, adj_slot, tri_count, tri_indices, vt_tri, vt_radius,
-                                  tv_vertex, tv_radius, ee_edge, ee_radius, edges, edge_adj_start, edge_adj, stiffness):
+                                  tv_start, tv_count, tv_vertex, tv_radius, ee_edge, ee_radius, edges, edge_adj_start, edge_adj, stiffness):
         """Force [N] and Hessian [N/m] on particle ``i`` (at ``xi``) from every contact pair it
         belongs to: as the point of its own vertex-triangle pairs, as a corner of its triangles'
         pairs, as an end of its edges' edge-edge pairs (``SelfContact`` with ``pairs``)."""
@@ -257,15 +257,13 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
             if slot < 3 * tri_count:
                 t = slot // 3
                 corner = slot - 3 * t
-                for k in range(tv_vertex.shape[1]):
-                    j = tv_vertex[t, k]
-                    if j < 0:
-                        break
+                for k in range(tv_start[t], tv_start[t] + tv_count[t]):
+                    j = tv_vertex[k]
                     f, h = vertex_triangle_contact(wp.vec3(position(xs, x64, j, base) - xi),
                                                    wp.vec3(position(xs, x64, tri_indices[t, 0], base) - xi),
                                                    wp.vec3(position(xs, x64, tri_indices[t, 1], base) - xi),
                                                    wp.vec3(position(xs, x64, tri_indices[t, 2], base) - xi), corner,
-                                                   tv_radius[t, k], stiffness)
+                                                   tv_radius[k], stiffness)
                     force = force + f
                     hess = hess + h
         for s in range(edge_adj_start[i], edge_adj_start[i + 1]):
@@ -289,9 +287,9 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         "xs": tile_type, "x64": wp.array(dtype=wp.vec3d), "i": int, "base": int, "xi": wp.vec3d,
         "adj_start": wp.array(dtype=wp.int32), "adj_slot": wp.array(dtype=wp.int32), "tri_count": int,
         "tri_indices": wp.array2d(dtype=wp.int32), "vt_tri": wp.array2d(dtype=wp.int32),
-        "vt_radius": wp.array2d(dtype=float), "tv_vertex": wp.array2d(dtype=wp.int32),
-        "tv_radius": wp.array2d(dtype=float), "ee_edge": wp.array2d(dtype=wp.int32),
-        "ee_radius": wp.array2d(dtype=float), "edges": wp.array(dtype=wp.vec2i),
+        "vt_radius": wp.array2d(dtype=float), "tv_start": wp.array(dtype=wp.int32),
+        "tv_count": wp.array(dtype=wp.int32), "tv_vertex": wp.array(dtype=wp.int32), "tv_radius": wp.array(dtype=float),
+        "ee_edge": wp.array2d(dtype=wp.int32), "ee_radius": wp.array2d(dtype=float), "edges": wp.array(dtype=wp.vec2i),
         "edge_adj_start": wp.array(dtype=wp.int32), "edge_adj": wp.array(dtype=wp.int32), "stiffness": float}
     self_contact_vertex_terms = wp.func(self_contact_vertex_terms, module="unique")
 
@@ -330,8 +328,10 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         # Self-contact (SelfContact's pair lists of the last search):
         sc_vt_tri: wp.array2d(dtype=wp.int32),
         sc_vt_radius: wp.array2d(dtype=float),
-        sc_tv_vertex: wp.array2d(dtype=wp.int32),
-        sc_tv_radius: wp.array2d(dtype=float),
+        sc_tv_start: wp.array(dtype=wp.int32),
+        sc_tv_count: wp.array(dtype=wp.int32),
+        sc_tv_vertex: wp.array(dtype=wp.int32),
+        sc_tv_radius: wp.array(dtype=float),
         sc_ee_edge: wp.array2d(dtype=wp.int32),
         sc_ee_radius: wp.array2d(dtype=float),
         sc_edges: wp.array(dtype=wp.vec2i),
@@ -401,9 +401,10 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                         sc_on = world_self_contact[w]
                         if sc_on != 0:
                             fc, hc = self_contact_vertex_terms(xs, x64, i, base, xi, adj_start, adj_slot, tri_count,
-                                                               tri_indices, sc_vt_tri, sc_vt_radius, sc_tv_vertex,
-                                                               sc_tv_radius, sc_ee_edge, sc_ee_radius, sc_edges,
-                                                               sc_edge_adj_start, sc_edge_adj, sc_stiffness)
+                                                               tri_indices, sc_vt_tri, sc_vt_radius, sc_tv_start,
+                                                               sc_tv_count, sc_tv_vertex, sc_tv_radius, sc_ee_edge,
+                                                               sc_ee_radius, sc_edges, sc_edge_adj_start, sc_edge_adj,
+                                                               sc_stiffness)
                             force = force + fc
                             hess = hess + hc
                     p = xi

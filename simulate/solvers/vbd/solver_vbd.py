@@ -167,12 +167,14 @@ class SolverVBD(SolverBase):
         if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
             ids = wp.full((1, 1), -1, dtype=wp.int32, device=dev)
             radii = wp.zeros((1, 1), dtype=float, device=dev)
-            self._sc_pairs = [ids, radii, ids, radii, ids, radii, wp.zeros(1, dtype=wp.vec2i, device=dev),
-                              wp.zeros(2, dtype=wp.int32, device=dev), wp.zeros(1, dtype=wp.int32, device=dev), 0.0]
+            ints = wp.zeros(1, dtype=wp.int32, device=dev)
+            self._sc_pairs = [ids, radii, ints, ints, ints, wp.zeros(1, dtype=float, device=dev), ids, radii,
+                              wp.zeros(1, dtype=wp.vec2i, device=dev), wp.zeros(2, dtype=wp.int32, device=dev), ints, 0.0]
             self._sc_bounds = [wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
         else:
             sc = self.self_contact
-            self._sc_pairs = [sc.vt_tri, sc.vt_radius, sc.tv_vertex, sc.tv_radius, sc.ee_edge, sc.ee_radius, sc.edges,
+            self._sc_pairs = [sc.vt_tri, sc.vt_radius, sc.tv_start, sc.tv_count, sc.tv_vertex, sc.tv_radius, sc.ee_edge,
+                              sc.ee_radius, sc.edges,
                               sc.edge_adj_start, sc.edge_adj, self.self_contact_stiffness]
             self._sc_bounds = [sc.x_searched, sc.d_min, sc.bound_fraction if sc.bounds else 0.0, sc.min_separation]
         self._finalize_vbd = _finalize_kernel(self.friction, self.self_contact is not None)
