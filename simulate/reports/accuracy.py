@@ -60,8 +60,8 @@ PATH_STEP_RAD = 0.1
 ``simulation.interpolation_threshold`` default)."""
 
 CONTACT_THICKNESS = 0.004
-"""Collider thickness of every run and of the reference equilibrium [m] (the production spec's
-``simulation.contact.thickness``)."""
+"""Collider thickness of every run and of the reference equilibrium [m] (the production
+``SequenceSettings.contact_thickness``)."""
 REFERENCE_FRICTION = "stick"
 """Contact model of the reference equilibrium (see the module docstring)."""
 STRIP_ROWS = 80
