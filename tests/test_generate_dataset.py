@@ -24,7 +24,9 @@ TINY_SPEC = {
     "pairs": {"train": 1, "test": 1},
     "poses": {"range_scale": 0.25, "train_count": 2, "test_count": 1},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 1, "test_test": 1},
-    "simulation": {"device": "cpu", "worlds": 1, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
+    # tolerance 0.01: the audited frame rests close enough to its equilibrium for the audit's Newton
+    # reference to converge (at 0.03 with the library's 10-frame shape transition it stalls)
+    "simulation": {"device": "cpu", "worlds": 1, "iterations": 8, "tolerance": 0.01, "max_relax_frames": 40,
                    "interpolation_threshold": 0.25},
     "filters": {"require_converged": False},
     "audit": {"samples": 1},
