@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--tolerance", type=float, default=None, help="override simulation.tolerance [m/s]")
     parser.add_argument("--range-scale", type=float, default=None, help="override poses.range_scale")
     parser.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
-                        help="override any simulation.KEY (repeatable, dots for nested keys), e.g. --sim outlier_fraction=0.02 "
+                        help="override any simulation.KEY (repeatable, dots for nested keys), e.g. --sim tolerance=0.02 "
                              "--sim contact.self_contact=true")
     parser.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE",
                         help="override any filters.KEY (repeatable), e.g. --filter max_self_intersections=50")

@@ -40,7 +40,8 @@ def _run(model, collider, solver: str, mode: str | None, substeps: int | None, i
     settings = SimSettings(substeps=substeps, iterations=iterations, xpbd_mode=mode or "gauss_seidel",
                            xpbd_bending_mode=bending_mode,
                            damping=args.damping, tolerance=args.tolerance, patience=args.patience,
-                           max_frames=args.max_frames, explosion_stretch=3.0, outlier_fraction=0.0)
+                           max_frames=args.max_frames, explosion_stretch=3.0, outlier_fraction=0.0,
+                           limit_cycle_window=0, frame_dt=1.0 / 60.0, body_contact_detect_every=1)
     collider.set_pose(collider_start(collider))
     sim = QuasiStaticSimulator(model, collider, solver=solver, settings=settings)
     wp.synchronize_device(model.device)

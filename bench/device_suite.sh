@@ -38,9 +38,8 @@ case $stage in
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
   dataset-sweep)
-    # keep rate and frames per target against tolerance / outlier share / pose range, short slices
-    for cfg in "--sim tolerance=0.01" "--sim tolerance=0.05" "--sim tolerance=0.05 --sim outlier_fraction=0.02" \
-               "--sim tolerance=0.05 --range-scale 0.6"; do
+    # keep rate and frames per target against tolerance / pose range, short slices
+    for cfg in "--sim tolerance=0.01" "--sim tolerance=0.05" "--sim tolerance=0.05 --range-scale 0.6"; do
       T=${T:-150} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-8} --test-poses 4 \
         --device cuda:0 --out /tmp/tn-sweep $cfg
     done ;;
@@ -48,7 +47,7 @@ case $stage in
     # a slice with relaxed filters (self-intersections, distortion) so the learners get frames;
     # kept in /tmp/tn for the learn stage
     T=${T:-300} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-12} --test-poses 6 \
-      --device cuda:0 --keep --out /tmp/tn --sim tolerance=0.05 --sim outlier_fraction=0.02 ${RANGE:+--range-scale $RANGE} \
+      --device cuda:0 --keep --out /tmp/tn --sim tolerance=0.05 ${RANGE:+--range-scale $RANGE} \
       --filter max_self_intersections=${MAX_SI:-60} --filter max_distorted_fraction=0.01 ;;
   profile-dataset)
     T=${T:-150} run python -m cProfile -s tottime bench/bench_dataset.py --spec tailornet-tshirt --poses 3 --test-poses 2 \
@@ -91,7 +90,7 @@ case $stage in
   self-contact)
     # the same slice (20+20 pairs, POSES train poses per pair, 30-pose tasks) without and with self-contact:
     # what it does to the self-intersection drops, explosions and time; EXTRA passes more bench flags to both,
-    # e.g. EXTRA="--sim contact.self_contact_detect_every=3" (the search every 3rd substep)
+    # e.g. EXTRA="--sim solver=vbd"
     for sc in ${SC:-false true}; do
       T=${T:-270} run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses ${TEST_POSES:-10} \
         --sim poses_per_task=30 --sim contact.self_contact=$sc --device cuda:0 --out /tmp/tn-sc-$sc ${EXTRA:-}

@@ -5,8 +5,8 @@ A seeded random sample of kept frames is re-solved with the converged reference 
 force residual) on the frame's own model and body: the garment's style rest geometry built as the
 production solver builds it (``ClothBuilder`` with the template's ``material_uv`` and the spec's
 ``garment.fabric``), the body posed with the frame's shape and pose (``simulate.sequence.drape_static``
-poses it the same way) and culled to the garment's collision parts, and the spec's collider thickness
-``simulation.contact.thickness``. Newton starts from the frame's recorded positions.
+poses it the same way) and culled to the garment's collision parts, and the simulation's collider
+thickness ``SequenceSettings.contact_thickness``. Newton starts from the frame's recorded positions.
 
 Contact uses ``friction="stick"``: the particles touching the body in the recorded frame (within
 0.1 mm of their contact plane) are held at their recorded positions tangentially to the body and
@@ -70,7 +70,7 @@ def solve_reference(model, start: np.ndarray, body_vertices: np.ndarray, body_fa
     Args:
         model: e.g. :func:`reference_model`; start: recorded positions [m], (V, 3).
         body_vertices: the posed body [m], (Vb, 3); body_faces: the faces the garment can touch, (Fb, 3).
-        contact_thickness: collider thickness [m] (the spec's ``simulation.contact.thickness``).
+        contact_thickness: collider thickness [m] (``SequenceSettings.contact_thickness``).
         max_iterations: Newton iterations at most.
         body_face_groups: primary collision bodies (rows of ``body_faces`` per part; the model's
             ``particle_body_part`` picks one per particle), or None.
@@ -173,7 +173,9 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
     reader.close()
     tasks = ctx.tasks
     max_iterations = int(spec["audit"]["max_iterations"])
-    thickness = float(spec["simulation"]["contact"]["thickness"])
+    from simulate.sequence import SequenceSettings
+
+    thickness = float(SequenceSettings().contact_thickness)  # the collider thickness the frames were simulated with
     fabric = spec["garment"]["fabric"]
     bodies = np.asarray(ctx.body.pose(np.stack([f["shape"] for f in frames]), np.stack([f["pose"] for f in frames])).vertices)
     jobs = [(np.asarray(ctx.style_rest[tasks[f["task_id"]].style_index]), np.asarray(ctx.template.faces), fabric,

@@ -173,14 +173,14 @@ def floor(data: str | Path, out: str | Path, *, device: str | None = None, histo
     from data_manifest.reader import DatasetReader
 
     from pipelines.errors import check_output_dir
-    from pipelines.spec import validate_spec
+    from pipelines.spec import validate_spec, without_library_settings
 
     data, out = Path(data), check_output_dir(out, "--out")
     reader = DatasetReader(data)
     report: dict[str, Any] = {"data": str(data.resolve()), "dataset_manifest": reader.manifest.name}
     if history:
         t0 = time.perf_counter()
-        spec = validate_spec(json.loads(json.dumps(reader.manifest.spec)))
+        spec = validate_spec(without_library_settings(json.loads(json.dumps(reader.manifest.spec))))
         ctx = _context(spec, data, out, device)
         probes = plan_probes(ctx.plan.tasks, pairs=pairs, targets=targets, prefix=prefix)
         report["history"] = history_floor(ctx, probes)

@@ -110,14 +110,9 @@ def sequence_settings(spec: dict):
 
     s = spec["simulation"]
     sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
-                      tolerance=float(s["tolerance"]), outlier_fraction=float(s["outlier_fraction"]),
-                      max_frames=int(s["max_relax_frames"]), limit_cycle_window=int(s["limit_cycle_window"]),
-                      self_contact_detect_every=int(s["contact"]["self_contact_detect_every"]),
-                      body_contact_detect_every=int(s["contact"]["body_contact_detect_every"]))
-    return SequenceSettings(sim=sim, solver=s["solver"], shape_transition_frames=int(s["shape_transition_frames"]),
-                            interpolation_threshold=float(s["interpolation_threshold"]),
-                            contact_thickness=float(s["contact"]["thickness"]), self_contact=bool(s["contact"]["self_contact"]),
-                            restart_after_rejects=int(s["restart_after_rejects"]))
+                      tolerance=float(s["tolerance"]), max_frames=int(s["max_relax_frames"]))
+    return SequenceSettings(sim=sim, solver=s["solver"], interpolation_threshold=float(s["interpolation_threshold"]),
+                            self_contact=bool(s["contact"]["self_contact"]))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print) -> Context:

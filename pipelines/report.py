@@ -36,17 +36,13 @@ def resolve_device(device: str) -> str:
 
 
 def production_default(config: Path | None = None):
-    """The production default Setting from a shipped spec's ``simulation`` block (tailornet-tshirt)."""
-    import yaml
-
+    """The production default Setting of a shipped spec (tailornet-tshirt) with its defaults filled in."""
+    from pipelines.spec import load_spec
     from simulate.reports.accuracy import Setting
 
-    path = config or CONFIG_DIR / DEFAULT_CONFIG
-    with open(path) as f:
-        sim = (yaml.safe_load(f) or {}).get("simulation", {})
-    return Setting(solver=sim.get("solver", "xpbd"), mode=sim.get("xpbd_mode", "gauss_seidel"),
-                   substeps=int(sim.get("substeps", 10)), iterations=int(sim.get("iterations", 10)),
-                   tolerance=float(sim.get("tolerance", 0.01)), precision="float32")
+    sim = load_spec(config or CONFIG_DIR / DEFAULT_CONFIG)["simulation"]
+    return Setting(solver=sim["solver"], mode="gauss_seidel", substeps=int(sim["substeps"]),
+                   iterations=int(sim["iterations"]), tolerance=float(sim["tolerance"]), precision="float32")
 
 
 BASE_FIELDS = ("frame_dt", "damping", "patience", "outlier_fraction", "explosion_speed", "explosion_stretch")

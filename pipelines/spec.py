@@ -45,42 +45,33 @@ records and hashes. Schema (every key optional unless marked required)::
       train_test: int | all = all       train pairs x unseen poses
       test_train: int                   test pairs x a subset of train poses
       test_test: int                    test pairs x a subset of unseen poses
-    simulation:
+    simulation:                         what a run changes; the rest of the stepping (damping, explosion
+                                        limits, convergence outliers and limit cycles, contact thickness
+                                        and detection rates, shape transition, restarts, ...) is the
+                                        library's (simulate.quasi_static.SimSettings,
+                                        simulate.sequence.SequenceSettings), whose defaults are the
+                                        production settings; a spec giving one of them is an error
       solver: vbd|xpbd|mass_spring = xpbd  vbd: vertex block descent, rests at the model's equilibrium
                                         (converged stiffness); xpbd: faster, stretches stiff cloth
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
-      frame_dt: float [s] = 1/60        the body moves from one pose to the next in one frame
-      substeps: int = 10, iterations: int = 10   per frame, per substep
-      tolerance: float [m/s] = 0.01     a pose is held until every vertex is slower (3 frames in a row)
-      max_relax_frames: int = 120       frames a pose is held at most
-      outlier_fraction: float = 0.005   share of a world's vertices that may still move faster than
-                                        tolerance when it counts as converged (vertices caught where
-                                        the arm and torso skins interpenetrate jitter forever)
-      limit_cycle_window: int = 0       frames of position history: a vertex back within tolerance x frame_dt
-                                        of where it was 2..N frames ago (a small limit cycle of
-                                        alternating contacts) also counts as at rest (0 = off)
-      shape_transition_frames: int = 10
-      interpolation_threshold: float [rad] = 0.1
-      restart_after_rejects: int = 0    after this many target frames in a row dropped by the filters,
-                                        the world goes back to its settled canonical drape and heads
-                                        for its next target from there (a tangle is not carried along
-                                        the rest of the sequence; 0 = never)
+      frame_dt: float [s] = 1/45        the body moves from one pose to the next in one frame
+      substeps: int = 15, iterations: int = 5   per frame, per substep
+      tolerance: float [m/s] = 0.05     a pose is held until every vertex (but SimSettings.outlier_fraction
+                                        of them) is slower, 3 frames in a row
+      max_relax_frames: int = 60        frames a pose is held at most
+      interpolation_threshold: float [rad] = 0.1   largest joint turn per frame: slerp'ed poses are
+                                        inserted between targets farther apart
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
-      contact: {thickness [m] = 0.004, self_contact: bool = false,
-                self_contact_detect_every: int = 1,  find self-contact candidates every N substeps
-                body_contact_detect_every: int = 1,  query the body for contact planes every N substeps
-                                        (0, N, 2N, ... of a frame) and move the planes with the body
-                                        in between (SimSettings.body_contact_detect_every)
-                primary_bodies: bool = false}  each garment vertex meets only its primary collision
+      contact:
+        self_contact: bool = false      cloth-cloth contact: more frames come to rest without the
+                                        garment passing through itself, at a higher cost per frame
+        primary_bodies: bool = false    each garment vertex meets only its primary collision
                                         body (torso / left arm / right arm for tops, legs for pants;
                                         seed 001 D.6; simulate/body/collision_parts.py): cloth
                                         between an arm and the torso is not pushed by the wrong skin
-                                        The rest (damping, explosion limit, calm frames, hold
-                                        minimum, lookahead, ...) are the library's defaults
-                                        (simulate.quasi_static.SimSettings, simulate.sequence.SequenceSettings)
     filters:
       max_area_shrink: 0.75  max_area_growth: 1.0    a triangle is distorted beyond these (seed 001 D.6)
       max_distorted_fraction: 0.002     share of distorted triangles a kept frame may have
@@ -140,11 +131,9 @@ DEFAULTS: dict[str, Any] = {
     "poses": {"source": "sampled", "path": None, "joints": None, "range_scale": 1.0, "min_clearance": None, "train_count": 8, "test_count": 4},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
-        "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 60.0, "substeps": 10, "iterations": 10,
-        "tolerance": 0.01, "outlier_fraction": 0.005, "max_relax_frames": 120, "limit_cycle_window": 0,
-        "shape_transition_frames": 10, "interpolation_threshold": 0.1, "poses_per_task": None, "restart_after_rejects": 0,
-        "contact": {"thickness": 0.004, "self_contact": False, "self_contact_detect_every": 1,
-                    "body_contact_detect_every": 1, "primary_bodies": False},
+        "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 45.0, "substeps": 15, "iterations": 5,
+        "tolerance": 0.05, "max_relax_frames": 60, "interpolation_threshold": 0.1, "poses_per_task": None,
+        "contact": {"self_contact": False, "primary_bodies": False},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
                 "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
@@ -164,6 +153,43 @@ REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)
 
 OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",)}
 """Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
+
+LIBRARY_SETTINGS: dict[str, tuple[str, str]] = {
+    "simulation.outlier_fraction": ("SimSettings", "outlier_fraction"),
+    "simulation.limit_cycle_window": ("SimSettings", "limit_cycle_window"),
+    "simulation.shape_transition_frames": ("SequenceSettings", "shape_transition_frames"),
+    "simulation.restart_after_rejects": ("SequenceSettings", "restart_after_rejects"),
+    "simulation.contact.thickness": ("SequenceSettings", "contact_thickness"),
+    "simulation.contact.self_contact_detect_every": ("SimSettings", "self_contact_detect_every"),
+    "simulation.contact.body_contact_detect_every": ("SimSettings", "body_contact_detect_every"),
+}
+"""Simulation settings that are the library's, not the spec's, by the field path a spec might give
+them under: (settings class, field). A spec giving one is told which library default applies."""
+
+
+def without_library_settings(raw: dict) -> dict:
+    """A copy of a spec dict without :data:`LIBRARY_SETTINGS` fields, e.g. a dataset manifest's
+    resolved spec that lists them: re-simulating its frames takes the library's settings."""
+    out = copy.deepcopy(raw)
+    for path in LIBRARY_SETTINGS:
+        *parents, leaf = path.split(".")
+        node = out
+        for part in parents:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node.pop(leaf, None)
+    return out
+
+
+def library_setting_error(path: str, source: str) -> str:
+    """The error for a spec giving :data:`LIBRARY_SETTINGS` ``path``: the library field and its default."""
+    from simulate.quasi_static import SimSettings
+    from simulate.sequence import SequenceSettings
+
+    cls_name, field = LIBRARY_SETTINGS[path]
+    default = getattr({"SimSettings": SimSettings, "SequenceSettings": SequenceSettings}[cls_name](), field)
+    return (f"spec.{path} is not a spec field: the library's {cls_name}.{field} ({default!r}) applies "
+            f"(in {source})")
 
 MAX_RESOLUTION = 200_000
 """Largest garment.resolution accepted [vertices] (the TailorNet t-shirt has 7.7k)."""
@@ -189,6 +215,9 @@ def _check_structure(raw: dict, defaults: dict, section: str, source: str, error
     clean: dict = {}
     for key, value in raw.items():
         path = f"{section}.{key}" if section else str(key)
+        if key not in known and path in LIBRARY_SETTINGS:
+            errors.append(library_setting_error(path, source))
+            continue
         if key not in known:
             hint = nearest_name(key, known)
             errors.append(f"spec.{path} is not a known field" + (hint or f"; known fields{' of spec.' + section if section else ''}: "
@@ -340,20 +369,13 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.integer(f"{sim}.substeps", 1)
     c.integer(f"{sim}.iterations", 1)
     c.number(f"{sim}.tolerance", 0.0, lo_open=True)
-    c.number(f"{sim}.outlier_fraction", 0.0, 0.5)
     c.integer(f"{sim}.max_relax_frames", 1)
-    c.integer(f"{sim}.limit_cycle_window", 0)
-    c.integer(f"{sim}.shape_transition_frames", 1)
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
-    c.integer(f"{sim}.restart_after_rejects", 0)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
-    c.number(f"{sim}.contact.thickness", 0.0, 0.05)
     for flag in ("self_contact", "primary_bodies"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")
-    c.integer(f"{sim}.contact.self_contact_detect_every", 1)
-    c.integer(f"{sim}.contact.body_contact_detect_every", 1)
     c.number("filters.max_area_shrink", 0.0, 1.0, lo_open=True)
     c.number("filters.max_area_growth", 0.0, lo_open=True)
     c.number("filters.max_distorted_fraction", 0.0, 1.0)

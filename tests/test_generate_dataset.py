@@ -24,8 +24,10 @@ TINY_SPEC = {
     "pairs": {"train": 1, "test": 1},
     "poses": {"range_scale": 0.25, "train_count": 2, "test_count": 1},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 1, "test_test": 1},
-    "simulation": {"device": "cpu", "worlds": 1, "iterations": 8, "tolerance": 0.03, "max_relax_frames": 40,
-                   "shape_transition_frames": 3, "interpolation_threshold": 0.25},
+    # tolerance 0.01: the audited frame rests close enough to its equilibrium for the audit's Newton
+    # reference to converge (at 0.03 with the library's 10-frame shape transition it stalls)
+    "simulation": {"device": "cpu", "worlds": 1, "iterations": 8, "tolerance": 0.01, "max_relax_frames": 40,
+                   "interpolation_threshold": 0.25},
     "filters": {"require_converged": False},
     "audit": {"samples": 1},
 }
@@ -137,7 +139,7 @@ def test_planted_bad_frame_is_dropped_and_counted(tmp_path, monkeypatch):
 
 def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
     """The pipeline tells the sequence driver which frames the filters dropped, and with
-    simulation.restart_after_rejects the world goes back to its canonical drape after one."""
+    SequenceSettings.restart_after_rejects (1) the world goes back to its canonical drape after one."""
     import simulate.sequence as sequence
     from pipelines.generate_dataset import generate
 
@@ -157,7 +159,7 @@ def test_a_dropped_frame_sends_its_world_home(tmp_path, monkeypatch):
         return real(*args, on_frames=corrupt, **kwargs)
 
     monkeypatch.setattr(sequence, "run_sequences", planting)
-    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, simulation__restart_after_rejects=1, **NO_AUDIT)
+    spec = _with(pairs__test=0, poses__test_count=0, splits__train_test=0, **NO_AUDIT)
     manifest = generate(spec, tmp_path, progress=False, log=lambda m: None)
     assert verdicts[0] == (True, False), verdicts
     assert all(isinstance(v, bool) for _, v in verdicts), verdicts

@@ -128,8 +128,9 @@ def drape_canonical(
     draped straight from its generated geometry on bodies of any shape, not only the t-shirt the
     dataset settings are tuned on, so a light damping (2/s) lets the garment slide into place, a
     10x stretch limit passes first-contact transients at shoulders and waistbands without letting
-    a blow-up through, the garment sits closer to the skin (2 mm), and a world is at rest when its
-    fastest particle is slower than ``tolerance`` for 5 frames (no outliers); with these all five
+    a blow-up through, the garment sits closer to the skin (2 mm), frames are 1/60 s with the body
+    queried on every substep, and a world is at rest when its fastest particle is slower than
+    ``tolerance`` for 5 frames (no outliers, no limit cycles); with these all five
     types converge on three shapes without penetration (tests/test_garment_drape.py).
 
     Args:
@@ -172,7 +173,8 @@ def drape_canonical(
     posed = body.pose(shp, body.canonical_pose)
     settings = SimSettings(max_frames=int(max_frames), tolerance=float(tolerance), substeps=int(substeps),
                            iterations=int(iterations), damping=float(damping),
-                           explosion_stretch=float(explosion_stretch), patience=5, outlier_fraction=0.0)
+                           explosion_stretch=float(explosion_stretch), patience=5, outlier_fraction=0.0,
+                           limit_cycle_window=0, frame_dt=1.0 / 60.0, body_contact_detect_every=1)
     sim = drape_simulator(pieces, posed.vertices.astype(np.float64), body.part_faces(sorted(parts)), device=device,
                           settings=settings, thickness=body_thickness)
     model, collider = sim.model, sim.collider

@@ -60,8 +60,8 @@ PATH_STEP_RAD = 0.1
 ``simulation.interpolation_threshold`` default)."""
 
 CONTACT_THICKNESS = 0.004
-"""Collider thickness of every run and of the reference equilibrium [m] (the production spec's
-``simulation.contact.thickness``)."""
+"""Collider thickness of every run and of the reference equilibrium [m] (the production
+``SequenceSettings.contact_thickness``)."""
 REFERENCE_FRICTION = "stick"
 """Contact model of the reference equilibrium (see the module docstring)."""
 STRIP_ROWS = 80
@@ -134,13 +134,13 @@ class Setting:
 
 
 DEFAULT_SETTING = Setting("xpbd", "gauss_seidel", 15, 5, 0.05, "float32")
-"""The production default (pipelines/configs/tailornet-tshirt.yaml ``simulation`` block)."""
+"""The production default: the library's stepping, which pipelines/configs/tailornet-tshirt.yaml runs with."""
 
-PRODUCTION_BASE = SimSettings(frame_dt=0.0222222, damping=20.0, explosion_stretch=50.0, outlier_fraction=0.02, patience=3)
-"""The production spec's settings that the sweep does not vary (tailornet-tshirt.yaml with the spec
-defaults: frames of 1/45 s, velocity damping 20/s, explosion at 50x triangle stretch, 2 % outlier
-vertices, 3 calm frames); every setting, the reference included, runs on top of these, so the report measures the
-solver the datasets are made with. (A 3x stretch limit flags the transient stretch where
+PRODUCTION_BASE = SimSettings()
+"""The settings the sweep does not vary: the library's defaults, which are the production settings
+(frames of 1/45 s, velocity damping 20/s, explosion at 50x triangle stretch, 2 % outlier vertices,
+3 calm frames, ...); every setting, the reference included, runs on top of these, so the report
+measures the solver the datasets are made with. (A 3x stretch limit flags the transient stretch where
 the cloth first meets the body as an explosion: on the 1.8k-vertex t-shirt 3 of the 4 report poses
 "exploded" within 11 frames that way, and all 4 converge without penetration when it is not.)"""
 

@@ -67,13 +67,13 @@ class SequenceSettings:
     next target) instead of the last good state: a state that led into an explosion tends to lead
     into the next one too. 0 = never. A world that has come home (see ``restart_after_rejects``)
     starts over from there instead."""
-    restart_after_rejects: int = 0
+    restart_after_rejects: int = 1
     """After this many target frames in a row that ``on_frame`` rejects (returns ``False``: the
     frame failed the dataset's filters), the world goes home: back to its settled canonical drape
     on the task's shape (kept when the settle hold ended), from where it heads for its next target
     along a slerp from the canonical pose. Without it a tangle is carried along the rest of the
     sequence (self-intersection and distortion grow with the position in the sequence, not with
-    any joint angle). 0 = never."""
+    any joint angle). 1: home after every rejected frame. 0 = never."""
     body_lookahead: int = 8
     """Schedule entries per world posed ahead; whenever a world runs out, every world short of
     entries is topped up in the same batched body-model call (one call per frame costs more than
