@@ -1,15 +1,17 @@
 """``drape generate-dataset``: spec -> filtered, sharded HDF5 dataset + manifest.
 
 Stages: validate the spec; plan styles, shapes, pairs, poses and tasks
-(:mod:`pipelines.dataset_plan`); prepare the garment template and each style's
-canonical drape (cached under ``OUT/cache``); simulate the pending tasks in batches
+(:mod:`pipelines.dataset_plan`); prepare the garment template and each garment's
+canonical drape (one per style, or with a tightness range one per style-shape pair sized
+for shape + tau; cached under ``OUT/cache``); simulate the pending tasks in batches
 of ``simulation.worlds`` worlds (:func:`simulate.sequence.run_sequences`) on the
 local device or on a Ray cluster; filter every frame and write one shard per task
 (temporary name, renamed when complete); list each finished shard in the manifest
 at once (so a kill loses at most the shards in flight); audit a sample of kept
 frames against a much tighter solve; print a summary table. With ``poses.source:
 motion`` each task is a motion recorded frame by frame at a fixed rate, with the
-garment's velocities and the body's root joint per frame (docs/motion.md).
+garment's velocities and the body's root joint per frame (docs/motion.md). A spec with a
+list of garment types runs each type as a dataset of its own (:func:`generate_types`).
 """
 from __future__ import annotations
 
@@ -167,20 +169,13 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         seq = sequence_settings(spec)
         if seq.solver in ("vbd", "xpbd"):
             seq = dataclasses.replace(seq, self_contact=True)
-        # at most simulation.worlds garments at a time (a tightness spec has one per pair)
-        chunk = max(int(spec["simulation"]["worlds"]), 1)
-        starts, statuses = [], []
-        for a in range(0, len(style_rest), chunk):
-            b = a + chunk
-            x, st = drape_static(body, template.faces, style_rest[a:b], shapes=drape_shapes[a:b],
-                                 poses=np.tile(body.canonical_pose, (len(style_rest[a:b]), 1)), body_faces=body_faces,
-                                 body_face_groups=face_groups, body_part=garment_part,
-                                 settings=seq, device=device, fabric=fabrics[a:b],
-                                 max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
-                                 material_uv=template.face_uv)
-            starts.append(x)
-            statuses.append(st)
-        style_start, status = np.concatenate(starts), np.concatenate(statuses)
+        # every garment in one batch, each on the shape it is sized for, in its fabric
+        style_start, status = drape_static(body, template.faces, style_rest, shapes=drape_shapes,
+                                           poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
+                                           body_face_groups=face_groups, body_part=garment_part,
+                                           settings=seq, device=device, fabric=fabrics,
+                                           max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
+                                           material_uv=template.face_uv)
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
         try:
@@ -754,8 +749,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("generate-dataset", help="simulate a dataset spec into sharded HDF5 + manifest",
                        description="Runs (or resumes) a dataset spec: plans styles/shapes/poses, simulates every "
                        "style-shape pair through its poses, filters frames and writes one HDF5 shard per task. "
-                       "Rerunning the same command skips finished shards.")
-    p.add_argument("spec", help="spec YAML path, or the name of a shipped spec (quickstart, tailornet-tshirt)")
+                       "Rerunning the same command skips finished shards. A spec with a list of garment types "
+                       "writes one dataset per type, OUT/<type>/, listed in OUT/datasets.json.")
+    p.add_argument("spec", help="spec YAML path, or the name of a shipped spec (quickstart, tailornet-tshirt, "
+                   "tailornet-shirt, tailornet-pants, tailornet-skirt, cloth3d-mini, cloth3d)")
     p.add_argument("--out", required=True, help="dataset directory")
     p.add_argument("--executor", default="local", choices=["local", "ray"], help="where batches run (default local)")
     p.add_argument("--device", default=None, help="override simulation.device (auto, cpu, cuda:0)")

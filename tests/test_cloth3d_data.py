@@ -264,3 +264,20 @@ def test_every_shipped_spec_validates():
     full = specs["cloth3d"]
     sequences = 6 * (full["pairs"]["train"] + full["pairs"]["test"]) * full["motion"]["per_pair"]
     assert sequences == 3_000 and sequences * full["motion"]["frames"] == 180_000  # the comment's counts
+
+
+def test_validate_and_info_take_a_multi_type_run_and_a_rerun_resumes_it(multi_dataset, capsys):
+    from data_manifest.cli import main
+    from pipelines.generate_dataset import generate
+
+    out, manifests = multi_dataset
+    hashes = {t: [s["sha256"] for s in m.shards] for t, m in manifests.items()}
+    assert main(["dataset", "validate", str(out), "--no-checksum"]) == 0
+    text = capsys.readouterr().out
+    assert all(f"== {t}: {out / t}" in text for t in CLOTH3D_TYPES), text
+    assert main(["dataset", "info", str(out)]) == 0
+    assert "== dress" in capsys.readouterr().out
+    logs = []
+    again = generate(MULTI_SPEC, out, progress=False, log=logs.append)  # every type complete: nothing simulated
+    assert {t: [s["sha256"] for s in m.shards] for t, m in again.items()} == hashes
+    assert not any(line.startswith("simulating") and "0 tasks" not in line for line in logs), logs

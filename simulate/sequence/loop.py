@@ -60,7 +60,8 @@ def run_sequences(
     not sit out: it steps on towards the next motion frame at once (the answer does not route it).
 
     Args:
-        body: body model (its canonical pose and neutral shape start every world).
+        body: body model (its canonical pose and neutral shape start every world whose task has no
+            ``start_shape``; a task with one starts on that shape).
         faces: garment triangles shared by all tasks, (F, 3).
         tasks: the batch.
         body_faces: the body faces the garment can touch (culled), (Fb, 3).
