@@ -30,9 +30,42 @@ def _fail(command: str, error: BaseException | str) -> int:
     return EXIT_USAGE
 
 
+def type_datasets(directory: str | Path) -> list[tuple[str, Path]] | None:
+    """The per-type datasets of a multi-type run (``DIR/datasets.json`` beside no manifest.json:
+    ``drape generate-dataset`` with a list of garment types), as (type, directory); None for any
+    other directory. Raises ValueError naming the file when the index is unreadable."""
+    import json
+
+    root = Path(directory)
+    index = root / "datasets.json"
+    if (root / "manifest.json").exists() or not index.is_file():
+        return None
+    try:
+        entries = json.loads(index.read_text(encoding="utf-8"))["datasets"]
+        return [(str(e["type"]), root / str(e["path"])) for e in entries]
+    except (ValueError, KeyError, TypeError) as error:
+        raise ValueError(f"{str(index)!r} is not a datasets index ({error})") from None
+
+
 def _cmd_validate(args: argparse.Namespace) -> int:
     if not Path(args.dir).is_dir():
         return _fail("validate", f"dataset directory {args.dir!r} does not exist")
+    try:
+        parts = type_datasets(args.dir)
+    except ValueError as error:
+        return _fail("validate", error)
+    if parts is not None:  # a multi-type run: every listed dataset in turn
+        status = 0
+        for gtype, path in parts:
+            print(f"== {gtype}: {path}")
+            if not (path / "manifest.json").is_file():
+                print(f"  not generated yet (no manifest.json; rerun generate-dataset to finish it)")
+                status = EXIT_PROBLEMS
+                continue
+            report = validate_dataset(path, check_sha256=not args.no_checksum)
+            print(report)
+            status = status if report.ok else EXIT_PROBLEMS
+        return status
     report = validate_dataset(args.dir, check_sha256=not args.no_checksum)
     print(report)
     return 0 if report.ok else EXIT_PROBLEMS
@@ -40,6 +73,19 @@ def _cmd_validate(args: argparse.Namespace) -> int:
 
 def _cmd_info(args: argparse.Namespace) -> int:
     try:
+        parts = type_datasets(args.dir)
+        if parts is not None:  # a multi-type run: every listed dataset in turn
+            status = 0
+            for gtype, path in parts:
+                print(f"== {gtype}: {path}")
+                if not (path / "manifest.json").is_file():
+                    print("  not generated yet (no manifest.json)")
+                    status = EXIT_PROBLEMS
+                    continue
+                text, problems = info(path, with_problems=True)
+                print(text, end="")
+                status = EXIT_PROBLEMS if problems else status
+            return status
         text, problems = info(args.dir, with_problems=True)
     except (FileNotFoundError, ValueError, DatasetError) as error:
         return _fail("info", error)
@@ -102,14 +148,14 @@ def register(subparsers: Any) -> argparse.ArgumentParser:
                     "size, that its HDF5 layout, template and frame count match, and that splits and totals "
                     "are consistent. Lists orphan .tmp and unlisted shards as warnings. Exits 1 when any "
                     "shard is corrupt or missing.")
-    validate.add_argument("dir", help="dataset directory (holding manifest.json)")
+    validate.add_argument("dir", help="dataset directory (holding manifest.json), or a multi-type run's (datasets.json)")
     validate.add_argument("--no-checksum", action="store_true", help="skip the sha256 of each shard (faster)")
     validate.set_defaults(func=_cmd_validate)
 
     info_parser = commands.add_parser("info", help="print a summary table of a dataset",
                                       description="Print tasks and frames per split, frames kept and dropped "
                                                   "by reason, size, precision, provenance and timings.")
-    info_parser.add_argument("dir", help="dataset directory (holding manifest.json)")
+    info_parser.add_argument("dir", help="dataset directory (holding manifest.json), or a multi-type run's (datasets.json)")
     info_parser.set_defaults(func=_cmd_info)
 
     export = commands.add_parser("export", help="export one task's sequence as OBJ, PLY or a PC2 / PC16 point cache",

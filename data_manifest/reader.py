@@ -27,7 +27,9 @@ from .schema import (
     POSITION_ORIGIN,
     QUALITY_GROUP,
     SHAPE,
+    SIZED_SHAPE,
     STYLE,
+    TIGHTNESS,
     ROOT_JOINT,
     UNPOSED_DISPLACEMENTS,
     VELOCITIES,
@@ -75,6 +77,7 @@ class DatasetReader:
         self._pid = os.getpid()
         self._integrity = IntegrityChecker(self.root) if integrity else None
         self._checked: set[int] = set()  # shards whose bytes matched the manifest in this reader
+        self._task_info: dict[int, dict[str, Any]] = {}  # shard number -> its task dict (task_info)
         if verify:
             self.verify()
 
@@ -234,9 +237,9 @@ class DatasetReader:
         """Frame ``i`` of ``split`` (negative counts from the end): a dict with ``pose`` (P,)
         [rad], ``shape`` (S,), ``style`` (G,), ``posed_vertices`` (V, 3) [m] and
         ``unposed_displacements`` (V, 3) [m] as float32, ``quality`` {metric: float32},
-        ``body_translation`` (3,) [m], ``root_joint`` (3,) [m] and ``velocities`` (V, 3) [m/s] where
-        stored, ``task_id``, ``shard_no`` and
-        ``frame_index`` (index in the task's sequence)."""
+        ``body_translation`` (3,) [m], ``root_joint`` (3,) [m], ``velocities`` (V, 3) [m/s],
+        ``tightness`` (T,) and ``sized_shape`` (S,) where stored, ``fabric`` (str) where the task
+        names it, ``task_id``, ``shard_no`` and ``frame_index`` (index in the task's sequence)."""
         index = self.index(split)
         count = index.shape[0]
         if isinstance(i, bool) or not isinstance(i, (int, np.integer)) or not -count <= i < count:
@@ -262,6 +265,12 @@ class DatasetReader:
                 item["velocities"] = np.asarray(handle[VELOCITIES][row], dtype=np.float32)
             if ROOT_JOINT in handle:
                 item["root_joint"] = np.asarray(handle[ROOT_JOINT][row], dtype=np.float32)
+            for name in (TIGHTNESS, SIZED_SHAPE):
+                if name in handle:
+                    item[name] = np.asarray(handle[name][()], dtype=np.float32)
+            fabric = self.task_info(item["task_id"]).get("fabric")
+            if isinstance(fabric, str):
+                item["fabric"] = fabric
         except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         return item
@@ -288,12 +297,28 @@ class DatasetReader:
                 arrays["velocities"] = np.asarray(handle[VELOCITIES][()], dtype=np.float32)
             if ROOT_JOINT in handle:
                 arrays["root_joint"] = np.asarray(handle[ROOT_JOINT][()], dtype=np.float32)
+            for name in (TIGHTNESS, SIZED_SHAPE):  # per task, repeated per frame like shape and style
+                if name in handle:
+                    arrays[name] = np.repeat(np.asarray(handle[name][()], dtype=np.float32)[None], frames, axis=0)
         except _DECODE_ERRORS as error:
             raise self._corrupt(number, error) from None
         if frames != self._entries[number]["frame_count"]:
             raise CorruptShardError(f"shard {str(self._path(number))!r} holds {frames} frames, the manifest "
                                     f"lists {self._entries[number]['frame_count']}")
         return arrays
+
+    def task_info(self, task_id: str) -> dict[str, Any]:
+        """The task dict a shard was written with (its ``task_json`` attribute: garment, fabric,
+        pair, style_index, motion, fps, ... as the writer gave them); read once per shard."""
+        number = self.shard_no(task_id)
+        if number not in self._task_info:
+            from .shard import read_shard_attrs
+
+            try:
+                self._task_info[number] = read_shard_attrs(self._open(number))["task"]
+            except _DECODE_ERRORS as error:
+                raise self._corrupt(number, error) from None
+        return self._task_info[number]
 
     def load_task(self, task_id: str) -> dict[str, np.ndarray]:
         """Every frame of one task, with the keys and shapes of ``load_split``."""
@@ -303,8 +328,8 @@ class DatasetReader:
         """All frames of ``split`` stacked, in ``index(split)`` order: ``pose`` (N, P),
         ``shape`` (N, S), ``style`` (N, G), ``posed_vertices`` (N, V, 3) [m],
         ``unposed_displacements`` (N, V, 3) [m], ``quality/<metric>`` (N,) as float32;
-        ``body_translation`` (N, 3), ``root_joint`` (N, 3) [m] and ``velocities`` (N, V, 3) [m/s]
-        where every shard has them;
+        ``body_translation`` (N, 3), ``root_joint`` (N, 3) [m], ``velocities`` (N, V, 3) [m/s],
+        ``tightness`` (N, T) and ``sized_shape`` (N, S) where every shard has them;
         ``shard_no`` and ``frame_index`` (N,) as int64."""
         parts: dict[str, list[np.ndarray]] = {}
         keys: set[str] | None = None

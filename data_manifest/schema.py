@@ -26,7 +26,9 @@ import numpy as np
 
 SCHEMA_VERSION = 2
 """Version of both the manifest JSON schema and the shard layout this code writes; bump on any
-change. Version 2 added the optional ``velocities`` and ``root_joint`` datasets (motion sequences)."""
+change. Version 2 added the optional ``velocities`` and ``root_joint`` datasets (motion sequences)
+and the optional ``tightness`` and ``sized_shape`` datasets (garments sized for shape + tightness);
+a shard without them reads as before."""
 
 READABLE_SCHEMA_VERSIONS = (1, 2)
 """Versions this code reads: a version-1 dataset is a version-2 one without ``velocities`` and
@@ -75,6 +77,8 @@ ROOT_JOINT = "root_joint"
 BODY_TRANSLATION = "body_translation"
 SHAPE = "shape"
 STYLE = "style"
+TIGHTNESS = "tightness"
+SIZED_SHAPE = "sized_shape"
 FRAME_INDEX = "frame_index"
 QUALITY_GROUP = "quality"
 EXTRA_GROUP = "extra"
@@ -123,6 +127,12 @@ SHARD_LAYOUT: tuple[DatasetLayout, ...] = (
                   "Body root (pelvis) translation in world space [m] per frame."),
     DatasetLayout(SHAPE, ("S",), "float32", "always", "Body shape parameters of the task."),
     DatasetLayout(STYLE, ("G",), "float32", "always", "Garment style parameters of the task."),
+    DatasetLayout(TIGHTNESS, ("T",), "float32", "optional",
+                  "Tightness offsets tau of the task's garment (seed 004; anny height, weight): absent when "
+                  "the garment is sized for the neutral shape."),
+    DatasetLayout(SIZED_SHAPE, ("S",), "float32", "optional",
+                  "Body shape the task's garment is sized and draped on (shape + tightness, clipped to the "
+                  "shape ranges); the body blends from it to ``shape`` before the sequence."),
     DatasetLayout(FRAME_INDEX, ("F",), "int32", "always",
                   "Index of each kept frame in the task's sequence (strictly increasing)."),
     DatasetLayout(TEMPLATE_FACES, ("Fc", 3), "int32", "always", "Garment triangles (vertex indices)."),

@@ -50,11 +50,13 @@ from .schema import (
     ROOT_JOINT,
     SCHEMA_VERSION,
     SHAPE,
+    SIZED_SHAPE,
     SHARD_DIR,
     SHARD_FORMAT,
     SHARD_LAYOUT,
     SHARD_SUFFIX,
     STYLE,
+    TIGHTNESS,
     TEMPLATE_GROUP,
     TMP_SUFFIX,
     UNPOSED_DISPLACEMENTS,
@@ -171,6 +173,10 @@ def _vector(value: Any, *, where: str) -> np.ndarray:
     return array
 
 
+_TASK_ARRAYS = {"tightness": TIGHTNESS, "sized_shape": SIZED_SHAPE}
+"""Optional task keys written as (1-D float32) datasets of their own, like ``shape`` and ``style``."""
+
+
 def _check_task(task: Mapping[str, Any]) -> dict[str, Any]:
     if not isinstance(task, Mapping):
         raise ValueError(f"task must be a dict (got {type(task).__name__})")
@@ -194,6 +200,11 @@ def _check_task(task: Mapping[str, Any]) -> dict[str, Any]:
     checked["seed"] = int(seed)
     checked["shape"] = _vector(task["shape"], where="task.shape")
     checked["style"] = _vector(task["style"], where="task.style")
+    for key in _TASK_ARRAYS:  # optional per-task vectors, stored as datasets like shape and style
+        if task.get(key) is not None:
+            checked[key] = _vector(task[key], where=f"task.{key}")
+        else:
+            checked.pop(key, None)
     return checked
 
 
@@ -222,7 +233,8 @@ class ShardWriter:
         manifest.add_shard(writer.record)
 
     ``template``: see ``schema.canonical_template``. ``task``: ``task_id`` (str), ``garment``
-    (str), ``splits`` (list of str), ``seed`` (int), ``shape`` (S,), ``style`` (G,); other
+    (str), ``splits`` (list of str), ``seed`` (int), ``shape`` (S,), ``style`` (G,), optionally
+    ``tightness`` (T,) and ``sized_shape`` (S,) (datasets of their own, like shape and style); other
     JSON-able keys are kept in the ``task_json`` attribute. ``precision``: "float32" or
     "float16" (see module docstring). ``compression``: "gzip" (level ``compression_level``)
     or "lzf". Datasets are chunked one frame per chunk for (F, V, 3) arrays, byte-shuffled
@@ -253,7 +265,7 @@ class ShardWriter:
         self.compression_level = compression_level
         self.task = _check_task(task)
         self.task_id: str = self.task["task_id"]
-        metadata = {k: v for k, v in self.task.items() if k not in ("shape", "style")}
+        metadata = {k: v for k, v in self.task.items() if k not in ("shape", "style", *_TASK_ARRAYS)}
         try:
             self._task_json = canonical_json(_json_safe(metadata))
         except (TypeError, ValueError) as error:
@@ -354,6 +366,9 @@ class ShardWriter:
             options = self._dataset_options()
             handle.create_dataset(SHAPE, data=self.task["shape"].astype(np.float32), **options)
             handle.create_dataset(STYLE, data=self.task["style"].astype(np.float32), **options)
+            for key, name in _TASK_ARRAYS.items():
+                if key in self.task:
+                    handle.create_dataset(name, data=self.task[key].astype(np.float32), **options)
             group = handle.create_group(TEMPLATE_GROUP)
             for key in sorted(self.template):
                 group.create_dataset(key, data=self.template[key], **options)

@@ -176,9 +176,9 @@ def audit_dataset(ctx, out_dir: Path, manifest, *, log: Callable[[str], None] = 
     from simulate.sequence import SequenceSettings
 
     thickness = float(SequenceSettings().contact_thickness)  # the collider thickness the frames were simulated with
-    fabric = spec["garment"]["fabric"]
     bodies = np.asarray(ctx.body.pose(np.stack([f["shape"] for f in frames]), np.stack([f["pose"] for f in frames])).vertices)
-    jobs = [(np.asarray(ctx.style_rest[tasks[f["task_id"]].style_index]), np.asarray(ctx.template.faces), fabric,
+    jobs = [(np.asarray(ctx.style_rest[tasks[f["task_id"]].garment_index]), np.asarray(ctx.template.faces),
+             tasks[f["task_id"]].fabric,
              ctx.template.face_uv, np.asarray(f["posed_vertices"]), np.asarray(body), np.asarray(ctx.body_faces),
              thickness, max_iterations, ctx.body_face_groups, ctx.body_part) for f, body in zip(frames, bodies)]
     solved = solve_references(jobs, workers=audit_workers())

@@ -1,6 +1,8 @@
 """Turns a validated dataset spec into a deterministic plan: styles, shapes,
 style-shape pairs, pose sets and one task per (pair, TailorNet split), or, with
-``poses.source: motion``, one task per (pair, motion) (:func:`plan_motions`).
+``poses.source: motion``, one task per (pair, motion) (:func:`plan_motions`); the fabric of
+each style (a ``garment.fabric`` list: one drawn per style) and the tightness of each pair
+(``garment.tightness``: the garment sized for shape + tau, :func:`attach_garments`).
 
 Everything here is a pure function of the spec (and its seed), so a resumed or
 distributed run plans exactly the same tasks.
@@ -33,6 +35,11 @@ class Task:
     poses: np.ndarray  # (N, 60) in visiting order (greedy nearest-pose from the canonical pose); a motion's frames
     motion_steps: int = 0  # simulator frames per motion frame (0: held targets; see SequenceTask)
     motion: str = ""  # the motion's name (a kind or a file name), "" for held targets
+    fabric: str = "cotton"  # the style's fabric preset
+    garment_index: int = -1  # row of the context's garments (rest geometry, canonical drape): see Plan.garments
+    tightness: np.ndarray | None = None  # (2,) the pair's tightness offsets (height, weight); None: no tightness
+    start_shape: np.ndarray | None = None  # (S,) shape + tightness the garment is sized for (the shape
+    #                                        transition starts there); None: the neutral shape
 
 
 @dataclass
@@ -45,6 +52,12 @@ class Plan:
     pruned_poses: np.ndarray
     pruned_reasons: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))  # (M,) why each went
     tasks: list[Task] = field(default_factory=list)
+    fabrics: list[str] = field(default_factory=list)  # fabric preset per style
+    tightness: np.ndarray | None = None  # (n_pairs, 2) tightness offsets per pair; None: no tightness
+    garments: list[tuple[int, np.ndarray | None]] = field(default_factory=list)
+    """The garments to prepare (rest geometry, canonical drape), one per ``Task.garment_index``: (style
+    index, shape it is sized and draped on, None: the neutral shape). Without tightness one per style
+    on the neutral shape; with it one per pair, sized for the pair's shape + tau."""
 
 
 def default_pose_joints(garment_type: str) -> str:
@@ -65,24 +78,21 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
 
     seed = int(spec["seed"])
     gtype = spec["garment"]["type"]
-    # The spec validates these (simulate.garment.cloth3d, simulate.garment.tightness give the sampling
-    # and the shape blend); the dataset's simulation runs one fabric and no tightness offset per run.
-    if isinstance(spec["garment"]["fabric"], list):
-        raise ValueError(f"spec.garment.fabric is a list ({spec['garment']['fabric']}) but generate-dataset simulates "
-                         f"one fabric per run; give one fabric name")
-    if spec["garment"].get("tightness") is not None:
-        raise ValueError(f"spec.garment.tightness is {spec['garment']['tightness']} but generate-dataset sizes every "
-                         f"garment for the neutral shape; remove the field (null)")
+    if isinstance(gtype, list):
+        raise ValueError(f"spec.garment.type is a list ({gtype}): plan each type's spec (pipelines.spec.type_specs)")
     styles = []
+    profiles = bool(spec["styles"].get("limb_profiles", False))
     for k, group in enumerate(("train", "test")):
         given = spec["styles"][group]
         if isinstance(given, list):
             styles.append([StyleParams(gtype, s) for s in given])
         else:
-            styles.append(sample_styles(gtype, int(given), seed=seed * 1000 + 11 + k))
+            styles.append(sample_styles(gtype, int(given), seed=seed * 1000 + 11 + k, optional=profiles))
     n_train_styles = len(styles[0])
     all_styles = styles[0] + styles[1]
-    style_vectors = np.array([s.as_array() for s in all_styles], dtype=np.float32)
+    # styles that give the width profile carry it in their vectors, every style of the dataset alike
+    optional = any(s.uses_optional() for s in all_styles)
+    style_vectors = np.array([s.as_array(optional=optional) for s in all_styles], dtype=np.float32)
 
     shapes = []
     for k, group in enumerate(("train", "test")):
@@ -123,8 +133,8 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         pairs.extend((group, *candidates[i]) for i in sorted(pick))
 
     if spec["poses"]["source"] == "motion":
-        return plan_motions(spec, body, Plan(all_styles, style_vectors, all_shapes, pairs, {},
-                                             np.zeros((0, body.pose_size), np.float32)))
+        return attach_garments(spec, body, plan_motions(spec, body, Plan(all_styles, style_vectors, all_shapes, pairs, {},
+                                                                         np.zeros((0, body.pose_size), np.float32))))
     joints = spec["poses"]["joints"] or default_pose_joints(gtype)
     joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
     total = int(spec["poses"]["train_count"]) + int(spec["poses"]["test_count"])
@@ -178,6 +188,43 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                 part = ids[start:start + chunk]
                 plan.tasks.append(Task(f"{split}-p{p:03d}-c{c:03d}", split, p, si, all_shapes[hi], style_vectors[si],
                                        part, pose_sets[pose_group][part]))
+    return attach_garments(spec, body, plan)
+
+
+def attach_garments(spec: dict, body: BodyModel, plan: Plan) -> Plan:
+    """Fabrics, tightness and garments of a plan (seed 004, Sec. 3.2-3.3), set on every task.
+
+    ``garment.fabric``: one name for every style, or a list: each style draws one
+    (``simulate.garment.cloth3d.sample_fabrics``, seeded by (seed, 71); upper-body types only
+    cotton or silk). ``garment.tightness``: each pair draws tau uniformly from the range(s)
+    (``simulate.garment.tightness.sample_tightness``, seeded by (seed, 81)); its garment is sized
+    for the pair's shape + tau (``sized_shape``), draped there, and its tasks start on that shape
+    (``Task.start_shape``). Without tightness a style's garment serves every pair of the style."""
+    from simulate.garment.cloth3d import sample_fabrics
+    from simulate.garment.tightness import sample_tightness, sized_shape
+
+    seed, gtype, fabric = int(spec["seed"]), spec["garment"]["type"], spec["garment"]["fabric"]
+    if isinstance(fabric, list):
+        plan.fabrics = sample_fabrics(gtype, len(plan.styles), fabrics=fabric, seed=seed * 1000 + 71)
+    else:
+        plan.fabrics = [fabric] * len(plan.styles)
+    ranges = spec["garment"].get("tightness")
+    shapes_of = {}
+    if ranges is None:
+        plan.garments = [(k, None) for k in range(len(plan.styles))]
+    else:
+        ranges = ranges if isinstance(ranges[0], list) else [ranges, ranges]
+        plan.tightness = sample_tightness(len(plan.pairs), seed=seed * 1000 + 81, tightness_range=ranges)
+        plan.garments = []
+        for p, (_, si, hi) in enumerate(plan.pairs):
+            shapes_of[p] = sized_shape(body, plan.shapes[hi], plan.tightness[p])
+            plan.garments.append((si, shapes_of[p]))
+    for t in plan.tasks:
+        t.fabric = plan.fabrics[t.style_index]
+        if plan.tightness is None:
+            t.garment_index = t.style_index
+        else:
+            t.garment_index, t.tightness, t.start_shape = t.pair, plan.tightness[t.pair], shapes_of[t.pair]
     return plan
 
 

@@ -49,6 +49,9 @@ class Probe:
     sequence_b: np.ndarray
     task_id: str = ""
     key: int = -1
+    garment_index: int = -1  # the task's garment (rest geometry, canonical drape); -1: the style's
+    fabric: str | None = None  # the task's fabric; None: the spec's
+    start_shape: np.ndarray | None = None  # the task's start shape (tightness); None: the neutral shape
 
 
 def _joint_angle_distance(poses: np.ndarray, pose: np.ndarray) -> np.ndarray:
@@ -86,7 +89,9 @@ def plan_probes(tasks: list, *, split: str = "train_train", pairs: int = 4, targ
                 continue
             probes.append(Probe(int(task.style_index), np.asarray(task.shape, np.float32),
                                 poses[key - prefix:key + 1], np.concatenate([poses[farthest[::-1]], poses[key:key + 1]]),
-                                task_id=str(task.task_id), key=int(key)))
+                                task_id=str(task.task_id), key=int(key),
+                                garment_index=int(getattr(task, "garment_index", -1)), fabric=getattr(task, "fabric", None),
+                                start_shape=getattr(task, "start_shape", None)))
     return probes
 
 
@@ -97,8 +102,12 @@ def _final_frames(ctx, probes: list[Probe], which: str, settings) -> list:
 
     from simulate.sequence import SequenceTask, run_sequences
 
-    tasks = [SequenceTask(rest_vertices=ctx.style_rest[p.style_index], start_vertices=ctx.style_start[p.style_index],
-                          shape=p.shape, poses=getattr(p, f"sequence_{which}"), fabric=ctx.spec["garment"]["fabric"])
+    def garment(p: Probe) -> int:
+        return p.style_index if p.garment_index < 0 else p.garment_index
+
+    tasks = [SequenceTask(rest_vertices=ctx.style_rest[garment(p)], start_vertices=ctx.style_start[garment(p)],
+                          shape=p.shape, poses=getattr(p, f"sequence_{which}"),
+                          fabric=ctx.spec["garment"]["fabric"] if p.fabric is None else p.fabric, start_shape=p.start_shape)
              for p in probes]
     last = {}
 

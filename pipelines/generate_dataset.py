@@ -1,15 +1,17 @@
 """``drape generate-dataset``: spec -> filtered, sharded HDF5 dataset + manifest.
 
 Stages: validate the spec; plan styles, shapes, pairs, poses and tasks
-(:mod:`pipelines.dataset_plan`); prepare the garment template and each style's
-canonical drape (cached under ``OUT/cache``); simulate the pending tasks in batches
+(:mod:`pipelines.dataset_plan`); prepare the garment template and each garment's
+canonical drape (one per style, or with a tightness range one per style-shape pair sized
+for shape + tau; cached under ``OUT/cache``); simulate the pending tasks in batches
 of ``simulation.worlds`` worlds (:func:`simulate.sequence.run_sequences`) on the
 local device or on a Ray cluster; filter every frame and write one shard per task
 (temporary name, renamed when complete); list each finished shard in the manifest
 at once (so a kill loses at most the shards in flight); audit a sample of kept
 frames against a much tighter solve; print a summary table. With ``poses.source:
 motion`` each task is a motion recorded frame by frame at a fixed rate, with the
-garment's velocities and the body's root joint per frame (docs/motion.md).
+garment's velocities and the body's root joint per frame (docs/motion.md). A spec with a
+list of garment types runs each type as a dataset of its own (:func:`generate_types`).
 """
 from __future__ import annotations
 
@@ -90,8 +92,10 @@ class Context:
     template_dict: dict
     body_faces: np.ndarray
     plan: Any
-    style_rest: np.ndarray  # (n_styles, V, 3) cloth rest geometry per style
-    style_start: np.ndarray  # (n_styles, V, 3) canonical drape per style (neutral body)
+    # per garment of the plan (Plan.garments, Task.garment_index: a style, or with tightness a style
+    # sized for a pair's shape + tau):
+    style_rest: np.ndarray  # (n_garments, V, 3) cloth rest geometry
+    style_start: np.ndarray  # (n_garments, V, 3) canonical drape (canonical pose, on the shape it is sized for)
     phases: dict = None  # summed run_sequences statistics of the batches simulated in this process
     body_face_groups: list | None = None  # primary collision bodies: rows of body_faces per part
     body_part: np.ndarray | None = None  # (V,) primary collision part per garment vertex
@@ -150,17 +154,21 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             style_rest, style_start = z["style_rest"], z["style_start"]
     else:
         t0 = time.perf_counter()
-        style_rest = np.stack([generate_garment(gtype, s, body, template=template) for s in plan.styles]).astype(np.float32)
+        style_rest = np.stack([generate_garment(gtype, plan.styles[si], body, template=template, shape=shape)
+                               for si, shape in plan.garments]).astype(np.float32)
+        drape_shapes = np.stack([body.shape_default if shape is None else shape for _, shape in plan.garments])
+        fabrics = [plan.fabrics[si] for si, _ in plan.garments]
         # the canonical drape starts from the pattern: it gets its own frame budget, not a pose hold's,
         # and self-contact with the solvers that have it (without it 7 of the TailorNet spec's 40
         # drapes started with > 60 garment edges through the garment)
         seq = sequence_settings(spec)
         if seq.solver in ("vbd", "xpbd"):
             seq = dataclasses.replace(seq, self_contact=True)
-        style_start, status = drape_static(body, template.faces, style_rest, shapes=np.tile(body.shape_default, (len(style_rest), 1)),
+        # every garment in one batch, each on the shape it is sized for, in its fabric
+        style_start, status = drape_static(body, template.faces, style_rest, shapes=drape_shapes,
                                            poses=np.tile(body.canonical_pose, (len(style_rest), 1)), body_faces=body_faces,
                                            body_face_groups=face_groups, body_part=garment_part,
-                                           settings=seq, device=device, fabric=spec["garment"]["fabric"],
+                                           settings=seq, device=device, fabric=fabrics,
                                            max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
                                            material_uv=template.face_uv)
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -171,7 +179,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         except BaseException:  # a full disk or a signal: no partial cache file stays behind
             tmp.unlink(missing_ok=True)
             raise
-        log(f"prepared {len(style_rest)} style drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
+        log(f"prepared {len(style_rest)} garment drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
             f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
     template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
                      "body_vertex_index": template.body_vertex_index, "uv": template.uv}
@@ -213,8 +221,8 @@ def plan_batches(tasks: list, worlds: int) -> list[list[str]]:
     unfinished task runs again whole; finished shards are not rewritten."""
     ordered = sorted(tasks, key=lambda t: (-len(t.poses), t.task_id))
     pairs: dict[tuple, list] = {}
-    for t in ordered:  # a pair: one style on one shape (the tasks that can share a world)
-        pairs.setdefault((int(t.style_index), np.asarray(t.shape, np.float32).tobytes()), []).append(t)
+    for t in ordered:  # a pair: one garment on one shape (the tasks that can share a world)
+        pairs.setdefault((int(t.garment_index), np.asarray(t.shape, np.float32).tobytes()), []).append(t)
     groups = list(pairs.values())
     return [[t.task_id for g in groups[i:i + worlds] for t in g] for i in range(0, len(groups), worlds)]
 
@@ -266,7 +274,9 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             if written[i]:
                 about = {"task_id": t.task_id, "garment": spec["garment"]["type"], "splits": [t.split], "seed": int(spec["seed"]),
                          "shape": t.shape, "style": t.style_vector, "pair": int(t.pair), "style_index": int(t.style_index),
-                         "fabric": spec["garment"]["fabric"]}
+                         "fabric": t.fabric}
+                if t.tightness is not None:  # the garment is sized for sized_shape = shape + tightness (clipped)
+                    about.update(tightness=t.tightness, sized_shape=t.start_shape)
                 if t.motion_steps:  # the motion and its frame rate: frames are 1 / fps apart
                     about.update(motion=t.motion, fps=float(spec["motion"]["fps"]))
                 background.call(shards, ShardWriterSet.open, i, about)
@@ -277,7 +287,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     weights = tmpl.skinning_weights
     from simulate.quality import triangle_areas
 
-    rest_areas = {k: triangle_areas(ctx.style_rest[k], tmpl.faces) for k in {t.style_index for t in tasks}}
+    rest_areas = {k: triangle_areas(ctx.style_rest[k], tmpl.faces) for k in {t.garment_index for t in tasks}}
     unskin = Unskinner(weights, ctx.device)
 
     def record_frames(frames: list) -> list[bool]:
@@ -296,7 +306,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             batch = meter.measure_batch(
                 np.stack([frames[i].positions for i in measured]), np.stack([frames[i].body_vertices for i in measured]),
                 collision_depth=filters["collision_depth"],
-                rest_areas=np.stack([rest_areas[tasks[frames[i].task].style_index] for i in measured]),
+                rest_areas=np.stack([rest_areas[tasks[frames[i].task].garment_index] for i in measured]),
                 area_bounds=(1.0 - filters["max_area_shrink"], 1.0 + filters["max_area_growth"]))
             for i, m in zip(measured, batch):
                 metrics[i] = m
@@ -340,8 +350,9 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             if on_shard is not None:
                 on_shard(record)
 
-    seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.style_index], start_vertices=ctx.style_start[t.style_index],
-                              shape=t.shape, poses=t.poses, fabric=spec["garment"]["fabric"], motion_steps=t.motion_steps)
+    seq_tasks = [SequenceTask(rest_vertices=ctx.style_rest[t.garment_index], start_vertices=ctx.style_start[t.garment_index],
+                              shape=t.shape, poses=t.poses, fabric=t.fabric, start_shape=t.start_shape,
+                              motion_steps=t.motion_steps)
                  for t in tasks]
     settings = sequence_settings(spec)
     if motion and spec["motion"]["damping"] is not None:  # the sequences' damping; the canonical drapes keep theirs
@@ -434,6 +445,8 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
     if options.get("device") is not None:
         resolve_device(options["device"], option="--device")
     out_dir = check_output_dir(out_dir, "--out")
+    if isinstance(spec["garment"]["type"], list):
+        return generate_types(spec, out_dir, **options)
     lock = DatasetLock(out_dir).acquire()
     try:
         if lock.took_over is not None:
@@ -447,6 +460,63 @@ def generate(spec_or_path: dict | str | Path, out_dir: str | Path, **options: An
         raise
     finally:
         lock.release()
+
+
+DATASETS_NAME = "datasets.json"
+"""The index of a multi-type run: ``OUT/datasets.json`` lists the per-type datasets ``OUT/<type>/``."""
+DATASETS_FORMAT = "drape-datasets"
+
+
+def generate_types(spec: dict, out_dir: Path, **options: Any) -> dict[str, Any]:
+    """A spec whose ``garment.type`` is a list: one ordinary dataset per type in ``out_dir/<type>/``
+    (:func:`pipelines.spec.type_specs`: the spec with that type, each with its manifest and shards,
+    resumable as a single-type run), one after another, and ``out_dir/datasets.json`` listing them
+    (rewritten, whole, as each finishes). Holds ``out_dir``'s writer lock for the run; returns the
+    finished Manifest per type."""
+    import json
+
+    from data_manifest.lock import DatasetLock
+
+    from pipelines.spec import type_specs
+
+    log = options.get("log", print)
+    parts = type_specs(spec)
+    lock = DatasetLock(out_dir).acquire()
+    manifests: dict[str, Any] = {}
+    try:
+        if lock.took_over is not None:
+            log(f"took over the writer lock of an ended run ({lock.took_over.describe()})")
+
+        def write_index() -> None:
+            entries = []
+            for gtype, sub in parts:
+                m = manifests.get(gtype)
+                entry = {"type": gtype, "name": sub["name"], "path": gtype, "complete": m is not None}
+                if m is not None:
+                    entry.update(shards=len(m.shards), frames_kept=int(m.totals.get("frames_kept", 0)))
+                entries.append(entry)
+            index = {"format": DATASETS_FORMAT, "name": spec["name"], "spec_sha256": spec_hash(spec), "spec": spec,
+                     "datasets": entries}
+            tmp = out_dir / f".{DATASETS_NAME}.{os.getpid()}.tmp"
+            try:
+                tmp.write_text(json.dumps(index, indent=2, default=str) + "\n")
+                os.replace(tmp, out_dir / DATASETS_NAME)
+            except BaseException:
+                tmp.unlink(missing_ok=True)
+                raise
+
+        write_index()
+        for k, (gtype, sub) in enumerate(parts):
+            log(f"== {spec['name']}: garment type {gtype} ({k + 1} of {len(parts)}) -> {out_dir / gtype}")
+            manifests[gtype] = generate(sub, out_dir / gtype, **options)
+            write_index()
+    finally:
+        lock.release()
+    total = sum(int(m.totals.get("frames_kept", 0)) for m in manifests.values())
+    log(f"{spec['name']}: {len(manifests)} datasets, {total} frames kept: "
+        + ", ".join(f"{t} {int(m.totals.get('frames_kept', 0))}" for t, m in manifests.items())
+        + f"; index {out_dir / DATASETS_NAME}")
+    return manifests
 
 
 class DiskFullError(OSError):
@@ -674,8 +744,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("generate-dataset", help="simulate a dataset spec into sharded HDF5 + manifest",
                        description="Runs (or resumes) a dataset spec: plans styles/shapes/poses, simulates every "
                        "style-shape pair through its poses, filters frames and writes one HDF5 shard per task. "
-                       "Rerunning the same command skips finished shards.")
-    p.add_argument("spec", help="spec YAML path, or the name of a shipped spec (quickstart, tailornet-tshirt)")
+                       "Rerunning the same command skips finished shards. A spec with a list of garment types "
+                       "writes one dataset per type, OUT/<type>/, listed in OUT/datasets.json.")
+    p.add_argument("spec", help="spec YAML path, or the name of a shipped spec (quickstart, tailornet-tshirt, "
+                   "tailornet-shirt, tailornet-pants, tailornet-skirt, cloth3d-mini, cloth3d)")
     p.add_argument("--out", required=True, help="dataset directory")
     p.add_argument("--executor", default="local", choices=["local", "ray"], help="where batches run (default local)")
     p.add_argument("--device", default=None, help="override simulation.device (auto, cpu, cuda:0)")

@@ -9,13 +9,18 @@ records and hashes. Schema (every key optional unless marked required)::
     name: str (required)                dataset name
     seed: int = 0                       seeds every RNG of the run
     garment:
-      type: tshirt|shirt|pants|shorts|skirt|top|dress|jumpsuit (required)
+      type: tshirt|shirt|pants|shorts|skirt|top|dress|jumpsuit | list (required)   a list of distinct
+                                        types makes one ordinary dataset per type, OUT/<type>/, each
+                                        the spec with that type (``type_specs``; docs/dataset.md)
       resolution: int = 1500            target garment vertex count
-      fabric: cotton|silk|denim|leather | list = cotton   one fabric, or a list to sample from
-                                        (seed 004: tshirt, shirt and top only cotton or silk)
+      fabric: cotton|silk|denim|leather | list = cotton   one fabric, or a list to draw one from per
+                                        style (seed 004: tshirt, shirt and top only cotton or silk; with
+                                        several types, those draw from the list's cotton and silk)
       tightness: null | [lo, hi] | [[lo, hi], [lo, hi]] = null   tightness range (seed 004): one
                                         range for both offsets or one per offset (anny height,
-                                        weight; simulate.garment.cloth3d), each within [-0.5, 0.5]
+                                        weight; simulate.garment.cloth3d), each within [-0.5, 0.5];
+                                        each style-shape pair draws tau, its garment is sized for
+                                        shape + tau and the body blends from there to the shape
     body:
       backend: anny|smpl = anny
       path: str | null                  SMPL-family file for backend smpl
@@ -23,6 +28,10 @@ records and hashes. Schema (every key optional unless marked required)::
       train: int | list[dict]           count to sample, or explicit {param: value} dicts
       test:  int | list[dict]
       space: str | null                 style-space .npz: styles are then PCA gammas
+      limb_profiles: bool = false       sampled tshirt, shirt, pants and shorts styles also draw the
+                                        optional sleeve/leg width profile (taper, widen_at, widen;
+                                        seed 004), appended to their style vectors (optional key: absent,
+                                        it stays out of the resolved spec)
     shapes:
       train: tailornet9 | int | list[list[float]]   the 9 TailorNet shapes, a sampled count, or explicit
       test:  int | list[list[float]]
@@ -143,7 +152,7 @@ DEFAULTS: dict[str, Any] = {
 
 
 MOTION_DEFAULTS: dict[str, Any] = {"source": "procedural", "path": None,
-                                   "kinds": ["walk", "arm_raise", "torso_twist", "squat"], "fps": 30.0, "frames": 30,
+                                   "kinds": ["walk", "arm_raise", "torso_twist", "squat"], "fps": 15.0, "frames": 30,
                                    "amplitude": 0.5, "per_pair": 1, "damping": None}
 """The ``motion`` section, filled in only when ``poses.source`` is motion (a spec without motions
 resolves, and hashes, as it did before the section existed)."""
@@ -151,7 +160,7 @@ resolves, and hashes, as it did before the section existed)."""
 REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)}
 """Keys a spec must give (they have no default), by section path ("" = top level)."""
 
-OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",)}
+OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",), "styles": ("limb_profiles",)}
 """Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
 
 LIBRARY_SETTINGS: dict[str, tuple[str, str]] = {
@@ -302,9 +311,16 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if not isinstance(spec.get("name"), str) or not spec["name"]:
         c.fail("name", "a non-empty string")
     c.integer("seed", 0)
-    c.choice("garment.type", GARMENT_TYPES)
+    gtype = spec["garment"].get("type")
+    if isinstance(gtype, list):
+        _check_type_list(c, gtype)
+    else:
+        c.choice("garment.type", GARMENT_TYPES)
     c.integer("garment.resolution", 64, maximum=MAX_RESOLUTION)
-    _check_fabric(c, spec["garment"].get("fabric"), spec["garment"].get("type"))
+    _check_fabric(c, spec["garment"].get("fabric"), gtype)
+    profiles = spec["styles"].get("limb_profiles")
+    if profiles is not None and not isinstance(profiles, bool):
+        c.fail("styles.limb_profiles", "true or false")
     _check_tightness(c, spec["garment"].get("tightness"))
     c.choice("body.backend", ("anny", "smpl"))
     if spec["body"]["backend"] == "smpl" and not spec["body"].get("path"):
@@ -314,6 +330,9 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         if isinstance(styles, list):
             if not styles or not all(isinstance(s, dict) for s in styles):
                 c.fail(f"styles.{group}", "a count >= 1 or a non-empty list of {param: value} mappings")
+            elif isinstance(gtype, list):
+                c.fail(f"styles.{group}", "a count >= 1 when garment.type is a list (explicit style parameters "
+                                          "belong to one type)", styles)
             elif spec["garment"].get("type") in GARMENT_TYPES:
                 _check_styles(c, f"styles.{group}", styles, spec["garment"]["type"])
         else:
@@ -397,23 +416,60 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     return spec
 
 
+def _check_type_list(c: _Checker, types: list) -> None:
+    """garment.type as a list: distinct known types, at least one."""
+    if not types:
+        c.fail("garment.type", f"one of {', '.join(GARMENT_TYPES)} or a non-empty list of them")
+        return
+    for k, name in enumerate(types):
+        if name not in GARMENT_TYPES:
+            c.fail(f"garment.type[{k}]", f"one of {', '.join(GARMENT_TYPES)}{nearest_name(name, GARMENT_TYPES)}", name)
+    if len(set(map(str, types))) != len(types):
+        c.fail("garment.type", "a list without repeated types")
+
+
 def _check_fabric(c: _Checker, fabric: Any, garment_type: Any) -> None:
     """garment.fabric: one preset name, or a non-empty list of distinct names (upper-body types:
-    cotton or silk only)."""
+    cotton or silk only; with a list of types, the list must leave the upper-body ones one)."""
     if not isinstance(fabric, list):
         c.choice("garment.fabric", FABRIC_NAMES)
         return
     if not fabric:
         c.fail("garment.fabric", f"one of {', '.join(FABRIC_NAMES)} or a non-empty list of them")
         return
+    several = isinstance(garment_type, list)
     for k, name in enumerate(fabric):
         if name not in FABRIC_NAMES:
             c.fail(f"garment.fabric[{k}]", f"one of {', '.join(FABRIC_NAMES)}{nearest_name(name, FABRIC_NAMES)}", name)
-        elif garment_type in TOP_TYPES and name not in TOP_FABRICS:
+        elif not several and garment_type in TOP_TYPES and name not in TOP_FABRICS:
             c.fail(f"garment.fabric[{k}]", f"{' or '.join(TOP_FABRICS)} for a {garment_type} (upper-body garments "
                                            f"are cotton or silk, seed 004)", name)
     if len(set(map(str, fabric))) != len(fabric):
         c.fail("garment.fabric", "a list without repeated fabrics")
+    tops = [t for t in garment_type if t in TOP_TYPES] if several else []
+    if tops and not set(fabric) & set(TOP_FABRICS):
+        c.fail("garment.fabric", f"a list naming {' or '.join(TOP_FABRICS)} for the upper-body types of garment.type "
+                                 f"({', '.join(map(str, tops))}; seed 004)")
+
+
+def type_specs(spec: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(type, spec) per garment type of a validated spec: ``[(type, spec)]`` for one type; for a
+    list, each type's spec is this one with ``garment.type`` that type, ``name`` ``<name>-<type>``
+    and, for upper-body types, a fabric list cut to its cotton and silk (seed 004), validated
+    again: an ordinary single-type spec, written to ``OUT/<type>/``."""
+    types = spec["garment"]["type"]
+    if not isinstance(types, list):
+        return [(types, spec)]
+    out = []
+    for gtype in types:
+        sub = copy.deepcopy(spec)
+        sub["name"] = f"{spec['name']}-{gtype}"
+        sub["garment"]["type"] = gtype
+        fabric = sub["garment"]["fabric"]
+        if isinstance(fabric, list) and gtype in TOP_TYPES:
+            sub["garment"]["fabric"] = [f for f in fabric if f in TOP_FABRICS]
+        out.append((gtype, validate_spec(sub, source=f"{spec['name']} ({gtype})")))
+    return out
 
 
 def _check_tightness(c: _Checker, value: Any) -> None:

@@ -2,6 +2,8 @@
 was expected; the command line says it in one line with exit 2. Healthy specs resolve as before."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -73,7 +75,9 @@ def test_every_problem_is_reported_at_once():
 def test_null_sections_are_empty_and_healthy_specs_resolve_unchanged():
     base = {"name": "t", "garment": {"type": "tshirt"}}
     assert validate_spec({**base, "filters": None, "audit": None}) == validate_spec(base)
-    for name in ("quickstart", "tailornet-tshirt"):
+    shipped = sorted(p.stem for p in (Path(__file__).parents[1] / "pipelines" / "configs").glob("*.yaml"))
+    assert "cloth3d" in shipped and "tailornet-tshirt" in shipped
+    for name in shipped:
         spec = load_spec(name)
         assert validate_spec(spec) == spec, "a resolved spec validates to itself"
         assert spec_hash(validate_spec(spec)) == spec_hash(spec)

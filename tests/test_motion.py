@@ -165,7 +165,8 @@ def test_a_bad_motion_file_stops_generate_dataset_with_exit_2(tmp_path, capsys):
 
     bad = _npz(tmp_path / "deg.npz", poses=np.full((3, 20, 3), 45.0), fps=30.0)
     spec = tmp_path / "s.yaml"
-    spec.write_text(yaml.safe_dump({**BASE, "poses": {"source": "motion"}, "simulation": {"device": "cpu"},
+    spec.write_text(yaml.safe_dump({**BASE, "poses": {"source": "motion"},
+                                    "simulation": {"device": "cpu", "frame_dt": 1.0 / 60.0},
                                     "motion": {"source": "file", "path": [str(bad)], "frames": None}}))
     assert main(["generate-dataset", str(spec), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip()
@@ -299,10 +300,9 @@ MOTION_SPEC = {
     "pairs": {"train": 1, "test": 0},
     "poses": {"source": "motion"},
     "motion": {"kinds": ["arm_raise"], "fps": 30, "frames": MOTION_FRAMES},
-    # restart_after_rejects would send a world of held targets home after one dropped frame
+    # SequenceSettings.restart_after_rejects (1) would send a world of held targets home after one dropped frame
     "simulation": {"device": "cpu", "worlds": 1, "iterations": 4, "substeps": 5, "tolerance": 0.05,
-                   "max_relax_frames": 40, "shape_transition_frames": 3, "interpolation_threshold": 0.25,
-                   "restart_after_rejects": 1},
+                   "max_relax_frames": 40, "interpolation_threshold": 0.25, "frame_dt": 1.0 / 60.0},
     "audit": {"samples": 0},
 }
 TASK = "train_train-p000-m00"

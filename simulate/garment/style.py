@@ -166,9 +166,19 @@ class StyleParams:
         """A parameter's value, or its default when it is an optional parameter not given."""
         return self.values[name] if name in self.values else parameter_specs(self.garment_type)[name][2]
 
-    def as_array(self) -> list[float]:
-        """Values in :data:`STYLE_SPECS` order."""
-        return [self.values[k] for k in STYLE_SPECS[self.garment_type]]
+    def uses_optional(self) -> bool:
+        """Whether the style gives any of its type's optional parameters (the width profile)."""
+        return any(k in self.values for k in OPTIONAL_STYLE_SPECS.get(self.garment_type, {}))
+
+    def as_array(self, optional: bool = False) -> list[float]:
+        """Values in :data:`STYLE_SPECS` order; with ``optional`` the type's optional parameters
+        follow in :data:`OPTIONAL_STYLE_SPECS` order (their defaults where not given), so every
+        style of a dataset whose styles use the width profile has a vector of one length. Types
+        without optional parameters ignore it."""
+        names = list(STYLE_SPECS[self.garment_type])
+        if optional:
+            names += list(OPTIONAL_STYLE_SPECS.get(self.garment_type, {}))
+        return [self.get(k) for k in names]
 
     @classmethod
     def parse(cls, garment_type: str, text: str | None) -> "StyleParams":

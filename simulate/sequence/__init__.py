@@ -1,7 +1,8 @@
 """Quasi-static sequence driver (seed 000 section 5.3, seed 004 section 3.3).
 
 Each task is one garment style on one body shape visiting a list of target poses.
-A world starts on the neutral body in the canonical pose, the body shape is blended
+A world starts on the neutral body (or the task's ``start_shape``: shape + tightness, the
+shape its garment is sized for) in the canonical pose, the body shape is blended
 to the task's shape over ``shape_transition_frames`` frames and the garment relaxed,
 then the body visits the target poses in the given order; slerp'ed poses are
 inserted where any joint would turn more than ``interpolation_threshold`` in one

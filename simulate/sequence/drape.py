@@ -35,6 +35,7 @@ def drape_static(
         shapes: (W, S) body shapes; poses: (W, 60) body poses.
         start_vertices: initial positions [m], (W, V, 3) (default: ``rest_vertices``).
         max_frames: frame budget (default ``settings.sim.max_frames``).
+        fabric: fabric preset name or Fabric for every world, or a list of them, one per world.
         material_uv: pattern UVs per face corner, (F, 3, 2) (a template's ``face_uv``; see
             ``ClothBuilder.add_garment``); None: the builder's grain axis (+y).
         body_face_groups, body_part: primary collision bodies, as for ``run_sequences``.
@@ -43,6 +44,9 @@ def drape_static(
     """
     rest_vertices = np.asarray(rest_vertices, np.float32)
     w_count = len(rest_vertices)
+    fabrics = list(fabric) if isinstance(fabric, (list, tuple)) else [fabric] * w_count
+    if len(fabrics) != w_count:
+        raise ValueError(f"fabric must be one fabric or one per world ({w_count}), got {len(fabrics)}")
     torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
     with torch.no_grad():
         posed = body.on_device(torch_device).pose_torch(torch.as_tensor(np.asarray(shapes, np.float32), device=torch_device),
@@ -51,7 +55,7 @@ def drape_static(
     from simulate.garment.drape import drape_simulator  # (the garment package is heavy to import)
 
     budget = settings.sim.max_frames if max_frames is None else int(max_frames)
-    sim = drape_simulator([{"vertices": rest_vertices[w], "faces": faces, "fabric": fabric, "material_uv": material_uv,
+    sim = drape_simulator([{"vertices": rest_vertices[w], "faces": faces, "fabric": fabrics[w], "material_uv": material_uv,
                             "body_part": body_part} for w in range(w_count)], body_vertices, body_faces, device=device,
                           settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}),
                           thickness=settings.contact_thickness, solver=settings.solver,

@@ -60,7 +60,8 @@ def run_sequences(
     not sit out: it steps on towards the next motion frame at once (the answer does not route it).
 
     Args:
-        body: body model (its canonical pose and neutral shape start every world).
+        body: body model (its canonical pose and neutral shape start every world whose task has no
+            ``start_shape``; a task with one starts on that shape).
         faces: garment triangles shared by all tasks, (F, 3).
         tasks: the batch.
         body_faces: the body faces the garment can touch (culled), (Fb, 3).
@@ -123,7 +124,12 @@ def run_sequences(
     model = builder.finalize(device, features=Features(self_contact=settings.self_contact,
                                                        friction=settings.friction != 0.0))
     t_model = time.perf_counter()
-    start = pose_bodies(np.tile(neutral, (w_count, 1)), np.tile(canonical, (w_count, 1)))
+    # each world starts on its first task's start shape (the neutral one, or shape + tightness) in the
+    # canonical pose; the start bodies of tasks worlds take later are posed here too (start_bodies)
+    start_shapes = np.stack([neutral if tasks[t].start_shape is None else np.asarray(tasks[t].start_shape, np.float32)
+                             for t in assignment.first])
+    start = pose_bodies(start_shapes, np.tile(canonical, (w_count, 1)))
+    start_bodies = starting_bodies(tasks, start, start_shapes, neutral, canonical, pose_bodies)
     collider = BodyCollider(start.vertices.cpu().numpy(), body_faces, device=device, thickness=settings.contact_thickness,
                             face_groups=body_face_groups)
     sim = QuasiStaticSimulator(model, collider, solver=settings.solver, settings=SimSettings(**{**settings.sim.__dict__}))
@@ -145,7 +151,7 @@ def run_sequences(
             raise ValueError(f"on_frames must return one answer per frame ({len(frames)}), got {len(answers)}")
         return [a is not False for a in answers]
 
-    ws = Worlds(tasks, assignment, schedules, settings, sim=sim, collider=collider, start=start, body_now=body_now,
+    ws = Worlds(tasks, assignment, schedules, settings, sim=sim, collider=collider, start=start_bodies, body_now=body_now,
                 canonical=canonical, neutral=neutral, torch_device=torch_device, stats=run, deliver=deliver)
     stats = {} if stats is None else stats
     base = run.start(stats)
@@ -283,3 +289,27 @@ def run_sequences(
                 stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
     run.publish(stats, base)
     return stats
+
+
+def starting_bodies(tasks: list[SequenceTask], start: PosedBody, start_shapes: np.ndarray, neutral: np.ndarray,
+                    canonical: np.ndarray, pose_bodies: Callable[[np.ndarray, np.ndarray], PosedBody]) -> dict[bytes, tuple]:
+    """Each task's start body, by its start shape's bytes: (vertices (Vb, 3), skinning transforms
+    (J, 4, 4), rest vertices (Vb, 3)) tensors, the shape (``SequenceTask.start_shape``, or the
+    neutral one) in the canonical pose. The worlds' own start bodies ``start`` (posed from
+    ``start_shapes``, (W, S)) serve their shapes; the start shapes of tasks no world starts with
+    are posed in one more call."""
+    bodies: dict[bytes, tuple] = {}
+    for w, shape in enumerate(start_shapes):
+        bodies.setdefault(np.asarray(shape, np.float32).tobytes(),
+                          (start.vertices[w], start.skinning_transforms[w], start.rest_vertices[w]))
+    missing = {}
+    for t in tasks:
+        shape = neutral if t.start_shape is None else np.asarray(t.start_shape, np.float32)
+        if shape.tobytes() not in bodies:
+            missing.setdefault(shape.tobytes(), shape)
+    if missing:
+        shapes = np.stack(list(missing.values()))
+        posed = pose_bodies(shapes, np.tile(canonical, (len(shapes), 1)))
+        for j, key in enumerate(missing):
+            bodies[key] = (posed.vertices[j], posed.skinning_transforms[j], posed.rest_vertices[j])
+    return bodies

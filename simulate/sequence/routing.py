@@ -18,7 +18,6 @@ from typing import Callable
 import numpy as np
 import torch
 
-from simulate.body.base import PosedBody
 from simulate.body.kinematics import to_device_async
 from simulate.contact import BodyCollider
 from simulate.quasi_static import QuasiStaticSimulator, WorldStatus
@@ -50,8 +49,9 @@ class SavedState:
 
 
 def world_groups(tasks: list[SequenceTask]) -> list[int]:
-    """Group index of each task: tasks with the same cloth rest geometry, start drape, body shape
-    and fabric can follow each other in one world (numbered in order of first appearance)."""
+    """Group index of each task: tasks with the same cloth rest geometry, start drape, body shape,
+    start shape (``SequenceTask.start_shape``: their home drapes come from the same transition) and
+    fabric can follow each other in one world (numbered in order of first appearance)."""
     seen: dict[bytes, int] = {}
     groups = []
     for t in tasks:
@@ -61,6 +61,8 @@ def world_groups(tasks: list[SequenceTask]) -> list[int]:
             h.update(str(arr.shape).encode())
             h.update(arr.tobytes())
         h.update(repr(t.fabric).encode())
+        if t.start_shape is not None:
+            h.update(b"start_shape" + np.ascontiguousarray(t.start_shape, dtype=np.float32).tobytes())
         groups.append(seen.setdefault(h.digest(), len(seen)))
     return groups
 
@@ -137,13 +139,15 @@ class Worlds:
     """
 
     def __init__(self, tasks: list[SequenceTask], assignment: Assignment, schedules: list[Schedule],
-                 settings: SequenceSettings, *, sim: QuasiStaticSimulator, collider: BodyCollider, start: PosedBody, body_now: dict[str, torch.Tensor],
+                 settings: SequenceSettings, *, sim: QuasiStaticSimulator, collider: BodyCollider, start: dict[bytes, tuple],
+                 body_now: dict[str, torch.Tensor],
                  canonical: np.ndarray, neutral: np.ndarray, torch_device: str, stats: SequenceStats,
                  deliver: Callable[[list[RecordedFrame]], list[bool]]) -> None:
         """
         Args:
             schedules: each world's schedule for its first task (``build_schedule``).
-            start: the start bodies (neutral shape, canonical pose), one per world.
+            start: the start bodies (canonical pose) by start shape bytes (``loop.starting_bodies``):
+                (vertices (Vb, 3), skin (J, 4, 4), rest (Vb, 3)) tensors for every task's start shape.
             body_now: each world's current body, {"vertices": (W, Vb, 3), "skin": (W, J, 4, 4),
                 "rest": (W, Vb, 3)} tensors on ``torch_device``, updated in place.
             deliver: hands frames over, returns True where accepted.
@@ -212,9 +216,12 @@ class Worlds:
         self.held[w] = 0
 
     def canonical_start(self, w: int, t: int) -> SavedState:
-        """Task ``t``'s start drape on world ``w``'s start body (neutral shape, canonical pose)."""
-        return SavedState(np.asarray(self.tasks[t].start_vertices, np.float32), self.start.vertices[w],
-                          self.start.skinning_transforms[w], self.start.rest_vertices[w])
+        """Task ``t``'s start drape on its start body (its ``start_shape``, else the neutral shape;
+        canonical pose), to put world ``w`` back at."""
+        task = self.tasks[t]
+        shape = self.neutral if task.start_shape is None else np.asarray(task.start_shape, np.float32)
+        vertices, skin, rest = self.start[np.asarray(shape, np.float32).tobytes()]
+        return SavedState(np.asarray(task.start_vertices, np.float32), vertices, skin, rest)
 
     def plan_of(self, w: int, t: int) -> tuple:
         """Task ``t``'s plan (schedule, routes) from world ``w``'s home pose; a missing one is made

@@ -14,7 +14,8 @@ class SequenceTask:
 
     Attributes:
         rest_vertices: cloth rest geometry (edge lengths, areas) [m], shape (V, 3).
-        start_vertices: initial positions on the neutral body, canonical pose [m], (V, 3).
+        start_vertices: initial positions on the start body (``start_shape``, else the neutral
+            shape), canonical pose [m], (V, 3).
         shape: body shape, (S,).
         poses: target poses in visiting order, (N, 60); for a motion, its frames in order.
         fabric: fabric preset name or Fabric.
@@ -44,7 +45,8 @@ class SequenceSettings:
     sim: SimSettings = field(default_factory=SimSettings)
     solver: str = "xpbd"
     shape_transition_frames: int = 10
-    """Frames over which the body shape is blended from the neutral shape to the task's."""
+    """Frames over which the body shape is blended from the task's start shape (the neutral shape
+    unless ``SequenceTask.start_shape`` is set) to the task's."""
     interpolation_threshold: float = 0.1
     """Largest turn of any joint in one frame [rad]; slerp'ed poses are inserted between targets
     farther apart."""
