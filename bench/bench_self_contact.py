@@ -37,6 +37,8 @@ def main() -> None:
     parser.add_argument("--step", type=float, default=0.05, help="largest joint turn per frame [rad]")
     parser.add_argument("--hold-frames", type=int, default=30)
     parser.add_argument("--runs", default="vbd-sc,xpbd-sc")
+    parser.add_argument("--save", default=None, metavar="DIR",
+                        help="write each run's held garment and body (RUN.npz: garment, body, faces, area ratios)")
     args = parser.parse_args()
 
     body = load_body_model("anny")
@@ -74,6 +76,15 @@ def main() -> None:
         frame = frames[-1]
         start_q = meter.measure(start[0], rest_body)
         held = meter.measure(frame.positions, frame.body_vertices, area_bounds=(0.25, 2.0))
+        if args.save:
+            from pathlib import Path
+
+            from simulate.quality import triangle_areas
+
+            Path(args.save).mkdir(parents=True, exist_ok=True)
+            ratio = triangle_areas(frame.positions, template.faces) / triangle_areas(template.vertices, template.faces)
+            np.savez(Path(args.save) / f"{run}.npz", garment=frame.positions, body=frame.body_vertices,
+                     faces=template.faces, body_faces=body_faces, area_ratio=ratio, garment_part=garment_part)
         print(json.dumps({
             "run": run, "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
             "angle_rad": args.angle, "drape_self_intersections": start_q["self_intersections"],

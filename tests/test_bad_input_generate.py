@@ -44,7 +44,8 @@ def fake_context(spec, out_dir, *, device=None, log=print):
         poses = rng.uniform(-0.3, 0.3, (count, 6)).astype(np.float32)
         tasks.append(SimpleNamespace(task_id=f"{split}-p000", split=split, pair=k, style_index=0,
                                      shape=np.full(4, 0.1 * k, np.float32), style_vector=np.zeros(2, np.float32),
-                                     pose_ids=np.arange(count), poses=poses))
+                                     pose_ids=np.arange(count), poses=poses, motion_steps=0, motion="",
+                                     fabric="cotton", garment_index=0, tightness=None, start_shape=None))
     plan = SimpleNamespace(tasks=tasks, pruned_poses=np.zeros((0, 6), np.float32), pruned_reasons=np.zeros(0, str))
     return SimpleNamespace(spec=spec, device="cpu", template_dict=tube_template(), plan=plan,
                            tasks={t.task_id: t for t in tasks}, phases={})

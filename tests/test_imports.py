@@ -32,7 +32,8 @@ SIMULATE_LAYERS = (
     ("simulate.contact",),  # body collider, self-contact
     ("simulate.solvers", "simulate.quality"),  # time steppers; frame measurements
     ("simulate.quasi_static", "simulate.body"),  # frame driver with per-world status; body models
-    ("simulate.poses", "simulate.scenes"),  # pose sampling and interpolation; test and benchmark scenes
+    ("simulate.poses", "simulate.motion", "simulate.scenes"),  # pose sampling and interpolation; motion
+    #                                                          trajectories; test and benchmark scenes
     ("simulate.garment",),  # templates, styles, canonical drapes
     ("simulate.sequence",),  # the sequence driver
     ("simulate.reports", "simulate.viz"),  # accuracy / stability reports, renders

@@ -52,7 +52,7 @@ TAILORNET_TYPES: tuple[str, ...] = ("tshirt", "shirt", "pants", "shorts", "skirt
 """The single-piece types with sleeves or legs of TailorNet's garments: the static set's default
 types (its budgets are measured on these)."""
 SEWN_TYPES: tuple[str, ...] = ("dress", "jumpsuit")
-"""Types sewn from an upper and a lower piece along the waist (``simulate.garment.sewing``)."""
+"""Types sewn from an upper and a lower piece along the waist (``simulate.garment.templates``, its last section)."""
 
 _PROFILE: dict[str, tuple[float, float, float, str]] = {
     "taper": (0.0, CLOTH3D.limb_taper_max, 0.0, "share of the looseness lost at the longest cut [-]"),
