@@ -36,6 +36,8 @@ def main() -> None:
     parser.add_argument("--angle", type=float, default=1.0, help="shoulder rotation toward the torso [rad]")
     parser.add_argument("--step", type=float, default=0.05, help="largest joint turn per frame [rad]")
     parser.add_argument("--hold-frames", type=int, default=30)
+    parser.add_argument("--friction", type=float, default=None,
+                        help="0: body friction off (default: each fabric's coefficient)")
     parser.add_argument("--runs", default="vbd-sc,xpbd-sc")
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each run's held garment and body (RUN.npz: garment, body, faces, area ratios)")
@@ -58,7 +60,8 @@ def main() -> None:
         sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
                           outlier_fraction=0.02, max_frames=args.hold_frames, limit_cycle_window=8)
         settings = SequenceSettings(sim=sim, solver=solver, self_contact=flag == "sc", shape_transition_frames=1,
-                                    interpolation_threshold=args.step, min_hold_frames=args.hold_frames)
+                                    interpolation_threshold=args.step, min_hold_frames=args.hold_frames,
+                                    friction=args.friction)
         common = dict(body_faces=body_faces, body_face_groups=parts.face_groups, body_part=garment_part,
                       device=args.device)
         t0 = time.perf_counter()
@@ -86,7 +89,7 @@ def main() -> None:
             np.savez(Path(args.save) / f"{run}.npz", garment=frame.positions, body=frame.body_vertices,
                      faces=template.faces, body_faces=body_faces, area_ratio=ratio, garment_part=garment_part)
         print(json.dumps({
-            "run": run, "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
+            "run": run, "friction": args.friction, "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
             "angle_rad": args.angle, "drape_self_intersections": start_q["self_intersections"],
             "drape_contours": start_q["self_intersection_contours"], "self_intersections": held["self_intersections"],
             "contours": held["self_intersection_contours"], "penetration_fraction": held["penetration_fraction"],
