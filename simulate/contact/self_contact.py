@@ -498,103 +498,6 @@ def edge_edge_pairs(
         pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[g][0]], x_rest[edges[g][1]]), thickness)
 
 
-@wp.kernel
-def vertex_triangle_bounds(
-    mesh: wp.uint64,
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_world: wp.array(dtype=wp.int32),
-    particle_world: wp.array(dtype=wp.int32),
-    world_active: wp.array(dtype=wp.int32),
-    world_self_contact: wp.array(dtype=wp.int32),
-    world_offset: wp.array(dtype=wp.vec3),
-    x: wp.array(dtype=wp.vec3),
-    reach: float,
-    # In/out (filled with ``reach`` by the caller):
-    d_min: wp.array(dtype=float),
-):
-    """Smallest distance [m] of every vertex-triangle pair within ``reach`` whose triangle does not
-    contain the vertex, to the vertex and to the triangle's three corners (float atomic min: the
-    result does not depend on the order). Unlike the contact candidates, neighbours and pairs close
-    at rest count: a bound only limits motion, it pushes nothing apart."""
-    i = wp.tid()
-    w = particle_world[i]
-    if world_active[w] == 0 or world_self_contact[w] == 0:
-        return
-    p = x[i]
-    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
-        return
-    q = p + world_offset[w]
-    r_box = reach + shift_tolerance(world_offset[w])
-    r = wp.vec3(r_box, r_box, r_box)
-    query = wp.mesh_query_aabb(mesh, q - r, q + r)
-    face = int(0)
-    best = reach
-    while wp.mesh_query_aabb_next(query, face):
-        if tri_world[face] != w:
-            continue
-        a = tri_indices[face, 0]
-        b = tri_indices[face, 1]
-        c = tri_indices[face, 2]
-        if a == i or b == i or c == i:
-            continue
-        bary = closest_point_barycentric(p, x[a], x[b], x[c])
-        d = wp.length(p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2]))
-        if d >= reach:
-            continue
-        best = wp.min(best, d)
-        wp.atomic_min(d_min, a, d)
-        wp.atomic_min(d_min, b, d)
-        wp.atomic_min(d_min, c, d)
-    wp.atomic_min(d_min, i, best)
-
-
-@wp.kernel
-def edge_edge_bounds(
-    mesh: wp.uint64,
-    edges: wp.array(dtype=wp.vec2i),
-    tri_indices: wp.array2d(dtype=wp.int32),
-    tri_world: wp.array(dtype=wp.int32),
-    particle_world: wp.array(dtype=wp.int32),
-    world_active: wp.array(dtype=wp.int32),
-    world_self_contact: wp.array(dtype=wp.int32),
-    world_offset: wp.array(dtype=wp.vec3),
-    x: wp.array(dtype=wp.vec3),
-    reach: float,
-    # In/out:
-    d_min: wp.array(dtype=float),
-):
-    """Smallest distance [m] from each cloth edge to the edges of triangles within ``reach`` that
-    share no vertex with it, to both ends."""
-    e = wp.tid()
-    i0 = edges[e][0]
-    i1 = edges[e][1]
-    w = particle_world[i0]
-    if world_active[w] == 0 or world_self_contact[w] == 0:
-        return
-    p = x[i0]
-    q = x[i1]
-    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]) and wp.isfinite(q[0]) and wp.isfinite(q[1])
-            and wp.isfinite(q[2])):
-        return
-    off = world_offset[w]
-    r_box = reach + shift_tolerance(off)
-    r = wp.vec3(r_box, r_box, r_box)
-    query = wp.mesh_query_aabb(mesh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
-    face = int(0)
-    best = reach
-    while wp.mesh_query_aabb_next(query, face):
-        if tri_world[face] != w:
-            continue
-        for k in range(3):
-            a = tri_indices[face, k]
-            b = tri_indices[face, (k + 1) % 3]
-            if a == i0 or a == i1 or b == i0 or b == i1:
-                continue
-            best = wp.min(best, segment_distance(p, q, x[a], x[b]))
-    wp.atomic_min(d_min, i0, best)
-    wp.atomic_min(d_min, i1, best)
-
-
 class SelfContact:
     """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
 
@@ -686,51 +589,49 @@ class SelfContact:
         """Positions at the last search [m]: the centres of the displacement bounds."""
         if self.bounds or self.pairs:
             tris = np.asarray(model.tri_indices_np, np.int64).reshape(-1, 3)
-            sides = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1)  # (T, 3, 2)
-            keys = np.sort(sides.reshape(-1, 2), axis=1)
-            edges, inverse = np.unique(keys, axis=0, return_inverse=True) if len(keys) else (np.zeros((1, 2), np.int64),
-                                                                                           np.zeros(0, np.int64))
+            keys = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+            edges = np.unique(keys, axis=0) if len(keys) else np.zeros((1, 2), np.int64)
             self.edges = wp.array(edges.astype(np.int32), dtype=wp.vec2i, device=dev)
             """Cloth edges (E, 2), each once, lower index first."""
-            if self.pairs:
-                k = int(pairs_per_primitive)
-                n_tri = max(model.tri_count, 1)
-                n_edge = len(edges)
-                self.vt_tri = wp.full((count, k), -1, dtype=wp.int32, device=dev)
-                """Each particle's nearest triangles within the reach, nearest first, -1 after the last."""
-                self.vt_radius = wp.zeros((count, k), dtype=float, device=dev)
-                """Contact radius of each listed pair [m] (``contact_radius``)."""
-                self.tv_count = wp.zeros(n_tri, dtype=wp.int32, device=dev)
-                """Particles listing each triangle (the same pairs seen from the triangle)."""
-                self.tv_start = wp.zeros(n_tri, dtype=wp.int32, device=dev)
-                """Start of each triangle's row in ``tv_vertex`` / ``tv_radius`` (CSR, rows sorted by particle)."""
-                self.tv_vertex = wp.zeros(count * k, dtype=wp.int32, device=dev)
-                self.tv_radius = wp.zeros(count * k, dtype=float, device=dev)
-                self._tv_cursor = wp.zeros(n_tri, dtype=wp.int32, device=dev)
-                self.ee_edge = wp.full((n_edge, k), -1, dtype=wp.int32, device=dev)
-                """Each edge's nearest edges within the reach (sharing no vertex with it)."""
-                self.ee_radius = wp.zeros((n_edge, k), dtype=float, device=dev)
-                self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_edge, k), dtype=float, device=dev)]
-                lowers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
-                uppers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
-                wp.launch(place_edge_boxes, dim=n_edge if model.particle_count else 0,
-                          inputs=[self.edges, model.particle_world, self.world_offset, self.rest],
-                          outputs=[lowers, uppers], device=dev)
-                self.edge_bvh = wp.Bvh(lowers, uppers)
-                """BVH over the edges' boxes at their world cells, built here at rest and refit at each search."""
-                ends = np.concatenate([edges[:, 0], edges[:, 1]])
-                code = np.concatenate([2 * np.arange(n_edge), 2 * np.arange(n_edge) + 1])
-                order = np.lexsort((code, ends))
-                start = np.searchsorted(ends[order], np.arange(count + 1)).astype(np.int32)
-                self.edge_adj_start = wp.array(start, dtype=wp.int32, device=dev)
-                """CSR start of each particle's edges in ``edge_adj`` (particle_count + 1,)."""
-                self.edge_adj = wp.array(code[order].astype(np.int32), dtype=wp.int32, device=dev)
-                """2 e + end for each edge e a particle ends (end 0: ``edges[e][0]``)."""
+            # the pair lists: the pair energy's and the bounds' queries fill them
+            k = int(pairs_per_primitive)
+            n_tri = max(model.tri_count, 1)
+            n_edge = len(edges)
+            self.vt_tri = wp.full((count, k), -1, dtype=wp.int32, device=dev)
+            """Each particle's nearest triangles within the reach, nearest first, -1 after the last."""
+            self.vt_radius = wp.zeros((count, k), dtype=float, device=dev)
+            """Contact radius of each listed pair [m] (``contact_radius``)."""
+            self.tv_count = wp.zeros(n_tri, dtype=wp.int32, device=dev)
+            """Particles listing each triangle (the same pairs seen from the triangle)."""
+            self.tv_start = wp.zeros(n_tri, dtype=wp.int32, device=dev)
+            """Start of each triangle's row in ``tv_vertex`` / ``tv_radius`` (CSR, rows sorted by particle)."""
+            self.tv_vertex = wp.zeros(count * k, dtype=wp.int32, device=dev)
+            self.tv_radius = wp.zeros(count * k, dtype=float, device=dev)
+            self._tv_cursor = wp.zeros(n_tri, dtype=wp.int32, device=dev)
+            self.ee_edge = wp.full((n_edge, k), -1, dtype=wp.int32, device=dev)
+            """Each edge's nearest edges within the reach (sharing no vertex with it)."""
+            self.ee_radius = wp.zeros((n_edge, k), dtype=float, device=dev)
+            self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_edge, k), dtype=float, device=dev)]
+            lowers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
+            uppers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
+            wp.launch(place_edge_boxes, dim=n_edge if model.particle_count else 0,
+                      inputs=[self.edges, model.particle_world, self.world_offset, self.rest],
+                      outputs=[lowers, uppers], device=dev)
+            self.edge_bvh = wp.Bvh(lowers, uppers)
+            """BVH over the edges' boxes at their world cells, built here at rest and refit at each search."""
+            ends = np.concatenate([edges[:, 0], edges[:, 1]])
+            code = np.concatenate([2 * np.arange(n_edge), 2 * np.arange(n_edge) + 1])
+            order = np.lexsort((code, ends))
+            start = np.searchsorted(ends[order], np.arange(count + 1)).astype(np.int32)
+            self.edge_adj_start = wp.array(start, dtype=wp.int32, device=dev)
+            """CSR start of each particle's edges in ``edge_adj`` (particle_count + 1,)."""
+            self.edge_adj = wp.array(code[order].astype(np.int32), dtype=wp.int32, device=dev)
+            """2 e + end for each edge e a particle ends (end 0: ``edges[e][0]``)."""
 
     def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
                world_self_contact: wp.array | None = None) -> None:
-        """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle, or
-        with ``pairs`` the pair lists (and with ``bounds`` the displacement bounds).
+        """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle (the
+        pushes), or with ``pairs`` or ``bounds`` the pair lists and the displacement bounds.
 
         With velocities ``v`` [m/s] and the substep ``dt`` [s], the search of each particle also
         covers its travel over the ``detect_every - 1`` substeps until the next search.
@@ -747,38 +648,28 @@ class SelfContact:
             active_sc = world_active if world_self_contact is None else world_self_contact
             self.d_min.fill_(reach)
             wp.copy(self.x_searched, x)
-            if self.pairs:
-                wp.launch(vertex_triangle_pairs, dim=m.particle_count,
-                          inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                                  self.world_offset, x, self.rest, reach, self.thickness],
-                          outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min], device=m.device)
-                self.tv_count.zero_()
-                self._tv_cursor.zero_()
-                wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
-                          device=m.device)
-                wp.utils.array_scan(self.tv_count, self.tv_start, inclusive=False)
-                wp.launch(scatter_triangle_pairs, dim=m.particle_count,
-                          inputs=[self.vt_tri, self.vt_radius, self.tv_start, self._tv_cursor],
-                          outputs=[self.tv_vertex, self.tv_radius], device=m.device)
-                wp.launch(sort_triangle_pairs, dim=m.tri_count, inputs=[self.tv_start, self.tv_count],
-                          outputs=[self.tv_vertex, self.tv_radius], device=m.device)
-                wp.launch(place_edge_boxes, dim=self.edges.shape[0],
-                          inputs=[self.edges, m.particle_world, self.world_offset, x],
-                          outputs=[self.edge_bvh.lowers, self.edge_bvh.uppers], device=m.device)
-                self.edge_bvh.refit()
-                wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
-                          inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
-                                  self.world_offset, x, self.rest, reach, self.thickness],
-                          outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min], device=m.device)
-                return
-            wp.launch(vertex_triangle_bounds, dim=m.particle_count,
+            wp.launch(vertex_triangle_pairs, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, reach],
-                      outputs=[self.d_min], device=m.device)
-            wp.launch(edge_edge_bounds, dim=self.edges.shape[0],
-                      inputs=[self.mesh.id, self.edges, m.tri_indices, m.tri_world, m.particle_world, world_active,
-                              active_sc, self.world_offset, x, reach],
-                      outputs=[self.d_min], device=m.device)
+                              self.world_offset, x, self.rest, reach, self.thickness],
+                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min], device=m.device)
+            self.tv_count.zero_()
+            self._tv_cursor.zero_()
+            wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
+                      device=m.device)
+            wp.utils.array_scan(self.tv_count, self.tv_start, inclusive=False)
+            wp.launch(scatter_triangle_pairs, dim=m.particle_count,
+                      inputs=[self.vt_tri, self.vt_radius, self.tv_start, self._tv_cursor],
+                      outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+            wp.launch(sort_triangle_pairs, dim=m.tri_count, inputs=[self.tv_start, self.tv_count],
+                      outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+            wp.launch(place_edge_boxes, dim=self.edges.shape[0],
+                      inputs=[self.edges, m.particle_world, self.world_offset, x],
+                      outputs=[self.edge_bvh.lowers, self.edge_bvh.uppers], device=m.device)
+            self.edge_bvh.refit()
+            wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
+                      inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
+                              self.world_offset, x, self.rest, reach, self.thickness],
+                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min], device=m.device)
 
     def _detect_candidates(self, x, world_active, v, dt, world_self_contact) -> None:
         """One candidate triangle and side per particle (the pushes' search)."""
