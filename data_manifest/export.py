@@ -56,20 +56,30 @@ def write_pc2(path: str | os.PathLike[str], positions: np.ndarray, *, start_fram
     return path
 
 
-def read_pc2(path: str | os.PathLike[str]) -> tuple[np.ndarray, float, float]:
-    """Read a PC2 file: (positions (samples, points, 3) float32, start frame, sample rate)."""
+def _read_point_cache(path: str | os.PathLike[str], kind: str, dtype: str) -> tuple[np.ndarray, float, float]:
+    """A point cache with the PC2 header and ``dtype`` xyz values (``<f4``: PC2, ``<f2``: PC16):
+    (positions (samples, points, 3) float32, start frame, sample rate). Raises ValueError naming
+    the file for a wrong header or size."""
     data = Path(path).read_bytes()
     if len(data) < _PC2_HEADER.size:
-        raise ValueError(f"{str(path)!r} is too short for a PC2 header ({len(data)} bytes)")
+        raise ValueError(f"{str(path)!r} is too short for a {kind} header ({len(data)} bytes, expected {_PC2_HEADER.size})")
     magic, version, points, start, rate, samples = _PC2_HEADER.unpack_from(data)
     if magic != PC2_MAGIC or version != PC2_VERSION:
-        raise ValueError(f"{str(path)!r} is not a PC2 v1 file (magic {magic!r}, version {version})")
-    expected = _PC2_HEADER.size + samples * points * 12
+        raise ValueError(f"{str(path)!r} is not a {kind} file (magic {magic!r}, version {version}; expected "
+                         f"{PC2_MAGIC!r}, {PC2_VERSION})")
+    if points < 0 or samples < 0:
+        raise ValueError(f"{str(path)!r} has a {kind} header of {points} points and {samples} samples")
+    expected = _PC2_HEADER.size + samples * points * 3 * np.dtype(dtype).itemsize
     if len(data) != expected:
-        raise ValueError(f"{str(path)!r} has {len(data)} bytes, a PC2 of {samples} samples x {points} points "
+        raise ValueError(f"{str(path)!r} has {len(data)} bytes, a {kind} of {samples} samples x {points} points "
                          f"needs {expected}")
-    positions = np.frombuffer(data, dtype="<f4", offset=_PC2_HEADER.size).reshape(samples, points, 3)
-    return positions.astype(np.float32), start, rate
+    values = np.frombuffer(data, dtype=dtype, offset=_PC2_HEADER.size).reshape(samples, points, 3)
+    return values.astype(np.float32), start, rate
+
+
+def read_pc2(path: str | os.PathLike[str]) -> tuple[np.ndarray, float, float]:
+    """Read a PC2 file: (positions (samples, points, 3) float32, start frame, sample rate)."""
+    return _read_point_cache(path, "PC2", "<f4")
 
 
 def write_pc16(path: str | os.PathLike[str], positions: np.ndarray, root: np.ndarray, faces: np.ndarray, *,
@@ -129,21 +139,7 @@ def write_pc16(path: str | os.PathLike[str], positions: np.ndarray, root: np.nda
 def read_pc16(path: str | os.PathLike[str]) -> tuple[np.ndarray, float, float]:
     """Read a PC16 file: (positions relative to the root joint (samples, points, 3) float32 [m],
     start frame, sample rate). Raises ValueError naming the file for a wrong header or size."""
-    data = Path(path).read_bytes()
-    if len(data) < _PC2_HEADER.size:
-        raise ValueError(f"{str(path)!r} is too short for a PC16 header ({len(data)} bytes, expected {_PC2_HEADER.size})")
-    magic, version, points, start, rate, samples = _PC2_HEADER.unpack_from(data)
-    if magic != PC2_MAGIC or version != PC2_VERSION:
-        raise ValueError(f"{str(path)!r} is not a PC16 file (magic {magic!r}, version {version}; expected "
-                         f"{PC2_MAGIC!r}, {PC2_VERSION})")
-    if points < 0 or samples < 0:
-        raise ValueError(f"{str(path)!r} has a PC16 header of {points} points and {samples} samples")
-    expected = _PC2_HEADER.size + samples * points * 6
-    if len(data) != expected:
-        raise ValueError(f"{str(path)!r} has {len(data)} bytes, a PC16 of {samples} samples x {points} points "
-                         f"needs {expected}")
-    relative = np.frombuffer(data, dtype="<f2", offset=_PC2_HEADER.size).reshape(samples, points, 3)
-    return relative.astype(np.float32), start, rate
+    return _read_point_cache(path, "PC16", "<f2")
 
 
 def import_pc16(path: str | os.PathLike[str]) -> dict[str, np.ndarray | float]:

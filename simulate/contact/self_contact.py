@@ -280,17 +280,16 @@ def segment_distance(p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3) -> floa
 @wp.func
 def insert_nearest(ids: wp.array2d(dtype=wp.int32), dist: wp.array2d(dtype=float), row: int, key: int, d: float):
     """Puts ``key`` at distance ``d`` into row ``row`` of a list kept sorted by (distance, key),
-    the farthest entry falling off a full row; a key already listed is not listed twice. The
-    result does not depend on the order keys arrive in (no atomics, one row per thread)."""
+    the farthest entry falling off a full row. Each key arrives once (its BVH leaf is visited
+    once), and the result does not depend on the order keys arrive in (no atomics, one row per
+    thread)."""
     n = ids.shape[1]
     pos = n
     for k in range(n):
         kk = ids[row, k]
-        if kk == key:
-            return
-        if pos == n:
-            if kk < 0 or d < dist[row, k] or (d == dist[row, k] and key < kk):
-                pos = k
+        if kk < 0 or d < dist[row, k] or (d == dist[row, k] and key < kk):
+            pos = k
+            break
     if pos == n:
         return
     k = n - 1
