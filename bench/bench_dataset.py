@@ -32,6 +32,33 @@ from pathlib import Path
 import yaml
 
 
+def override_library_settings(items: list[str]) -> None:
+    """Every run of this process builds its settings with ``items`` (KEY=VALUE) set: library
+    fields of ``SimSettings`` or ``SequenceSettings`` that a spec does not expose, for
+    side-by-side runs (local executor only)."""
+    import dataclasses
+
+    import pipelines.generate_dataset as gd
+    from simulate.quasi_static import SimSettings
+    from simulate.sequence import SequenceSettings
+
+    sim_fields = {f.name for f in dataclasses.fields(SimSettings)}
+    seq_fields = {f.name for f in dataclasses.fields(SequenceSettings)} - {"sim"}
+    sim_values, seq_values = {}, {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if key not in sim_fields | seq_fields or not value:
+            raise SystemExit(f"--library {item!r}: expected KEY=VALUE with KEY one of {sorted(sim_fields | seq_fields)}")
+        (sim_values if key in sim_fields else seq_values)[key] = yaml.safe_load(value)
+    base = gd.sequence_settings
+
+    def sequence_settings(spec: dict):
+        settings = base(spec)
+        return dataclasses.replace(settings, sim=dataclasses.replace(settings.sim, **sim_values), **seq_values)
+
+    gd.sequence_settings = sequence_settings
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spec", default="tailornet-tshirt")
@@ -47,6 +74,9 @@ def main() -> None:
     parser.add_argument("--sim", action="append", default=[], metavar="KEY=VALUE",
                         help="override any simulation.KEY (repeatable, dots for nested keys), e.g. --sim tolerance=0.02 "
                              "--sim contact.self_contact=true")
+    parser.add_argument("--library", action="append", default=[], metavar="KEY=VALUE",
+                        help="set a library SimSettings or SequenceSettings field the spec does not expose (repeatable), e.g. "
+                             "--library self_contact_bounds=true")
     parser.add_argument("--filter", action="append", default=[], metavar="KEY=VALUE",
                         help="override any filters.KEY (repeatable), e.g. --filter max_self_intersections=50")
     parser.add_argument("--out", default="/tmp/bench_dataset")
@@ -147,6 +177,8 @@ def main() -> None:
                 table[key] = type(old)(value)
     if args.range_scale is not None:
         spec["poses"]["range_scale"] = args.range_scale
+    if args.library:
+        override_library_settings(args.library)
     out = Path(args.out)
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
@@ -201,7 +233,7 @@ def main() -> None:
     kept_fps = kept / max(sim.get("seconds", wall), 1e-9)
     print(json.dumps({
         "bench": "dataset", "spec": args.spec, "device": sim.get("device"), "worlds": spec["simulation"]["worlds"],
-        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim, "filter_overrides": args.filter,
+        "tolerance": spec["simulation"]["tolerance"], "range_scale": spec["poses"]["range_scale"], "sim_overrides": args.sim, "library_overrides": args.library, "filter_overrides": args.filter,
         "stub_frame_writes": args.stub_frame_writes, "writer": args.writer or "default", "switch_interval": sys.getswitchinterval(),
         "resolution": spec["garment"]["resolution"], "target_frames": targets, "kept_frames": kept,
         "dropped": manifest.totals["frames_dropped"], "simulation_s": sim.get("seconds"), "wall_s": round(wall, 2),
@@ -446,7 +478,7 @@ def partial_result(args: argparse.Namespace, spec: dict, beat: dict, full_target
     return {
         "bench": "dataset", "complete": False, "spec": args.spec, "device": spec["simulation"]["device"],
         "worlds": spec["simulation"]["worlds"], "resolution": spec["garment"]["resolution"],
-        "sim_overrides": args.sim, "filter_overrides": args.filter,
+        "sim_overrides": args.sim, "library_overrides": args.library, "filter_overrides": args.filter,
         "stub_frame_writes": args.stub_frame_writes, "writer": args.writer or "default", "switch_interval": sys.getswitchinterval(), "wall_s": round(wall, 2),
         "simulated_s": round(elapsed, 2), "target_frames_done": done, "target_frames": beat.get("targets_total"),
         "shards": beat.get("shards"), "tasks": beat.get("tasks"), "target_frames_per_s": round(fps, 2),

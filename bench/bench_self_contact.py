@@ -56,9 +56,12 @@ def main() -> None:
                          body_face_groups=parts.face_groups, garment_part=garment_part)
     for run in args.runs.split(","):
         solver, _, flag = run.partition("-")
+        bounds = flag == "scb"  # XPBD with the displacement bounds
+        flag = "sc" if bounds else flag
         substeps, iterations = STEPPING[solver]
         sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
-                          outlier_fraction=0.02, max_frames=args.hold_frames, limit_cycle_window=8)
+                          outlier_fraction=0.02, max_frames=args.hold_frames, limit_cycle_window=8,
+                          self_contact_bounds=bounds)
         settings = SequenceSettings(sim=sim, solver=solver, self_contact=flag == "sc", shape_transition_frames=1,
                                     interpolation_threshold=args.step, min_hold_frames=args.hold_frames,
                                     friction=args.friction)

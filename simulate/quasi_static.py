@@ -102,6 +102,9 @@ class SimSettings:
     self_contact_detect_every: int = 1
     """Self-contact (XPBD, when the model's features have it): find candidate triangles on
     every this-many-th substep of a frame and reuse them in between (see SelfContact)."""
+    self_contact_bounds: bool = False
+    """Self-contact (XPBD): keep each particle within its displacement bound between searches
+    (``SelfContact``'s module docstring), so no new crossing forms; VBD always keeps to them."""
     self_contact_rest_exclusion: float | None = None
     """Self-contact: particle-triangle pairs closer than this in the rest geometry are never
     contacts [m] (None = SelfContact's default, twice the contact reach)."""
@@ -196,7 +199,8 @@ class QuasiStaticSimulator:
             opts.setdefault("gs_sweep", s.gs_sweep)
             opts.setdefault("gs_block_dim", s.gs_block_dim)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
-                                                     "rest_exclusion": s.self_contact_rest_exclusion})
+                                                     "rest_exclusion": s.self_contact_rest_exclusion,
+                                                     "bounds": bool(s.self_contact_bounds)})
         elif solver == "vbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),

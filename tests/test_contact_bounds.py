@@ -1,4 +1,4 @@
-"""Cloth self-contact with displacement bounds (SolverVBD): no new intersection, whatever the speed."""
+"""Cloth self-contact with displacement bounds (SolverVBD, SolverXPBD): no new intersection, whatever the speed."""
 
 from __future__ import annotations
 
@@ -24,7 +24,8 @@ def _layers():
 
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("bounds", [True, False], ids=["bounds", "no-bounds"])
-def test_fast_layer_does_not_pass_through(device: str, bounds: bool) -> None:
+@pytest.mark.parametrize("solver", ["vbd", "xpbd"])
+def test_fast_layer_does_not_pass_through(device: str, bounds: bool, solver: str) -> None:
     """A layer thrown at 6 m/s onto a pinned one, 3 cm below: a substep carries it 2 cm, past the
     penalty's reach; the bounds hold it to a fraction of the distance it was searched at, so it
     lands and never crosses (crossings counted every frame); with the penalty alone it passes."""
@@ -32,8 +33,8 @@ def test_fast_layer_does_not_pass_through(device: str, bounds: bool) -> None:
     builder = ClothBuilder()
     builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
     model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=5, iterations=5, damping=2.0,
-                                                                               frame_dt=1.0 / 60.0),
+    sim = QuasiStaticSimulator(model, None, solver=solver, settings=unit_settings(substeps=5, iterations=5, damping=2.0,
+                                                                                frame_dt=1.0 / 60.0),
                                solver_options={"self_contact_options": {"bounds": bounds}})
     v0 = np.zeros((len(verts), 3), np.float32)
     v0[len(lower_v):, 1] = -6.0

@@ -159,11 +159,13 @@ def test_worlds_with_self_contact_off_get_no_candidates(device: str) -> None:
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: str) -> None:
-    """With the positions in shared memory the whole substep, self-contact pushes included, is one
-    launch per world block; it steps exactly as the per-colour launches followed by
-    ``SelfContact.project`` and the particle kernel: two worlds where a falling layer lands on a
-    pinned one over a sphere (body contact too), one with an attached vertex."""
+@pytest.mark.parametrize("bounds", [False, True], ids=["pushes", "bounds"])
+def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: str, bounds: bool) -> None:
+    """With the positions in shared memory the whole substep, self-contact pushes (and the
+    displacement bounds) included, is one launch per world block; it steps exactly as the
+    per-colour launches followed by ``SelfContact.project``, the particle kernel (and the bounds'
+    clamp): two worlds where a falling layer lands on a pinned one over a sphere (body contact
+    too), one with an attached vertex."""
     lower_v, lower_f = grid_cloth(9, 9, 0.4, 0.4, plane="xz", origin=(-0.2, 0.0, -0.2))
     upper_v, upper_f = grid_cloth(7, 7, 0.3, 0.3, plane="xz", origin=(-0.16, 0.02, -0.14))
     verts = np.vstack([lower_v, upper_v])
@@ -182,8 +184,8 @@ def test_tiled_substep_pushes_self_contacts_as_the_separate_launches_do(device: 
         collider = BodyCollider(sv + np.array([0.0, 0.05, 0.0], np.float32), sf, device=device, world_count=2)
         sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=5, iterations=4, damping=2.0,
                                                                          gs_sweep=sweep, gs_block_dim=64),
-                                   solver_options={"gs_shared": shared})
-        assert sim.solver._fused == shared
+                                   solver_options={"gs_shared": shared, "self_contact_options": {"bounds": bounds}})
+        assert sim.solver._fused == shared and sim.solver.bounds == bounds
         pushed[sweep] = 0
         for _ in range(20):
             sim.step_frame()

@@ -59,6 +59,9 @@ class SolverBase(abc.ABC):
         """Normal correction applied by the contact this substep [m] (friction budget)."""
         self.attachment_lambda = wp.zeros(max(model.attachment_count, 1), dtype=wp.vec3, device=dev)
         self._finalize_kernel = ck.make_finalize_kernel(self.friction)
+        self._bound_args: list | None = None
+        """Self-contact displacement bounds the finalize keeps to (searched positions, d_min,
+        fraction, min separation), set by a solver that keeps to them; None otherwise."""
 
     @abc.abstractmethod
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
@@ -120,9 +123,13 @@ class SolverBase(abc.ABC):
     def finalize_substep(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> None:
         """Friction on the substep displacement, then velocities with damping into ``state_out``."""
         m = self.model
+        if self._bound_args is None:
+            bounds = [self.contact_motion, self.contact_depth, 0.0, 0.0, control.world_self_contact]
+        else:
+            bounds = [*self._bound_args, control.world_self_contact]
         wp.launch(self._finalize_kernel, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
                           m.world_friction, self.extra_damping, float(dt), self.contact_active, self.contact_normal,
                           self.contact_motion, self.contact_depth, state_in.particle_q, state_in.particle_qd,
-                          state_out.particle_q],
+                          *bounds, state_out.particle_q],
                   outputs=[state_out.particle_qd], device=self.device)

@@ -294,9 +294,44 @@ _PARTICLE_KERNELS: dict[tuple, wp.Kernel] = {}
 _FINALIZE_KERNELS: dict[tuple, wp.Kernel] = {}
 
 
-def make_finalize_kernel(friction: bool):
-    """Friction on the substep's displacement, then velocities (x - x_prev)/dt with damping."""
-    key = (friction,)
+@wp.func
+def clamp_to_bound(p: wp.vec3, searched: wp.vec3, d_min: float, fraction: float, min_separation: float) -> wp.vec3:
+    """``p`` [m] pulled back within the particle's self-contact displacement bound around where it
+    was searched: ``fraction`` of its smallest pair distance ``d_min`` less ``min_separation`` (a
+    tenth of ``d_min`` for a pair already closer; ``simulate.contact.self_contact``)."""
+    step = p - searched
+    length = wp.length(step)
+    bound = fraction * wp.where(d_min > min_separation, d_min - min_separation, 0.1 * d_min)
+    if length > bound:
+        return searched + step * (bound / length)
+    return p
+
+
+@wp.kernel
+def clamp_to_bounds(
+    inv_mass: wp.array(dtype=float),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    searched: wp.array(dtype=wp.vec3),
+    d_min: wp.array(dtype=float),
+    fraction: float,
+    min_separation: float,
+    x: wp.array(dtype=wp.vec3),
+):
+    """Every particle of an active world with self-contact kept within its displacement bound."""
+    i = wp.tid()
+    w = particle_world[i]
+    if world_active[w] == 0 or world_self_contact[w] == 0 or inv_mass[i] == 0.0:
+        return
+    x[i] = clamp_to_bound(x[i], searched[i], d_min[i], fraction, min_separation)
+
+
+def make_finalize_kernel(friction: bool, bounds: bool = False):
+    """Friction on the substep's displacement, then velocities (x - x_prev)/dt with damping. With
+    ``bounds``, a particle that friction carries along with the body stays within its self-contact
+    displacement bound (``clamp_to_bound``)."""
+    key = (friction, bounds)
     if key in _FINALIZE_KERNELS:
         return _FINALIZE_KERNELS[key]
 
@@ -318,6 +353,12 @@ def make_finalize_kernel(friction: bool):
         # State in:
         x_prev: wp.array(dtype=wp.vec3),
         v_prev: wp.array(dtype=wp.vec3),
+        # Self-contact bounds:
+        sc_searched: wp.array(dtype=wp.vec3),
+        sc_d_min: wp.array(dtype=float),
+        sc_fraction: float,
+        sc_min_separation: float,
+        world_self_contact: wp.array(dtype=wp.int32),
         # In/out:
         x: wp.array(dtype=wp.vec3),
         # Out:
@@ -339,6 +380,9 @@ def make_finalize_kernel(friction: bool):
                 # up to mu times the normal displacement the contact imposed.
                 p = p - friction_cancel(p - x_prev[i] - contact_motion[i], contact_normal[i],
                                         world_friction[w] * depth)
+                if wp.static(bounds):
+                    if world_self_contact[w] != 0:
+                        p = clamp_to_bound(p, sc_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
                 x[i] = p
         vel = (p - x_prev[i]) / dt
         decay = wp.max(1.0 - (world_damping[w] + extra_damping) * dt, 0.0)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import warp as wp
 
 from simulate.contact.self_contact import self_contact_correction
-from simulate.solvers.common_kernels import (bending_angle_grad, project_attachment, project_body_contact,
+from simulate.solvers.common_kernels import (bending_angle_grad, clamp_to_bound, project_attachment, project_body_contact,
                                              tile_writer, triangle_constraint_deltas)
 
 wp.set_module_options({"enable_backward": False})
@@ -155,7 +155,7 @@ def solve_elements_gs_world_blocks(
 
 
 def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = False, body_contact: bool = False,
-                                   attachments: bool = False, self_contact: bool = False):
+                                   attachments: bool = False, self_contact: bool = False, bounds: bool = False):
     """World-block Gauss-Seidel iterations with the world's positions in shared memory.
 
     The block loads its world's positions (at most ``tile_particles``, 12 bytes each) into a
@@ -179,7 +179,9 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
     corners are in the tile. Every lane computes its particles' pushes from the swept tile into
     ``self_delta`` (global, each lane only its own entries), the block meets at a barrier, then
     lanes apply them; so no push reads a position another lane has already moved, as in the
-    separate launches of ``SelfContact.project`` and the particle kernel.
+    separate launches of ``SelfContact.project`` and the particle kernel. With ``bounds`` the pass
+    ends by keeping each particle of a world with self-contact within its displacement bound
+    (``common_kernels.clamp_to_bounds``).
 
     Element corners come as world-local indices (``local_topology``): element ``t`` of colour
     ``c`` in world ``w`` has corners ``*_local[t - *_shift[c, w]]``. Worlds with one topology
@@ -235,6 +237,11 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
         self_thickness: float,
         self_relaxation: float,
         self_delta: wp.array(dtype=wp.vec3),
+        sc_searched: wp.array(dtype=wp.vec3),
+        sc_d_min: wp.array(dtype=float),
+        sc_fraction: float,
+        sc_min_separation: float,
+        world_self_contact: wp.array(dtype=wp.int32),
         # In/out:
         tri_lambda: wp.array(dtype=wp.vec3),
         bend_lambda: wp.array(dtype=float),
@@ -318,6 +325,9 @@ def make_elements_gs_shared_kernel(tile_particles: int, particle_pass: bool = Fa
                         if wp.static(body_contact):
                             p = project_body_contact(p, i, contact_active, contact_normal, contact_offset,
                                                      contact_depth)
+                        if wp.static(bounds):
+                            if world_self_contact[w] != 0:
+                                p = clamp_to_bound(p, sc_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
                         tile_write(xs, j, p)
                 block_sync()
         for j in range(lane, count_w, stride):

@@ -217,6 +217,13 @@ class SolverXPBD(SolverBase):
 
             self.self_contact = SelfContact(model, **{"bounds": False, **dict(self_contact_options or {})})  # pushes only
         self.self_delta = self.self_contact.delta if self.self_contact else wp.zeros(1, dtype=wp.vec3, device=dev)
+        self.bounds = bool(self.self_contact is not None and self.self_contact.bounds)
+        """Whether each particle keeps within its self-contact displacement bound (after every
+        iteration and after friction), so no new crossing forms."""
+        if self.bounds:
+            sc = self.self_contact
+            self._bound_args = [sc.x_searched, sc.d_min, sc.bound_fraction, sc.min_separation]
+            self._finalize_kernel = ck.make_finalize_kernel(self.friction, True)
         self._no_candidates = wp.full(1, -1, dtype=wp.int32, device=dev)  # the tiled kernel's arguments
         self._no_side = wp.ones(1, dtype=float, device=dev)  # without self-contact
         self._particle_kernel = ck.make_particle_constraints_kernel(
@@ -249,7 +256,8 @@ class SolverXPBD(SolverBase):
             self._fused = bool(gs_shared and not self._gather)
             self._shared_kernel = (_shared_kernel(tile, self._fused, self.body_contact and self._fused,
                                                   self.attachments and self._fused,
-                                                  self.self_contact is not None and self._fused)
+                                                  self.self_contact is not None and self._fused,
+                                                  self.bounds and self._fused)
                                    if gs_shared else None)
             if gs_shared:  # where each world's tile starts and how much of it is the world's
                 self._world_start = wp.array(model.world_particle_start, dtype=wp.int32, device=dev)
@@ -345,9 +353,14 @@ class SolverXPBD(SolverBase):
             self_args = [self._no_candidates, self._no_side, 0.0, 0.0, self.self_delta]
         else:
             self_args = [sc.candidate, sc.side, sc.thickness, sc.relaxation, sc.delta]
+        if self.bounds:
+            self_args += self._bound_args
+        else:
+            self_args += [self.contact_normal, self.contact_depth, 0.0, 0.0]
         return [self.model.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
                 control.world_attachment_enabled, self.attachment_lambda, self.contact_active, self.contact_normal,
-                self.contact_offset, self.contact_depth, self.model.tri_indices, *self_args]
+                self.contact_offset, self.contact_depth, self.model.tri_indices, *self_args,
+                control.world_self_contact]
 
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
              contacts: BodyCollider | None, dt: float, *,
@@ -436,4 +449,8 @@ class SolverXPBD(SolverBase):
                     x,
                 ]
             wp.launch(self._particle_kernel, dim=m.particle_count, inputs=particle_inputs, device=dev)
+            if self.bounds:
+                wp.launch(ck.clamp_to_bounds, dim=m.particle_count,
+                          inputs=[m.particle_inv_mass, m.particle_world, control.world_active,
+                                  control.world_self_contact, *self._bound_args, x], device=dev)
         self.finalize_substep(state_in, state_out, control, dt)
