@@ -201,6 +201,9 @@ def fit_collision_aware(
     body model's pose 0 and default shape.
     """
     del canonical_pose
+    if not isinstance(data, FrameArrays):
+        raise ValueError(f"fit_collision_aware trains from frames in memory (a FrameArrays), not a "
+                         f"{type(data).__name__}: the VAE trains on the canonical projections of every frame together")
     if body is None or template is None:
         raise ValueError("fit_collision_aware needs body= (the dataset's body model) and template= "
                          "(the dataset's garment template)")
