@@ -3,8 +3,7 @@ arrays read from the shards when a loop asks for them.
 
 :class:`StreamedSplit` stands where the learners take a :class:`learn.tailornet.train.FrameArrays`
 (``drape train --data-mode stream``). It holds ``pose (N, P)``, ``shape (N, S)``, ``style (N, G)``
-and ``pair_id (N,)`` (tens of floats per frame: 34,777 t-shirt frames x 83 floats = 11.5 MB),
-read in one pass over the shards' small datasets; the per-vertex arrays (``displacements``,
+and ``pair_id (N,)`` (P + S + G floats a frame), read in one pass over the shards' small datasets; the per-vertex arrays (``displacements``,
 ``posed_vertices``, ``low_frequency``: 3 x 7,744 x 3 float32 = 279 KB per t-shirt frame) stay in
 the shards and reach the epoch loops through :class:`learn.batches.StreamBatches`, or, for the few
 frames a learner needs at once (one frame per style-shape pair, the prototype pairs' frames), through

@@ -21,6 +21,10 @@ after the learner.
 instead of a dataset (its registry ``data`` is ``static_set``): one resumable stage ``train``
 (checkpoint ``RUN/gcvae.pt``, per-epoch loss terms and validation error in ``RUN/gcvae_terms.csv``),
 the best validation epoch in ``RUN/gcvae_model.pt``.
+
+``--data-mode`` (memory, stream, auto: docs/streaming.md) says whether the training split is loaded
+whole or read shard by shard in DataLoader workers every epoch; ``auto`` streams when the split's
+per-vertex arrays exceed half the available memory.
 """
 from __future__ import annotations
 

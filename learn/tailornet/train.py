@@ -19,6 +19,9 @@ at the epoch's end. ``model.mixed_precision`` runs the forward passes under bf16
 (model, optimizer, frame order): a data-parallel wrapper of the model (DDP) goes around
 ``model`` before :func:`run_epochs`, and a per-rank shard of the order replaces
 ``torch.randperm`` in ``epoch_fn``.
+
+The stages take their batches from :mod:`learn.batches`: in memory as above, or streamed from the
+shards when ``data`` is a :class:`learn.streamed_split.StreamedSplit` (docs/streaming.md).
 """
 
 from __future__ import annotations
@@ -693,7 +696,7 @@ def train_hf(
     A streamed split (:class:`learn.streamed_split.StreamedSplit`, after its
     ``prepare_low_frequency``) gives the prototype pairs' frames only, read into memory: every
     step feeds each prototype a batch of its own pair's frames, which a stream dealing whole
-    shards cannot serve, and they are K of the split's X pairs (20 of 340 on the t-shirt).
+    shards cannot serve, and they are K of the split's X pairs.
     """
     if is_streamed(data):
         if not data.low_frequency_ready:
