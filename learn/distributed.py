@@ -143,6 +143,23 @@ def shard(batch: torch.Tensor) -> torch.Tensor:
     return mine
 
 
+def share() -> float | None:
+    """This rank's share of the coming step's global batch, as :func:`shard` or
+    :func:`share_of_frames` recorded it (None: none recorded, the gradients are averaged)."""
+    return _state["share"]
+
+
+def share_of_frames(frames: int) -> None:
+    """Records this rank's share of a step in which every rank brings its own ``frames`` (a
+    streamed batch, :class:`learn.batches.StreamBatches`): ``frames`` / the sum over the ranks
+    (one all-reduce). A rank with 0 frames takes a zero-weight step. Every rank calls it once per
+    step. No-op without data parallelism."""
+    if not active():
+        return
+    total = float(sum_over_ranks(float(frames)))
+    _state["share"] = float(frames) / total if total > 0 else 0.0
+
+
 def _buckets(tensors: list[torch.Tensor]) -> Iterable[list[torch.Tensor]]:
     bucket: list[torch.Tensor] = []
     size = 0

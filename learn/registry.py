@@ -21,6 +21,8 @@ Each ``LearnerEntry`` gives:
   progress)`` takes its ``StaticSet``, ``context`` is not called, ``load``'s fingerprint is the
   set's (learn.gcvae.train.set_fingerprint), and ``drape evaluate`` reports learn/gcvae/evaluate.py's
   per-type reconstruction metrics (surface, normals, mask IoU, KL).
+- ``streams``: whether ``fit`` takes a :class:`learn.streamed_split.StreamedSplit` for ``data``
+  (``drape train --data-mode stream``, docs/streaming.md); ``context`` then gets ``dataset=None``.
 """
 
 from __future__ import annotations
@@ -48,6 +50,7 @@ class LearnerEntry:
     stages: tuple[str, ...] = ()
     context: Callable[..., dict] | None = None
     data: str = "dataset"
+    streams: bool = True
 
     def __post_init__(self) -> None:
         if self.data not in DATA_KINDS:
@@ -78,7 +81,7 @@ LEARNERS: dict[str, LearnerEntry] = {
     "collision_aware": LearnerEntry(
         "collision_aware", fit_collision_aware, "collision_aware_model.pt", load_collision_aware,
         "seed 002: diffused body fields, canonical space, garment VAE with self-supervised collisions, MLP regressor",
-        COLLISION_AWARE_STAGES, collision_aware_context,
+        COLLISION_AWARE_STAGES, collision_aware_context, streams=False,
     ),
     "gcvae": LearnerEntry(
         "gcvae", fit_gcvae, "gcvae_model.pt", load_gcvae,

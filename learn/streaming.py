@@ -22,7 +22,7 @@ frames it yields come from shards it checks when it opens them).
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 
 import h5py
@@ -34,6 +34,11 @@ from data_manifest.reader import DatasetReader
 from data_manifest.schema import SHAPE, STYLE
 from learn.common.smoothing import LaplacianSmoother
 from learn.data import ITERATIONS, SMOOTHNESS, low_frequency_for_task
+
+
+#: The keys a :class:`StreamingDrapeDataset` item can hold.
+ITEM_FIELDS = ("pose", "shape", "style", "displacements", "posed_vertices", "pair", "frame", "low_frequency",
+               "high_frequency")
 
 
 def distributed_rank() -> tuple[int, int]:
@@ -61,12 +66,14 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
 
     rank, world_size: this process's share of the shards; default from ``torch.distributed``
     (:func:`distributed_rank`). shuffle, seed: per-epoch permutation of the shard order and
-    of the frames within each shard; :meth:`set_epoch` before each epoch.
+    of the frames within each shard; :meth:`set_epoch` before each epoch. fields: the keys
+    each item holds (default all of the above); a loop that needs a few arrays collates only
+    those, and without ``pair`` no worker reads the split's pair table.
     """
 
     def __init__(self, root: str | os.PathLike, split: str, *, frequencies: bool = False, shuffle: bool = False,
                  seed: int = 0, rank: int | None = None, world_size: int | None = None,
-                 cache_dir: str | os.PathLike | None = None) -> None:
+                 cache_dir: str | os.PathLike | None = None, fields: Collection[str] | None = None) -> None:
         super().__init__()
         self.reader = DatasetReader(root)  # the manifest only: files open lazily, in the process that reads
         self.root = Path(root)
@@ -88,6 +95,12 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
         # first row of each shard in index(split)
         self._first_row = {int(number): int(np.flatnonzero(self.index[:, 0] == number)[0]) for number in self.shards}
         self._pairs: dict[int, int] | None = None
+        known = set(ITEM_FIELDS) - (set() if self.frequencies else {"low_frequency", "high_frequency"})
+        self.fields = tuple(sorted(known)) if fields is None else tuple(fields)
+        unknown = sorted(set(self.fields) - known)
+        if unknown:
+            raise ValueError(f"fields {unknown} are not items of this dataset; expected among {sorted(known)}"
+                             + ("" if self.frequencies else " (low_frequency, high_frequency need frequencies=True)"))
 
     def __len__(self) -> int:
         """Frames of the whole split (all ranks and workers together)."""
@@ -113,6 +126,11 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
         consumer = rank * num_workers + worker
         return self.shard_order()[consumer::consumers]
 
+    def frames_for(self, rank: int, worker: int, num_workers: int) -> list[int]:
+        """Frame counts of the shards ``worker`` of ``num_workers`` on ``rank`` reads (in reading order)."""
+        entries = self.reader.shard_entries
+        return [int(entries[number]["frame_count"]) for number in self.shards_for(rank, worker, num_workers)]
+
     def _pair_table(self) -> dict[int, int]:
         """shard number -> pair id (rank of its (shape, style) among the split's distinct ones)."""
         if self._pairs is None:
@@ -128,7 +146,9 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
     def __iter__(self) -> Iterator[dict[str, torch.Tensor]]:
         info = torch.utils.data.get_worker_info()
         worker, num_workers = (0, 1) if info is None else (info.id, info.num_workers)
-        pairs = self._pair_table()
+        want = set(self.fields)
+        pairs = self._pair_table() if "pair" in want else None
+        frequencies = self.frequencies and bool(want & {"low_frequency", "high_frequency"})
         smoother = None
         cache_dir = self.cache_dir
         for number in self.shards_for(self.rank, worker, num_workers):
@@ -142,7 +162,7 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
                 "displacements": torch.from_numpy(arrays["unposed_displacements"]),
                 "posed_vertices": torch.from_numpy(arrays["posed_vertices"]),
             }
-            if self.frequencies:
+            if frequencies:
                 if smoother is None:
                     template = self.reader.template
                     smoother = LaplacianSmoother(template["faces"], tensors["displacements"].shape[1],
@@ -152,13 +172,15 @@ class StreamingDrapeDataset(torch.utils.data.IterableDataset):
                     low_frequency_for_task(self.reader, task_id, smoother, cache_dir=cache_dir,
                                            displacements=arrays["unposed_displacements"]))
             rows = self._rng(number).permutation(frames) if self.shuffle else np.arange(frames)
-            pair = torch.tensor(pairs[number], dtype=torch.int64)
+            pair = None if pairs is None else torch.tensor(pairs[number], dtype=torch.int64)
             first = self._first_row[number]
             for row in rows:
-                item = {key: value[int(row)] for key, value in tensors.items()}
-                item["pair"] = pair
-                if self.frequencies:
-                    item["high_frequency"] = item["displacements"] - item["low_frequency"]
-                item["frame"] = torch.tensor(first + int(row), dtype=torch.int64)
+                item = {key: value[int(row)] for key, value in tensors.items() if key in want}
+                if "high_frequency" in want:
+                    item["high_frequency"] = tensors["displacements"][int(row)] - tensors["low_frequency"][int(row)]
+                if pair is not None:
+                    item["pair"] = pair
+                if "frame" in want:
+                    item["frame"] = torch.tensor(first + int(row), dtype=torch.int64)
                 yield item
         self.reader.close()

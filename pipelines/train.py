@@ -21,6 +21,10 @@ after the learner.
 instead of a dataset (its registry ``data`` is ``static_set``): one resumable stage ``train``
 (checkpoint ``RUN/gcvae.pt``, per-epoch loss terms and validation error in ``RUN/gcvae_terms.csv``),
 the best validation epoch in ``RUN/gcvae_model.pt``.
+
+``--data-mode`` (memory, stream, auto: docs/streaming.md) says whether the training split is loaded
+whole or read shard by shard in DataLoader workers every epoch; ``auto`` streams when the split's
+per-vertex arrays exceed half the available memory.
 """
 from __future__ import annotations
 
@@ -113,10 +117,11 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
 
 
 def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu", epochs: int | None = None,
-          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True) -> Path:
+          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True,
+          data_mode: str = "auto") -> Path:
     """Library form of the command; returns the run directory."""
     args = argparse.Namespace(learner=learner, data=str(data), out=str(out), device=device, epochs=epochs, config=config,
-                              prototypes=prototypes, seed=seed, no_progress=not progress)
+                              prototypes=prototypes, seed=seed, no_progress=not progress, data_mode=data_mode)
     run(args)
     return Path(out)
 
@@ -125,9 +130,19 @@ def run(args: argparse.Namespace) -> int:
     from learn import distributed
     from learn.registry import get_learner
 
+    from learn.streamed_split import DATA_MODES
+
     entry = get_learner(args.learner)
     args.learner = entry.name
     check_torch_device(args.device)
+    mode = getattr(args, "data_mode", "auto")
+    if mode not in DATA_MODES:
+        raise UsageError(f"--data-mode {mode!r} is not a data mode; expected one of {', '.join(DATA_MODES)}")
+    if mode == "stream" and (entry.data != "dataset" or not entry.streams):
+        raise UsageError(f"--data-mode stream: {entry.name} trains from memory only "
+                         + ("(a static set is one file, read whole)" if entry.data != "dataset" else
+                            "(it projects every training frame to its canonical space and trains on the projections "
+                            "held together); use --data-mode memory"))
     try:  # under torchrun: join the process group, one device per rank
         args.device = distributed.init(args.device, data_parallel=entry.name != "tailornet")
     except ValueError as error:
@@ -172,8 +187,20 @@ def _run(args: argparse.Namespace, entry) -> int:
                     if model_hyper["pose_mask"] else np.arange(body.pose_size))
     fingerprint = dataset_fingerprint(args.data, template)
     t0 = time.perf_counter()
-    dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
-    data = frame_arrays_from_dataset(dataset)
+    mode = _data_mode(getattr(args, "data_mode", "auto"), reader, split, entry)
+    if mode == "stream":
+        from learn import distributed
+        from learn.streamed_split import StreamedSplit
+
+        dataset = None
+        reader.close()  # the template's shard: no HDF5 handle is open when a loader forks its workers
+        data = StreamedSplit(args.data, split)
+        if args.learner == "tailornet":  # the whole-split pre-pass: every shard's low-frequency part, cached
+            data.prepare_low_frequency(args.device, rank=distributed.rank(), world_size=distributed.world_size())
+            distributed.barrier()
+    else:
+        dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
+        data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
     hyper.setdefault("model", {})
     # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
@@ -205,7 +232,8 @@ def _run(args: argparse.Namespace, entry) -> int:
             template=template)
         entry.fit(data, template["faces"], **common, **extra)
     if rank == 0:
-        info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "frames": data.frame_count,
+        info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "data_mode": mode,
+                "frames": data.frame_count,
                 "pairs": pairs, "dataset_manifest_sha256": fingerprint.dataset_manifest_sha256,
                 "template_sha256": fingerprint.template_sha256, "hyperparameters": hyper, "device": args.device,
                 "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
@@ -213,6 +241,23 @@ def _run(args: argparse.Namespace, entry) -> int:
         (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
         print(f"trained {args.learner} on {data.frame_count} frames of {split} ({pairs} pairs) in {info['seconds']} s -> {out}")
     return 0
+
+
+def _data_mode(mode: str, reader, split: str, entry) -> str:
+    """``memory`` or ``stream`` for ``--data-mode`` ``mode``: ``auto`` streams when the in-memory
+    split (:func:`learn.streamed_split.split_bytes`) would exceed
+    :data:`learn.streamed_split.MEMORY_SHARE` of the available memory, for learners that stream."""
+    from learn.streamed_split import MEMORY_SHARE, available_memory_bytes, choose_data_mode, split_bytes
+
+    if mode != "auto":
+        return mode
+    need, available = split_bytes(reader, split), available_memory_bytes()
+    chosen = choose_data_mode(mode, need, available)
+    if chosen == "stream" and not entry.streams:
+        print(f"note: split {split} takes {need / 2**30:.1f} GiB in memory, over {MEMORY_SHARE:.0%} of the "
+              f"{available / 2**30:.1f} GiB available, but {entry.name} trains from memory only")
+        return "memory"
+    return chosen
 
 
 def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path) -> int:
@@ -256,5 +301,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}; "
                    "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--data-mode", default="auto", metavar="MODE",
+                   help="how the training split reaches the epoch loops: memory (loaded whole), stream (read shard by "
+                        "shard in DataLoader workers, for datasets larger than memory; docs/streaming.md) or auto "
+                        "(default: stream when the split's per-vertex arrays exceed half the available memory)")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)

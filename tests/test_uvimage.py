@@ -237,3 +237,43 @@ def test_cli_train_evaluate_predict(dataset, tmp_path, capsys):
     assert out.is_file()
     assert main(["train", "nosuch", "--data", str(dataset), "--out", str(run)]) == 2
     assert "unknown learner 'nosuch'" in capsys.readouterr().err
+
+
+def test_streamed_split_trains_the_same_learner_as_memory(dataset, tmp_path, anny_body):
+    """Unshuffled, with the reads in this process, a streamed epoch's batches are the in-memory
+    path's; the targets are computed per batch instead of in chunks of 64 frames, the same per-frame
+    operations (bitwise equal parameters on this CPU; the bound leaves room for a BLAS whose
+    blocking follows the batch size). Then ``drape train --data-mode stream`` runs the CLI path
+    with forked workers."""
+    from data_manifest.reader import DatasetReader
+    from learn.data import DrapeDataset
+    from learn.streamed_split import StreamedSplit
+    from learn.tailornet.train import frame_arrays_from_dataset
+    from learn.uvimage.garment import uvimage_context
+    from learn.uvimage.train import build_learner, merged_hyperparameters, train_learner
+    from pipelines.cli import main
+
+    memory = frame_arrays_from_dataset(DrapeDataset(dataset, "train_train", frequencies=False))
+    split = StreamedSplit(dataset, "train_train", workers=0)
+    context = uvimage_context(DatasetReader(dataset), anny_body)
+    hyper = {**merged_hyperparameters("uvimage", {"uvimage": TINY_HYPER}), "epochs": 2, "shuffle": False,
+             "checkpoint_interval_s": 1e9}
+    params = []
+    for name, data in (("memory", memory), ("stream", split)):
+        torch.manual_seed(0)
+        learner = build_learner("uvimage", context["template"], anny_body, data, hyper, garment_type="tshirt")
+        start = torch.cat([p.detach().reshape(-1) for p in learner.network.parameters()]).clone()
+        learner = train_learner("uvimage", learner, data, run_dir=tmp_path / name, hyperparameters=hyper,
+                                fingerprint=None, progress=False)
+        params.append(torch.cat([p.detach().reshape(-1) for p in learner.network.parameters()]))
+    moved = float((params[0] - start).abs().max())
+    assert moved > 1e-4 and float((params[1] - params[0]).abs().max()) <= 1e-5 * moved
+
+    run = tmp_path / "run"
+    config = tmp_path / "uv.yaml"
+    config.write_text(json.dumps({"uvimage": TINY_HYPER}))
+    assert main(["train", "uvimage", "--data", str(dataset), "--out", str(run), "--epochs", "1", "--config", str(config),
+                 "--data-mode", "stream", "--no-progress"]) == 0
+    info = json.loads((run / "run.json").read_text())
+    assert info["data_mode"] == "stream" and info["frames"] == 12
+    assert np.isfinite(np.loadtxt(run / "uvimage_loss.csv", delimiter=",", skiprows=1)[1])

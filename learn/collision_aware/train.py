@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from learn import distributed
+from learn.batches import is_streamed
 from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
 from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
@@ -201,6 +202,9 @@ def fit_collision_aware(
     body model's pose 0 and default shape.
     """
     del canonical_pose
+    if is_streamed(data):
+        raise ValueError("fit_collision_aware trains from frames in memory (a FrameArrays), not a streamed split: "
+                         "the VAE trains on the canonical projections of every frame together")
     if body is None or template is None:
         raise ValueError("fit_collision_aware needs body= (the dataset's body model) and template= "
                          "(the dataset's garment template)")

@@ -19,6 +19,9 @@ at the epoch's end. ``model.mixed_precision`` runs the forward passes under bf16
 (model, optimizer, frame order): a data-parallel wrapper of the model (DDP) goes around
 ``model`` before :func:`run_epochs`, and a per-rank shard of the order replaces
 ``torch.randperm`` in ``epoch_fn``.
+
+The stages take their batches from :mod:`learn.batches`: in memory as above, or streamed from the
+shards when ``data`` is a :class:`learn.streamed_split.StreamedSplit` (docs/streaming.md).
 """
 
 from __future__ import annotations
@@ -31,13 +34,14 @@ import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 from tqdm.auto import tqdm
 
 from learn import distributed
+from learn.batches import MemoryBatches, batches_for, is_streamed
 from learn.common.losses import l1_displacement_loss
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
 from learn.tailornet.baseline import baseline_model
@@ -48,6 +52,9 @@ from learn.tailornet.model import TailorNet
 from learn.tailornet.pose_mask import garment_pose_joints, pose_feature_indices
 from simulate.garment.prototypes import canonical_frame_per_pair, choose_prototypes
 from learn.tailornet.shape_style import ShapeStyleModel
+
+if TYPE_CHECKING:
+    from learn.streamed_split import StreamedSplit
 
 CHECKPOINT_FORMAT = 1
 DEFAULT_CHECKPOINT_INTERVAL_S = 60.0
@@ -476,8 +483,8 @@ def run_epochs(
 def train_stage(
     stage: str,
     model: DisplacementMLP,
-    data: FrameArrays,
-    target: np.ndarray,
+    data: FrameArrays | StreamedSplit,
+    target: np.ndarray | str,
     *,
     run_dir: str | os.PathLike[str],
     hyperparameters: Mapping[str, Any],
@@ -486,36 +493,41 @@ def train_stage(
     seed: int = 0,
     progress: bool = True,
 ) -> DisplacementMLP:
-    """Train ``model`` to map (data.pose, data.shape, data.style) to ``target`` (N, V, 3).
+    """Train ``model`` to map (data.pose, data.shape, data.style) to ``target``: an array (N, V, 3)
+    or the name of a frame field (``displacements``, ``low_frequency``, ``high_frequency``; the
+    only form a streamed split takes, :mod:`learn.batches`).
 
-    Mini-batches of ``batch_size`` frames in a fresh random order each epoch; see
-    :func:`run_epochs` for checkpoints, logs and resuming. Returns the model in eval mode.
+    Mini-batches of ``batch_size`` frames in a fresh random order each epoch (the frames' order
+    with ``hyperparameters["shuffle"]`` false); see :func:`run_epochs` for checkpoints, logs and
+    resuming. Returns the model in eval mode.
     """
-    if target.shape != (data.frame_count, model.vertex_count, 3):
-        raise ValueError(
-            f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
-        )
     if data.frame_count == 0:
         raise ValueError(f"{stage}: no training frames")
     batch_size = int(hyperparameters["batch_size"])
     mixed = bool(hyperparameters.get("mixed_precision", False))
-    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
-    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
-    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
-    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
+    shuffle = bool(hyperparameters.get("shuffle", True))
+    if isinstance(target, str):
+        source = batches_for(data, ("pose", "shape", "style", target), batch_size=batch_size, device=device,
+                             shuffle=shuffle)
+    else:
+        if target.shape != (data.frame_count, model.vertex_count, 3):
+            raise ValueError(
+                f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
+            )
+        source = MemoryBatches({"pose": data.pose, "shape": data.shape, "style": data.style, "target": target},
+                               batch_size=batch_size, device=device, shuffle=shuffle)
+        target = "target"
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
-        order = torch.randperm(data.frame_count, generator=generator).to(device)
         total = torch.zeros((), device=device)
-        for begin in range(0, data.frame_count, batch_size):
-            batch = distributed.shard(order[begin : begin + batch_size])  # this rank's frames (all in one process)
+        for batch in source.epoch(generator, optimizer):  # this rank's frames (all in one process)
             with autocast(device, mixed):
-                prediction = net(pose[batch], shape[batch], style[batch])
-            loss = l1_displacement_loss(prediction.float(), target_t[batch])
+                prediction = net(batch["pose"], batch["shape"], batch["style"])
+            loss = l1_displacement_loss(prediction.float(), batch[target])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += loss.detach() * batch.numel()
+            total += loss.detach() * batch.frames
         return float(total) / data.frame_count
 
     return run_epochs(
@@ -644,8 +656,9 @@ def train_lf(
     seed: int = 0,
     progress: bool = True,
 ) -> DisplacementMLP:
-    """Train D_LF(pose, shape, style) on the smoothed displacements (``data.low_frequency``)."""
-    if data.low_frequency is None:
+    """Train D_LF(pose, shape, style) on the smoothed displacements (``data.low_frequency``; a
+    streamed split reads them from the per-shard cache, :meth:`StreamedSplit.prepare_low_frequency`)."""
+    if not is_streamed(data) and data.low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     hyper = merged_hyperparameters(hyperparameters)
     shape_components, style_components = _components(data, hyper["model"])
@@ -655,7 +668,7 @@ def train_lf(
         hidden_size=int(hyper["lf"]["hidden_size"]), dropout=float(hyper["lf"]["dropout"]),
     )
     return train_stage(
-        "lf", model, data, data.low_frequency, run_dir=run_dir, hyperparameters=stage_hyper(hyper["lf"], hyper["model"]),
+        "lf", model, data, "low_frequency", run_dir=run_dir, hyperparameters=stage_hyper(hyper["lf"], hyper["model"]),
         fingerprint=fingerprint, device=device, seed=seed, progress=progress,
     )
 
@@ -679,8 +692,16 @@ def train_hf(
     as one stage ``hf`` (:func:`train_stacked_prototypes`, far faster on a GPU);
     otherwise one stage per prototype, ``hf_00``, ``hf_01``, ... Both start from the
     same initial weights. Returns the K models stacked, in eval mode.
+
+    A streamed split (:class:`learn.streamed_split.StreamedSplit`, after its
+    ``prepare_low_frequency``) gives the prototype pairs' frames only, read into memory: every
+    step feeds each prototype a batch of its own pair's frames, which a stream dealing whole
+    shards cannot serve, and they are K of the split's X pairs.
     """
-    if data.low_frequency is None:
+    if is_streamed(data):
+        if not data.low_frequency_ready:
+            raise ValueError("the streamed split's low-frequency cache is not prepared: call data.prepare_low_frequency()")
+    elif data.low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     hyper = merged_hyperparameters(hyperparameters)
     if stacked is None:
@@ -691,6 +712,10 @@ def train_hf(
         if frames.size == 0:
             raise ValueError(f"prototype pair {pair} has no frames in the training data")
         frames_per_prototype.append(frames)
+    if is_streamed(data):
+        data = data.subset(np.concatenate(frames_per_prototype))
+        ends = np.cumsum([f.size for f in frames_per_prototype])
+        frames_per_prototype = [np.arange(end - f.size, end) for f, end in zip(frames_per_prototype, ends)]
     initial = []
     for k in range(len(frames_per_prototype)):
         torch.manual_seed(seed + 1 + k)  # deterministic initial weights, same in both modes
@@ -739,7 +764,7 @@ def train_baseline(
         hidden_size=int(hyper["baseline"]["hidden_size"]), dropout=float(hyper["baseline"]["dropout"]),
     )
     model = train_stage(
-        "baseline", model, data, data.displacements, run_dir=run_dir,
+        "baseline", model, data, "displacements", run_dir=run_dir,
         hyperparameters=stage_hyper(hyper["baseline"], hyper["model"]), fingerprint=fingerprint, device=device, seed=seed,
         progress=progress,
     )
@@ -819,8 +844,21 @@ def fit_tailornet(
             returned and a later call (e.g. by rank 0) assembles it.
     Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
     on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
+
+    ``data`` may be a :class:`learn.streamed_split.StreamedSplit`: the low-frequency split is
+    then computed in one streamed pass into the per-shard cache (its smoothing settings are the
+    cache's, :data:`learn.data.SMOOTHNESS` and :data:`learn.data.ITERATIONS`), LF and the baseline
+    stream their batches, g and the prototype choice read one frame per pair, and HF reads its
+    prototype pairs' frames (:func:`train_hf`).
     """
     hyper = merged_hyperparameters(hyperparameters)
+    if is_streamed(data):
+        from learn.data import ITERATIONS, SMOOTHNESS
+
+        settings = (float(hyper["model"]["smoothing_lambda"]), int(hyper["model"]["smoothing_iterations"]))
+        if settings != (SMOOTHNESS, ITERATIONS):
+            raise ValueError(f"model.smoothing_lambda, model.smoothing_iterations = {settings} with streamed data: the "
+                             f"streamed low-frequency cache is computed with ({SMOOTHNESS}, {ITERATIONS})")
     stages = list(TAILORNET_STAGES if stages is None else stages)
     unknown = sorted(set(stages) - set(TAILORNET_STAGES))
     if unknown:
@@ -832,7 +870,7 @@ def fit_tailornet(
     canonical_frames = canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose)
     pair_count = canonical_frames.shape[0]
     prototype_count = min(int(hyper["model"]["prototype_count"]), pair_count)
-    choice = choose_prototypes(data.displacements[canonical_frames], prototype_count)
+    choice = choose_prototypes(data.subset(canonical_frames).displacements, prototype_count)
     (run_dir / "prototypes.json").write_text(
         json.dumps(
             {
@@ -850,7 +888,10 @@ def fit_tailornet(
     def train(stage: str) -> torch.nn.Module:
         if stage == "shape_style":
             return train_shape_style(data, canonical_pose=canonical_pose, seed=seed, **common)
-        if data.low_frequency is None:
+        if is_streamed(data):
+            if not data.low_frequency_ready:
+                data.prepare_low_frequency(device)
+        elif data.low_frequency is None:
             add_low_frequency(
                 data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
                 iterations=int(hyper["model"]["smoothing_iterations"]), device=device,

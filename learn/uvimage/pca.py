@@ -20,7 +20,54 @@ def offset_basis(local: np.ndarray | torch.Tensor, components: int = PCA_COMPONE
     mean = x.mean(0)
     _, s, vt = torch.linalg.svd(x - mean, full_matrices=False)
     c = min(int(components), vt.shape[0])
-    return mean.float(), vt[:c].float(), s[:c].float()
+    return mean.float(), _oriented(vt[:c]).float(), s[:c].float()
+
+
+def _oriented(basis: torch.Tensor) -> torch.Tensor:
+    """``basis`` (C, D) with each row's entry of largest magnitude positive: the SVD's and the
+    eigensolver's sign choices differ between libraries and devices, the oriented basis does not."""
+    pick = basis.abs().argmax(dim=1, keepdim=True)
+    return basis * torch.sign(basis.gather(1, pick)).clamp_min(0).mul(2).sub(1)
+
+
+class OffsetMoments:
+    """Sums over training offsets for their PCA without holding them (a streamed split): the
+    frame count, the sum (D,) and the Gram matrix x^T x (D, D) in float64, D = 3 K (K cloth
+    pixels; D^2 x 8 bytes on ``device``). :meth:`basis` gives what :func:`offset_basis` gives on
+    the same frames, to float64 rounding of the centred Gram matrix's eigenvectors."""
+
+    def __init__(self, pixel_count: int, device: str | torch.device = "cpu") -> None:
+        size = 3 * int(pixel_count)
+        self.count = torch.zeros((), dtype=torch.float64, device=device)
+        self.sum = torch.zeros(size, dtype=torch.float64, device=device)
+        self.gram = torch.zeros(size, size, dtype=torch.float64, device=device)
+
+    def add(self, local: torch.Tensor) -> None:
+        """Adds the offsets (B, K, 3) [m] of B frames."""
+        x = local.detach().reshape(len(local), -1).to(self.sum.device, torch.float64)
+        self.count += x.shape[0]
+        self.sum += x.sum(0)
+        self.gram += x.T @ x
+
+    def all_reduce(self) -> None:
+        """Sums the moments over the ranks of a process group (each rank having added its frames)."""
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            for t in (self.count, self.sum, self.gram):
+                torch.distributed.all_reduce(t)
+
+    def basis(self, components: int = PCA_COMPONENTS) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(mean (D,), basis (C, D) orthonormal rows, singular values (C,)) as :func:`offset_basis`,
+        C = min(components, frames, D)."""
+        n = int(self.count)
+        if n == 0:
+            raise ValueError("no offsets were added")
+        mean = self.sum / n
+        centred = self.gram - n * torch.outer(mean, mean)
+        values, vectors = torch.linalg.eigh((centred + centred.T) / 2)
+        c = min(int(components), n, mean.numel())
+        order = torch.argsort(values, descending=True)[:c]
+        singular = values[order].clamp_min(0).sqrt()
+        return mean.float(), _oriented(vectors[:, order].T).float(), singular.float()
 
 
 class PCADecoder(nn.Module):

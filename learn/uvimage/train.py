@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from learn import distributed
+from learn.batches import MemoryBatches, StreamBatches, is_streamed
 from learn.common.normals import vertex_normals
 from learn.tailornet.train import (
     DatasetFingerprint,
@@ -35,8 +35,8 @@ from learn.tailornet.train import (
 from learn.uvimage.features import PoseFeatures, input_joints
 from learn.uvimage.losses import NORMAL_WEIGHT, NORMS, masked_image_loss, normal_loss
 from learn.uvimage.model import LAYOUT_KEYS, UVImageLearner, layout_arrays
-from learn.uvimage.pca import offset_basis
-from learn.uvimage.targets import cloth_targets
+from learn.uvimage.pca import OffsetMoments, offset_basis
+from learn.uvimage.targets import ClothTargets, cloth_targets
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "uvimage": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 100, "norm": "l1",
@@ -80,49 +80,75 @@ def build_learner(stage: str, template: Any, body: Any, data: FrameArrays, hyper
                           style_components=int(data.style.shape[1])).attach_body(body)
 
 
-def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays, *, run_dir: str | os.PathLike[str],
+def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays | Any, *, run_dir: str | os.PathLike[str],
                   hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None, device: str = "cpu",
                   seed: int = 0, progress: bool = True) -> UVImageLearner:
-    """Trains ``learner`` on ``data`` (frames with ``posed_vertices``); see the module docstring."""
+    """Trains ``learner`` on ``data`` (frames with ``posed_vertices``); see the module docstring.
+
+    In memory the targets of every frame are computed once. A streamed split
+    (:class:`learn.streamed_split.StreamedSplit`) computes each batch's targets as it arrives,
+    and the PCA variant's basis from the offsets' moments gathered in one streamed pass before
+    training (:class:`learn.uvimage.pca.OffsetMoments`). ``hyperparameters["shuffle"]`` false
+    keeps the frames' order (default: shuffled).
+    """
     if data.frame_count == 0:
         raise ValueError(f"{stage}: no training frames")
     hyper = dict(hyperparameters)
-    targets = cloth_targets(learner, data.pose, data.shape, data.posed_vertices, translation=data.translation,
-                            device=device)
-    if learner.kind == "pca":
-        mean, basis, singular = offset_basis(targets.local.cpu(), int(hyper["components"]))
-        learner.network.set_basis(mean.to(device), basis.to(device), singular.to(device), data.frame_count)
-    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
-    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
-    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
     batch_size, weight, norm = int(hyper["batch_size"]), float(hyper["normal_weight"]), str(hyper.get("norm", "l1"))
+    shuffle = bool(hyper.get("shuffle", True))
+    streamed = is_streamed(data)
+    if streamed:
+        source = StreamBatches(data, ("pose", "shape", "style", "posed_vertices"), batch_size=batch_size,
+                               device=device, shuffle=shuffle)
+        if learner.kind == "pca":
+            moments = OffsetMoments(learner.pixels.pixel_count, device)
+            for batch in source.once():
+                moments.add(_targets(learner, batch, device).local)
+            moments.all_reduce()
+            mean, basis, singular = moments.basis(int(hyper["components"]))
+            learner.network.set_basis(mean.to(device), basis.to(device), singular.to(device), data.frame_count)
+    else:
+        targets = cloth_targets(learner, data.pose, data.shape, data.posed_vertices, translation=data.translation,
+                                device=device)
+        if learner.kind == "pca":
+            mean, basis, singular = offset_basis(targets.local.cpu(), int(hyper["components"]))
+            learner.network.set_basis(mean.to(device), basis.to(device), singular.to(device), data.frame_count)
+        source = MemoryBatches({"pose": data.pose, "shape": data.shape, "style": data.style, "local": targets.local,
+                                "points": targets.points, "frames": targets.frames, "normals": targets.normals},
+                               batch_size=batch_size, device=device, shuffle=shuffle)
     mask = learner.pixels.mask.to(device)
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
-        order = torch.randperm(data.frame_count, generator=generator).to(device)
         total = torch.zeros((), device=device)
-        for begin in range(0, data.frame_count, batch_size):
-            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
-            features = net.features(pose[batch], shape[batch], style[batch])
+        for batch in source.epoch(generator, optimizer):  # this rank's frames (all in one process)
+            target = _targets(net, batch, device) if streamed else ClothTargets(
+                batch["local"], batch["points"], batch["frames"], batch["normals"])
+            features = net.features(batch["pose"], batch["shape"], batch["style"])
             if net.kind == "image":
                 images = net.network(features)
-                loss = masked_image_loss(images, net.pixels.to_images(targets.local[batch]), mask, norm=norm)
+                loss = masked_image_loss(images, net.pixels.to_images(target.local), mask, norm=norm)
                 local = net.pixels.sample(images) if weight > 0 else None
             else:
                 local = net.network(features)
-                loss = (local - targets.local[batch]).abs().sum(-1).mean()
+                loss = (local - target.local).abs().sum(-1).mean()
             if weight > 0:
-                garment = net.embedding.to_world(local, targets.points[batch], targets.frames[batch], net.pixels.pixel_weight)
-                loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), targets.normals[batch])
+                garment = net.embedding.to_world(local, target.points, target.frames, net.pixels.pixel_weight)
+                loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), target.normals)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += loss.detach() * batch.numel()
+            total += loss.detach() * batch.frames
         return float(total) / data.frame_count
 
     learner.train()
     return run_epochs(stage, learner.to(device), epoch_fn, run_dir=run_dir, hyperparameters=hyper,
                       fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+
+
+def _targets(learner: UVImageLearner, batch: Mapping[str, torch.Tensor], device: str) -> ClothTargets:
+    """The targets of a streamed batch's frames (the training mode is kept: ``cloth_targets`` runs
+    without gradients and uses no layer that trains)."""
+    return cloth_targets(learner, batch["pose"], batch["shape"], batch["posed_vertices"], device=device)
 
 
 def _fit(stage: str, data: FrameArrays, *, run_dir, hyperparameters, fingerprint, device, seed, progress,
