@@ -16,6 +16,7 @@ at all (a full disk) is skipped, the split is then computed on every load.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 import warnings
 from pathlib import Path
 
@@ -184,3 +185,60 @@ class DrapeDataset(torch.utils.data.Dataset):
             item["low_frequency"] = self.low_frequency[i]
             item["high_frequency"] = self.displacements[i] - self.low_frequency[i]
         return item
+
+
+@dataclass
+class FrameArrays:
+    """Frames of one split, as arrays.
+
+    pose: axis-angle pose, shape (N, P); shape: (N, S); style: (N, G);
+    displacements: unposed displacements [m], shape (N, V, 3);
+    pair_id: style-shape pair of each frame, 0..X-1, shape (N,);
+    low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
+    posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
+    translation: body root translation [m] added after skinning, shape (N, 3), optional.
+    """
+
+    pose: np.ndarray
+    shape: np.ndarray
+    style: np.ndarray
+    displacements: np.ndarray
+    pair_id: np.ndarray
+    low_frequency: np.ndarray | None = None
+    posed_vertices: np.ndarray | None = None
+    translation: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = self.pose.shape[0]
+        for name in ("shape", "style", "displacements", "pair_id"):
+            if getattr(self, name).shape[0] != n:
+                raise ValueError(
+                    f"FrameArrays.{name} has {getattr(self, name).shape[0]} frames, pose has {n}"
+                )
+        if self.displacements.ndim != 3 or self.displacements.shape[-1] != 3:
+            raise ValueError(
+                f"FrameArrays.displacements must have shape (N, V, 3), got {self.displacements.shape}"
+            )
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.pose.shape[0])
+
+    @property
+    def vertex_count(self) -> int:
+        return int(self.displacements.shape[1])
+
+    def subset(self, frames: np.ndarray) -> FrameArrays:
+        def pick(a: np.ndarray | None) -> np.ndarray | None:
+            return None if a is None else a[frames]
+
+        return FrameArrays(
+            pose=self.pose[frames],
+            shape=self.shape[frames],
+            style=self.style[frames],
+            displacements=self.displacements[frames],
+            pair_id=self.pair_id[frames],
+            low_frequency=pick(self.low_frequency),
+            posed_vertices=pick(self.posed_vertices),
+            translation=pick(self.translation),
+        )

@@ -1,7 +1,7 @@
 """A training split that is never held whole: its per-frame vectors in memory, its per-vertex
 arrays read from the shards when a loop asks for them.
 
-:class:`StreamedSplit` stands where the learners take a :class:`learn.tailornet.train.FrameArrays`
+:class:`StreamedSplit` stands where the learners take a :class:`learn.data.FrameArrays`
 (``drape train --data-mode stream``). It holds ``pose (N, P)``, ``shape (N, S)``, ``style (N, G)``
 and ``pair_id (N,)`` (P + S + G floats a frame), read in one pass over the shards' small datasets; the per-vertex arrays (``displacements``,
 ``posed_vertices``, ``low_frequency``: 3 x 7,744 x 3 float32 = 279 KB per t-shirt frame) stay in
@@ -25,7 +25,7 @@ from data_manifest.integrity import cache_dir_for
 from data_manifest.reader import DatasetReader
 from data_manifest.schema import POSE, POSED_VERTICES, SHAPE, STYLE
 from learn.common.smoothing import LaplacianSmoother
-from learn.data import ITERATIONS, SMOOTHNESS, low_frequency_for_task
+from learn.data import ITERATIONS, SMOOTHNESS, FrameArrays, low_frequency_for_task
 
 DATA_MODES = ("auto", "memory", "stream")
 #: ``auto`` streams when the in-memory split would take more than this share of the available memory.
@@ -104,8 +104,6 @@ class StreamedSplit:
         """Frames ``frames`` (indices into the split) as an in-memory ``FrameArrays``, with
         ``posed_vertices`` and, after :meth:`prepare_low_frequency`, ``low_frequency``; read shard
         by shard, each shard opened once. For the few frames a learner needs at once."""
-        from learn.tailornet.train import FrameArrays
-
         frames = np.asarray(frames, dtype=np.int64).reshape(-1)
         if frames.size and (frames.min() < 0 or frames.max() >= self.frame_count):
             raise IndexError(f"frames must lie in [0, {self.frame_count}) (got {frames.min()}..{frames.max()})")

@@ -42,6 +42,7 @@ from tqdm.auto import tqdm
 
 from learn import distributed
 from learn.batches import MemoryBatches, batches_for, is_streamed
+from learn.data import FrameArrays
 from learn.common.losses import l1_displacement_loss
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
 from learn.tailornet.baseline import baseline_model
@@ -157,63 +158,6 @@ def check_fingerprint(
             f"{source} was trained on dataset manifest sha256 {saved.get('dataset_manifest_sha256')}, "
             f"but this dataset's manifest has sha256 {expected.dataset_manifest_sha256}: "
             "train into a new run directory, or point --data at the original dataset"
-        )
-
-
-@dataclass
-class FrameArrays:
-    """Frames of one split, as arrays.
-
-    pose: axis-angle pose, shape (N, P); shape: (N, S); style: (N, G);
-    displacements: unposed displacements [m], shape (N, V, 3);
-    pair_id: style-shape pair of each frame, 0..X-1, shape (N,);
-    low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
-    posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
-    translation: body root translation [m] added after skinning, shape (N, 3), optional.
-    """
-
-    pose: np.ndarray
-    shape: np.ndarray
-    style: np.ndarray
-    displacements: np.ndarray
-    pair_id: np.ndarray
-    low_frequency: np.ndarray | None = None
-    posed_vertices: np.ndarray | None = None
-    translation: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        n = self.pose.shape[0]
-        for name in ("shape", "style", "displacements", "pair_id"):
-            if getattr(self, name).shape[0] != n:
-                raise ValueError(
-                    f"FrameArrays.{name} has {getattr(self, name).shape[0]} frames, pose has {n}"
-                )
-        if self.displacements.ndim != 3 or self.displacements.shape[-1] != 3:
-            raise ValueError(
-                f"FrameArrays.displacements must have shape (N, V, 3), got {self.displacements.shape}"
-            )
-
-    @property
-    def frame_count(self) -> int:
-        return int(self.pose.shape[0])
-
-    @property
-    def vertex_count(self) -> int:
-        return int(self.displacements.shape[1])
-
-    def subset(self, frames: np.ndarray) -> FrameArrays:
-        def pick(a: np.ndarray | None) -> np.ndarray | None:
-            return None if a is None else a[frames]
-
-        return FrameArrays(
-            pose=self.pose[frames],
-            shape=self.shape[frames],
-            style=self.style[frames],
-            displacements=self.displacements[frames],
-            pair_id=self.pair_id[frames],
-            low_frequency=pick(self.low_frequency),
-            posed_vertices=pick(self.posed_vertices),
-            translation=pick(self.translation),
         )
 
 
