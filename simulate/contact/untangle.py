@@ -23,7 +23,7 @@ at most ``step x thickness`` along the sum of its crossings' pushes.
 
 A call is four launches for all worlds (points into their world cells, BVH refit, one thread per
 cloth edge querying the cloth BVH for the triangles its box overlaps and testing each crossing
-exactly, one thread per particle applying the step) and no transfer to the host. Pushes are summed
+exactly (``simulate.contact.crossing``, the quality metric's test), one thread per particle applying the step) and no transfer to the host. Pushes are summed
 in fixed point (int32 atomics), so the result does not depend on the order threads add them: the
 same positions give the same positions on every run and device. A world without crossings is not
 written. None of this is compiled or allocated unless a solver is built with ``untangle``.
@@ -37,8 +37,8 @@ import warp as wp
 from simulate.cloth.model import ClothModel
 from simulate.contact.body_collider import BVH_OPTIONS, world_cell_offsets
 from simulate.contact.closest import closest_point_barycentric, shift_tolerance
+from simulate.contact.crossing import segment_hits_triangle
 from simulate.contact.self_contact import place_cloth_points
-from simulate.quality import segment_hits_triangle
 
 wp.set_module_options({"enable_backward": False})
 
