@@ -37,7 +37,8 @@ def _tube(n_around: int, n_along: int, radius: float, length: float) -> tuple[np
     """Open cylinder along x [m]."""
     t = 2.0 * np.pi * np.arange(n_around) / n_around
     xs = np.linspace(-length / 2, length / 2, n_along)
-    v = np.stack([np.repeat(xs, n_around), np.tile(radius * np.sin(t), n_along), np.tile(radius * np.cos(t), n_along)], 1)
+    v = np.stack([np.repeat(xs, n_around), np.tile(radius * np.sin(t), n_along),
+                  np.tile(radius * np.cos(t), n_along)], 1)
     faces = []
     for i in range(n_along - 1):
         for j in range(n_around):

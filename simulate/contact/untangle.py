@@ -22,8 +22,9 @@ corners against it (weights: ``P``'s barycentric coordinates); each particle the
 at most ``step x thickness`` along the sum of its crossings' pushes.
 
 A call is five launches for all worlds (points into their world cells, BVH refit, the per-world
-crossing counts zeroed, one thread per cloth edge querying the cloth BVH for the triangles its box overlaps and testing each crossing
-exactly (``simulate.contact.crossing``, the quality metric's test), one thread per particle applying the step) and no transfer to the host. Pushes are summed
+crossing counts zeroed, one thread per cloth edge querying the cloth BVH for the triangles its box
+overlaps and testing each crossing exactly (``simulate.contact.crossing``, the quality metric's
+test), one thread per particle applying the step) and no transfer to the host. Pushes are summed
 in fixed point (int32 atomics), so the result does not depend on the order threads add them: the
 same positions give the same positions on every run and device. A world without crossings is not
 written. None of this is compiled or allocated unless a solver is built with ``untangle``.
