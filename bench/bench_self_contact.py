@@ -7,8 +7,11 @@ and held to rest, for each solver / self-contact setting in one run on one devic
 Prints one JSON line per run: crossing garment edges (``self_intersections``) and intersection
 contours after the canonical drape and after the hold, the penetration and distorted-triangle
 shares of the held frame (the dataset's filters: seed 001 D.6 area bounds), its status and hold
-frames, and the wall time of the sequence. Runs: ``<solver>[-sc]`` with the solver's shipped
-stepping (VBD 20 x 3, XPBD 15 x 5, frames of 1/45 s, damping 20/s, primary collision bodies).
+frames, and the wall time of the sequence. Runs: ``<solver>[-sc|-scb][-untangle]`` with the solver's
+shipped stepping (VBD 20 x 3, XPBD 15 x 5, frames of 1/45 s, damping 20/s, primary collision
+bodies); ``-sc``: self-contact; ``-scb``: XPBD self-contact with the displacement bounds
+(``SimSettings.self_contact_bounds``); ``-untangle``: intersection contour minimization after
+every substep.
 """
 from __future__ import annotations
 
@@ -55,14 +58,15 @@ def main() -> None:
     meter = QualityMeter(template.faces, template.vertices, body_faces, len(rest_body), device=args.device,
                          body_face_groups=parts.face_groups, garment_part=garment_part)
     for run in args.runs.split(","):
-        solver, _, flag = run.partition("-")
-        bounds = flag == "scb"  # XPBD with the displacement bounds
-        flag = "sc" if bounds else flag
+        solver, *flags = run.split("-")
+        if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle"}:
+            parser.error(f"--runs: {run!r} is not <solver>[-sc|-scb][-untangle] with a solver of {sorted(STEPPING)}")
         substeps, iterations = STEPPING[solver]
         sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
                           outlier_fraction=0.02, max_frames=args.hold_frames, limit_cycle_window=8,
-                          self_contact_bounds=bounds)
-        settings = SequenceSettings(sim=sim, solver=solver, self_contact=flag == "sc", shape_transition_frames=1,
+                          untangle="untangle" in flags, self_contact_bounds="scb" in flags)
+        settings = SequenceSettings(sim=sim, solver=solver, self_contact=bool({"sc", "scb"} & set(flags)),
+                                    shape_transition_frames=1,
                                     interpolation_threshold=args.step, min_hold_frames=args.hold_frames,
                                     friction=args.friction)
         common = dict(body_faces=body_faces, body_face_groups=parts.face_groups, body_part=garment_part,

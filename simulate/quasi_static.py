@@ -111,6 +111,11 @@ class SimSettings:
     self_contact_rest_exclusion: float | None = None
     """Self-contact: particle-triangle pairs closer than this in the rest geometry are never
     contacts [m] (None = SelfContact's default, twice the contact reach)."""
+    untangle: bool = False
+    """XPBD and VBD: after each substep, one step of intersection contour minimization undoing
+    cloth that passes through itself (``simulate.contact.untangle``), in worlds whose
+    self-contact is on (``ClothControl.world_self_contact``), whether or not the model has
+    self-contact."""
     body_contact_detect_every: int = 5
     """Query the body for contact planes on substeps 0, N, 2N, ... of each frame; in between the
     planes move with the body (which moves linearly within a frame), and the body mesh is moved
@@ -147,6 +152,7 @@ class SimSettings:
             and self.self_contact_detect_every >= 1,
             "self_contact_rest_exclusion": self.self_contact_rest_exclusion is None
             or (np.isfinite(self.self_contact_rest_exclusion) and self.self_contact_rest_exclusion >= 0.0),
+            "untangle": isinstance(self.untangle, bool),
             "body_contact_detect_every": int(self.body_contact_detect_every) == self.body_contact_detect_every
             and self.body_contact_detect_every >= 1,
             "limit_cycle_window": int(self.limit_cycle_window) == self.limit_cycle_window and self.limit_cycle_window >= 0,
@@ -195,6 +201,8 @@ class QuasiStaticSimulator:
         opts.setdefault("body_contact", body_contact)
         opts.setdefault("extra_damping", s.damping)
         opts.setdefault("contact_detect_every", int(s.body_contact_detect_every))
+        if solver in ("xpbd", "vbd"):
+            opts.setdefault("untangle", s.untangle)
         if solver == "xpbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("mode", s.xpbd_mode)

@@ -86,6 +86,7 @@ class SolverVBD(SolverBase):
         self_contact: bool | None = None,
         self_contact_options: dict | None = None,
         self_contact_stiffness: float = 1.0e4,
+        untangle: bool | dict = False,
     ) -> None:
         """
         Args:
@@ -108,6 +109,9 @@ class SolverVBD(SolverBase):
             self_contact_stiffness: penalty stiffness [N/m] holding a particle ``thickness`` off
                 its self-contact triangle (in each Newton step; 1e4 N/m: a vertex pressed by 1 mN
                 gives 0.1 um).
+            untangle: after each substep, one step of intersection contour minimization
+                (:class:`~simulate.contact.untangle.Untangler`; a dict gives its keyword options) in
+                worlds whose ``control.world_self_contact`` is on; the step counts into the velocities.
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping,
                          contact_detect_every=contact_detect_every)
@@ -124,6 +128,13 @@ class SolverVBD(SolverBase):
             from simulate.contact.self_contact import SelfContact
 
             self.self_contact = SelfContact(model, **{**dict(self_contact_options or {}), "pairs": True})
+        if not isinstance(untangle, (bool, dict)):
+            raise ValueError(f"untangle must be a bool or a dict of Untangler options (got {untangle!r})")
+        self.untangler = None
+        if untangle:
+            from simulate.contact.untangle import Untangler
+
+            self.untangler = Untangler(model, **({} if untangle is True else untangle))
         self.iterations = int(iterations)
         self.block_dim = int(block_dim)
         dev = self.device
@@ -226,3 +237,6 @@ class SolverVBD(SolverBase):
                           self.contact_normal, self.contact_motion, self.contact_depth, self._x64_prev,
                           state_in.particle_qd, *self._sc_bounds, control.world_self_contact, self.x64],
                   outputs=[state_out.particle_q, state_out.particle_qd, self.gravity_share], device=dev)
+        if self.untangler is not None:
+            self.untangler.apply(state_out.particle_q, control.world_active, control.world_self_contact, x64=self.x64,
+                                 v=state_out.particle_qd, dt=dt)

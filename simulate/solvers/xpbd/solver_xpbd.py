@@ -155,6 +155,7 @@ class SolverXPBD(SolverBase):
         gs_shared: bool | None = None,
         contact_detect_every: int = 1,
         share_element_data: bool = True,
+        untangle: bool | dict = False,
     ) -> None:
         """
         Args:
@@ -182,6 +183,10 @@ class SolverXPBD(SolverBase):
                 with the body in between (see ``SolverBase``).
             share_element_data: the shared-memory sweep reads one copy of the element data of worlds
                 that repeat a garment (``shared_element_data``); same result, less memory traffic.
+            untangle: after each substep's iterations, before its velocities, one step of
+                intersection contour minimization (:class:`~simulate.contact.untangle.Untangler`;
+                a dict gives its keyword options) in worlds whose ``control.world_self_contact``
+                is on.
         """
         super().__init__(model, body_contact=body_contact, extra_damping=extra_damping,
                          contact_detect_every=contact_detect_every)
@@ -224,6 +229,13 @@ class SolverXPBD(SolverBase):
             sc = self.self_contact
             self._bound_args = [sc.x_searched, sc.d_min, sc.bound_fraction, sc.min_separation]
             self._finalize_kernel = ck.make_finalize_kernel(self.friction, True)
+        self.untangler = None
+        if not isinstance(untangle, (bool, dict)):
+            raise ValueError(f"untangle must be a bool or a dict of Untangler options (got {untangle!r})")
+        if untangle:
+            from simulate.contact.untangle import Untangler
+
+            self.untangler = Untangler(model, **({} if untangle is True else untangle))
         self._no_candidates = wp.full(1, -1, dtype=wp.int32, device=dev)  # the tiled kernel's arguments
         self._no_side = wp.ones(1, dtype=float, device=dev)  # without self-contact
         self._particle_kernel = ck.make_particle_constraints_kernel(
@@ -395,6 +407,8 @@ class SolverXPBD(SolverBase):
                                     self.iterations, *self._particle_pass_args(control), self.tri_lambda,
                                     self.bend_lambda, x],
                             block_dim=self.gs_block_dim, device=dev)
+            if self.untangler is not None:
+                self.untangler.apply(x, control.world_active, control.world_self_contact)
             self.finalize_substep(state_in, state_out, control, dt)
             return
         particle_inputs = None
@@ -453,4 +467,6 @@ class SolverXPBD(SolverBase):
                 wp.launch(ck.clamp_to_bounds, dim=m.particle_count,
                           inputs=[m.particle_inv_mass, m.particle_world, control.world_active,
                                   control.world_self_contact, *self._bound_args, x], device=dev)
+        if self.untangler is not None:  # before the velocities, which carry the step on (Untangler)
+            self.untangler.apply(x, control.world_active, control.world_self_contact)
         self.finalize_substep(state_in, state_out, control, dt)
