@@ -104,6 +104,10 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
         check_number(args.epochs, "--epochs", minimum=1, integer=True)
         for stage in stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
+    if getattr(args, "regressor", None) is not None:
+        if args.learner != "collision_aware":
+            raise UsageError(f"--regressor applies to collision_aware only, not {args.learner}")
+        hyper.setdefault("regressor", {})["kind"] = args.regressor
     if args.prototypes is not None:
         check_number(args.prototypes, "--prototypes", minimum=1, integer=True)
         if args.learner != "tailornet":
@@ -113,10 +117,11 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
 
 
 def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu", epochs: int | None = None,
-          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True) -> Path:
+          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True,
+          regressor: str | None = None) -> Path:
     """Library form of the command; returns the run directory."""
     args = argparse.Namespace(learner=learner, data=str(data), out=str(out), device=device, epochs=epochs, config=config,
-                              prototypes=prototypes, seed=seed, no_progress=not progress)
+                              prototypes=prototypes, seed=seed, no_progress=not progress, regressor=regressor)
     run(args)
     return Path(out)
 
@@ -255,6 +260,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prototypes", type=int, default=None, help="number K of high-frequency prototypes (default 20)")
     p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}; "
                    "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
+    p.add_argument("--regressor", choices=("auto", "gru", "mlp"), default=None,
+                   help="collision_aware: the latent regressor, gru (motion datasets) or mlp; auto (default) picks "
+                        "gru for a motion dataset (poses.source: motion), mlp otherwise")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)

@@ -163,6 +163,9 @@ class FrameArrays:
     low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
     posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
     translation: body root translation [m] added after skinning, shape (N, 3), optional.
+    sequence, frame_index: which sequence (shard) each frame belongs to and its index in it,
+    shape (N,) int64 each, optional (the recurrent collision-aware regressor runs sequences).
+    root_joint: the body's root joint position [m] of motion datasets, shape (N, 3), optional.
     """
 
     pose: np.ndarray
@@ -173,6 +176,9 @@ class FrameArrays:
     low_frequency: np.ndarray | None = None
     posed_vertices: np.ndarray | None = None
     translation: np.ndarray | None = None
+    sequence: np.ndarray | None = None
+    frame_index: np.ndarray | None = None
+    root_joint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.pose.shape[0]
@@ -207,6 +213,9 @@ class FrameArrays:
             low_frequency=pick(self.low_frequency),
             posed_vertices=pick(self.posed_vertices),
             translation=pick(self.translation),
+            sequence=pick(self.sequence),
+            frame_index=pick(self.frame_index),
+            root_joint=pick(self.root_joint),
         )
 
 
@@ -241,7 +250,8 @@ def frame_arrays_from_split(arrays: Mapping[str, np.ndarray]) -> FrameArrays:
 def frame_arrays_from_dataset(dataset: Any) -> FrameArrays:
     """Build :class:`FrameArrays` from a ``learn.data.DrapeDataset`` (or any object with
     tensor/array attributes ``pose``, ``shape``, ``style``, ``displacements``, ``pair`` and
-    optional ``low_frequency``, ``posed_vertices``, ``translation``), reusing its cached
+    optional ``low_frequency``, ``posed_vertices``, ``translation``, ``sequence``,
+    ``frame_index``, ``root_joint``), reusing its cached
     frequency split."""
 
     def array(name: str, dtype: Any = np.float32) -> np.ndarray | None:
@@ -259,6 +269,8 @@ def frame_arrays_from_dataset(dataset: Any) -> FrameArrays:
         pose=array("pose"), shape=array("shape"), style=array("style"), displacements=array("displacements"),
         pair_id=array("pair", np.int64), low_frequency=array("low_frequency"),
         posed_vertices=array("posed_vertices"), translation=array("translation"),
+        sequence=array("sequence", np.int64), frame_index=array("frame_index", np.int64),
+        root_joint=array("root_joint"),
     )
 
 
