@@ -219,17 +219,17 @@ def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indice
     frame = np.minimum(windows[:, 1:2] + offsets, inputs.shape[1] - 1)  # (K, W), clipped past the end
     inside = torch.as_tensor(offsets < windows[:, 2:3], device=device)  # (K, W)
     seq_t, frame_t = torch.as_tensor(windows[:, :1], device=device), torch.as_tensor(frame, device=device)
-    window_inputs, window_target = inputs[seq_t, frame_t], target[seq_t, frame_t]  # (K, W, width), (K, W, L)
     batch_size = int(hyper["batch_size"])
     weights = {"velocity_weight": float(hyper["velocity_weight"]), "acceleration_weight": float(hyper["acceleration_weight"])}
-    count = window_inputs.shape[0]
+    count = windows.shape[0]
 
     def epoch_fn(net: RecurrentLatentRegressor, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         order = torch.randperm(count, generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, count, batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's windows (all in one process)
-            terms = sequence_loss(net.run_inputs(window_inputs[batch]), window_target[batch], inside[batch], **weights)
+            where = (seq_t[batch], frame_t[batch])  # the batch's windows, gathered from the sequences: (b, W)
+            terms = sequence_loss(net.run_inputs(inputs[where]), target[where], inside[batch], **weights)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             optimizer.step()
