@@ -14,7 +14,9 @@ ranks, gradients summed, rank 0 writing checkpoints), and a run resumes on any p
 
 ``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
 the canonical body's SDF, the canonical projection of the training frames (cached per shard under
-``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
+``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too; the
+regressor is a GRU over each sequence on a motion dataset (``poses.source: motion``), an MLP
+otherwise (``--regressor auto|gru|mlp``).
 ``uvimage`` and ``uvimage_pca`` (seed 001; docs/learners/uvimage.md) train one stage each, named
 after the learner.
 ``gcvae`` (seed 004; docs/learners/gcvae.md) trains on a static set from ``drape static-set``

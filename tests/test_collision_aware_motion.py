@@ -35,7 +35,7 @@ def _poses(frames: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     pose = np.zeros((frames, POSE_SIZE), np.float32)
     t = np.arange(frames) / FPS
-    for k, entry in enumerate(MOVING):
+    for entry in MOVING:
         pose[:, entry] = 0.4 * np.sin(2 * np.pi * rng.uniform(0.5, 2.0) * t + rng.uniform(0, 2 * np.pi))
     return pose
 
