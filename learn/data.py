@@ -141,7 +141,9 @@ class DrapeDataset(torch.utils.data.Dataset):
     """Frames of one split as tensors: ``pose (P,)``, ``shape (S,)``, ``style (G,)``,
     ``displacements (V, 3)`` [m] (unposed, TailorNet Eq. 5), ``low_frequency (V, 3)``
     and ``high_frequency (V, 3)`` (when ``frequencies=True``), ``pair`` (int: which
-    style-shape pair), ``posed_vertices (V, 3)``.
+    style-shape pair), ``posed_vertices (V, 3)``. Attributes ``sequence`` and ``frame_index`` (N,)
+    int64 give each frame's shard (one task: one sequence) and its index in it; ``root_joint``
+    (N, 3) [m] is set where every shard stores it (motion datasets), else None.
 
     Loads the split into memory (TailorNet-scale splits are a few GB in float32 at most;
     :class:`learn.streaming.StreamingDrapeDataset` serves larger ones). ``workers``: processes
@@ -167,6 +169,9 @@ class DrapeDataset(torch.utils.data.Dataset):
         self.posed_vertices = tensor("posed_vertices")
         _, pair = np.unique(np.concatenate([arrays["shape"], arrays["style"]], axis=1), axis=0, return_inverse=True)
         self.pair = torch.from_numpy(pair.reshape(-1).astype(np.int64))
+        self.sequence = torch.from_numpy(np.asarray(arrays["shard_no"], dtype=np.int64))
+        self.frame_index = torch.from_numpy(np.asarray(arrays["frame_index"], dtype=np.int64))
+        self.root_joint = tensor("root_joint") if "root_joint" in arrays else None
         self.template = self.reader.template
         self.low_frequency = None
         if frequencies and len(self.pose):
@@ -197,6 +202,9 @@ class FrameArrays:
     low_frequency: smoothed displacements [m], shape (N, V, 3), filled on demand;
     posed_vertices: simulated posed garment [m], shape (N, V, 3), optional (evaluation).
     translation: body root translation [m] added after skinning, shape (N, 3), optional.
+    sequence, frame_index: which sequence (shard) each frame belongs to and its index in it,
+    shape (N,) int64 each, optional (the recurrent collision-aware regressor runs sequences).
+    root_joint: the body's root joint position [m] of motion datasets, shape (N, 3), optional.
     """
 
     pose: np.ndarray
@@ -207,6 +215,9 @@ class FrameArrays:
     low_frequency: np.ndarray | None = None
     posed_vertices: np.ndarray | None = None
     translation: np.ndarray | None = None
+    sequence: np.ndarray | None = None
+    frame_index: np.ndarray | None = None
+    root_joint: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         n = self.pose.shape[0]
@@ -241,4 +252,7 @@ class FrameArrays:
             low_frequency=pick(self.low_frequency),
             posed_vertices=pick(self.posed_vertices),
             translation=pick(self.translation),
+            sequence=pick(self.sequence),
+            frame_index=pick(self.frame_index),
+            root_joint=pick(self.root_joint),
         )

@@ -80,7 +80,8 @@ LEARNERS: dict[str, LearnerEntry] = {
     ),
     "collision_aware": LearnerEntry(
         "collision_aware", fit_collision_aware, "collision_aware_model.pt", load_collision_aware,
-        "seed 002: diffused body fields, canonical space, garment VAE with self-supervised collisions, MLP regressor",
+        "seed 002: diffused body fields, canonical space, garment VAE with self-supervised collisions, MLP regressor "
+        "(GRU over the motion for motion datasets)",
         COLLISION_AWARE_STAGES, collision_aware_context, streams=False,
     ),
     "gcvae": LearnerEntry(

@@ -198,7 +198,14 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     frames = splits[split_for_renders]
     name = "tailornet" if "tailornet" in models else next(iter(models))
     for k, i in enumerate(np.linspace(0, frames.frame_count - 1, min(renders, frames.frame_count)).astype(int)):
-        pred = predict_vertices(models[name], frames.pose[i], frames.shape[i], frames.style[i], posing=posing, device=device)[0]
+        rows = np.array([i])
+        if getattr(models[name], "recurrent", False) and frames.sequence is not None:
+            # frame i at the end of its sequence's frames up to it, run in order (their steps taken as
+            # one frame each and the root as still: a picture, the metrics above run the sequences exactly)
+            same = np.flatnonzero((frames.sequence == frames.sequence[i]) & (frames.frame_index <= frames.frame_index[i]))
+            rows = same[np.argsort(frames.frame_index[same], kind="stable")]
+        pred = predict_vertices(models[name], frames.pose[rows], frames.shape[rows], frames.style[rows], posing=posing,
+                                device=device)[-1]
         body_v = body.pose(frames.shape[i], frames.pose[i]).vertices[0]
         render_prediction(pred, frames.posed_vertices[i], template["faces"], out / f"render_{split_for_renders}_{k}.png",
                           body_vertices=body_v, body_faces=body.faces, title=f"{name}, {split_for_renders} frame {i}")

@@ -1,5 +1,10 @@
 """``drape predict RUN --pose ... --shape ... --style ... --out mesh.obj``: one garment
-from a trained model, posed on its body (or unposed with ``--unposed``)."""
+from a trained model, posed on its body (or unposed with ``--unposed``).
+
+A collision-aware run with the recurrent regressor (trained on a motion dataset) also takes a
+motion: ``--pose`` a .npy of shape (F, 60), frames at the training data's fps. The sequence runs
+through in order (the regressor's state carried from frame to frame) and frame k is written to
+``<out stem>_<k:04d><suffix>``."""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +48,20 @@ def _vector(text: str | None, size: int, field: str, default: np.ndarray,
     return v
 
 
+def _pose_frames(text: str | None, size: int, default: np.ndarray) -> np.ndarray:
+    """Poses (F, size): a .npy of shape (F, size) with F > 1 (a motion), else one pose (:func:`_vector`)."""
+    if text is not None and Path(text).suffix == ".npy" and Path(text).is_file():
+        try:
+            v = np.load(text, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise UsageError(f"--pose {text!r} is not a readable .npy array of numbers ({exc})") from None
+        if v.ndim == 2 and v.shape[0] > 1 and v.shape[1] == size:
+            if not np.isfinite(v).all():
+                raise UsageError(f"--pose must be finite numbers (got non-finite values in {text!r})")
+            return v.astype(np.float32)
+    return _vector(text, size, "pose", default)[None]
+
+
 def run(args: argparse.Namespace) -> int:
     import trimesh
 
@@ -76,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
     body_spec = info.get("body", {"backend": "anny", "path": None})
     body = load_body_model(body_spec.get("backend", "anny"), path=body_spec.get("path"))
     # the body's inputs are checked before the model is loaded
-    pose = _vector(args.pose, body.pose_size, "pose", body.canonical_pose)
+    pose = _pose_frames(args.pose, body.pose_size, body.canonical_pose)  # (F, P)
     shape = _vector(args.shape, body.shape_size, "shape", body.shape_default, ranges=body.shape_ranges,
                     names=list(body.shape_names))
     try:
@@ -88,6 +107,10 @@ def run(args: argparse.Namespace) -> int:
             raise
         raise UsageError(f"{str(file)!r} is not a readable {args.learner} checkpoint ({type(exc).__name__}: "
                          f"{one_line(str(exc))[:200]}); rerun drape train") from None
+    if pose.shape[0] > 1 and not getattr(model, "recurrent", False):
+        raise UsageError(f"--pose {args.pose!r} holds {pose.shape[0]} frames; a pose sequence needs a collision_aware "
+                         f"run with the recurrent regressor (trained on a motion dataset), give one pose of "
+                         f"{body.pose_size} values")
     cfg = getattr(model, "config", {}) or {}
     style_size = int(cfg.get("low_frequency", cfg).get("style_components", 0))
     style = _vector(args.style, style_size, "style", np.zeros(style_size)) if args.style is not None else None
@@ -96,13 +119,18 @@ def run(args: argparse.Namespace) -> int:
     posing = None if args.unposed else PosingContext(
         *garment_posing_functions(body, template["body_vertex_index"], template["skinning_weights"],
                                   rest_vertices=template["rest_vertices"]), body.faces, template["faces"])
-    vertices = predict_vertices(model, pose, shape, style, posing=posing, postprocess=args.postprocess,
-                                device=args.device)[0]
-    trimesh.Trimesh(vertices, template["faces"], process=False).export(out)
-    if args.with_body and not args.unposed:
-        posed = body.pose(shape, pose)
-        trimesh.Trimesh(posed.vertices[0], body.faces, process=False).export(out.with_name(out.stem + "_body" + out.suffix))
-    print(json.dumps({"out": str(out), "vertices": int(len(vertices)), "learner": args.learner, "posed": not args.unposed}))
+    frames = pose.shape[0]
+    vertices = predict_vertices(model, pose, np.tile(shape, (frames, 1)), np.tile(style, (frames, 1)), posing=posing,
+                                postprocess=args.postprocess, device=args.device)  # (F, V, 3), one sequence
+    outs = [out] if frames == 1 else [out.with_name(f"{out.stem}_{k:04d}{out.suffix}") for k in range(frames)]
+    for k, path in enumerate(outs):
+        trimesh.Trimesh(vertices[k], template["faces"], process=False).export(path)
+        if args.with_body and not args.unposed:
+            posed = body.pose(shape, pose[k])
+            trimesh.Trimesh(posed.vertices[0], body.faces, process=False).export(
+                path.with_name(path.stem + "_body" + path.suffix))
+    print(json.dumps({"out": str(out) if frames == 1 else [str(p) for p in outs], "vertices": int(vertices.shape[1]),
+                      "learner": args.learner, "posed": not args.unposed}))
     return 0
 
 
@@ -110,7 +138,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("predict", help="predict one garment with a trained model and write OBJ/PLY",
                        description=__doc__)
     p.add_argument("run", help="run directory from drape train")
-    p.add_argument("--pose", default=None, help="60 axis-angle values or a .npy (default: canonical pose)")
+    p.add_argument("--pose", default=None, help="60 axis-angle values or a .npy (default: canonical pose); for a "
+                                               "recurrent collision_aware run also a .npy motion (F, 60)")
     p.add_argument("--shape", default=None, help="body shape values (default: neutral)")
     p.add_argument("--style", required=True, help="style vector (as stored in the dataset's shards)")
     p.add_argument("--learner", default="tailornet", help="a learner of learn/registry.py trained into RUN (tailornet, "

@@ -14,7 +14,9 @@ ranks, gradients summed, rank 0 writing checkpoints), and a run resumes on any p
 
 ``collision_aware`` (seed 002; docs/learners/collision_aware.md) trains its diffused body fields,
 the canonical body's SDF, the canonical projection of the training frames (cached per shard under
-``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too.
+``DATA/cache/canonical``), the garment VAE and the latent regressor, each stage resumable too; the
+regressor is a GRU over each sequence on a motion dataset (``poses.source: motion``), an MLP
+otherwise (``--regressor auto|gru|mlp``).
 ``uvimage`` and ``uvimage_pca`` (seed 001; docs/learners/uvimage.md) train one stage each, named
 after the learner.
 ``gcvae`` (seed 004; docs/learners/gcvae.md) trains on a static set from ``drape static-set``
@@ -108,6 +110,10 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
         check_number(args.epochs, "--epochs", minimum=1, integer=True)
         for stage in stages:
             hyper.setdefault(stage, {})["epochs"] = int(args.epochs)
+    if getattr(args, "regressor", None) is not None:
+        if args.learner != "collision_aware":
+            raise UsageError(f"--regressor applies to collision_aware only, not {args.learner}")
+        hyper.setdefault("regressor", {})["kind"] = args.regressor
     if args.prototypes is not None:
         check_number(args.prototypes, "--prototypes", minimum=1, integer=True)
         if args.learner != "tailornet":
@@ -118,10 +124,11 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
 
 def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu", epochs: int | None = None,
           config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True,
-          data_mode: str = "auto") -> Path:
+          data_mode: str = "auto", regressor: str | None = None) -> Path:
     """Library form of the command; returns the run directory."""
     args = argparse.Namespace(learner=learner, data=str(data), out=str(out), device=device, epochs=epochs, config=config,
-                              prototypes=prototypes, seed=seed, no_progress=not progress, data_mode=data_mode)
+                              prototypes=prototypes, seed=seed, no_progress=not progress, data_mode=data_mode,
+                              regressor=regressor)
     run(args)
     return Path(out)
 
@@ -300,6 +307,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--prototypes", type=int, default=None, help="number K of high-frequency prototypes (default 20)")
     p.add_argument("--config", default=None, help="YAML of per-stage overrides, e.g. {lf: {lr: 1e-4}, model: {sigma: 0.01}}; "
                    "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
+    p.add_argument("--regressor", choices=("auto", "gru", "mlp"), default=None,
+                   help="collision_aware: the latent regressor, gru (motion datasets) or mlp; auto (default) picks "
+                        "gru for a motion dataset (poses.source: motion), mlp otherwise")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--data-mode", default="auto", metavar="MODE",
                    help="how the training split reaches the epoch loops: memory (loaded whole), stream (read shard by "

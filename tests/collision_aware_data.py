@@ -4,6 +4,12 @@ The garment is a band of the canonical anny torso lifted off the skin along the 
 each frame displaces it outward by a pose-dependent ripple (always >= 4 mm off the body) in the
 unposed space and skins it with the body's weights, so the unposed displacements are exact and
 the posed garments clear the posed body. No physics: seconds to write, the body model is real.
+
+With ``motion_fps`` the dataset is a motion dataset (spec ``poses.source: motion``, docs/motion.md):
+each task is one sequence of frames ``1 / motion_fps`` apart, its poses a smooth sinusoid of the
+moving entries, and the ripple follows a lagged copy of spine1's angle (an exponential average
+over the frames so far), so a frame's garment depends on the motion before it. The shards store
+the garment velocities (finite differences) and the body's root joint, as motion shards do.
 """
 from __future__ import annotations
 
@@ -47,8 +53,12 @@ def torso_band_template(body) -> tuple[dict[str, np.ndarray], np.ndarray]:
     return template, normals[used]
 
 
+#: Share of the distance to spine1's current angle the lagged angle of motion datasets closes per frame.
+LAG_RATE = 0.3
+
+
 def write_band_dataset(root: str | Path, body, *, splits: dict[str, int], frames_per_task: int = 4,
-                       seed: int = 0) -> Manifest:
+                       seed: int = 0, motion_fps: float | None = None) -> Manifest:
     """Write the dataset: ``splits`` maps split name -> tasks (one random shape and style each)."""
     import torch
 
@@ -60,6 +70,8 @@ def write_band_dataset(root: str | Path, body, *, splits: dict[str, int], frames
     index = template["body_vertex_index"].astype(np.int64)
     y = template["rest_vertices"][:, 1].astype(np.float64)
     spec = {"name": "band", "garment": "band", "body": {"backend": "anny", "path": None}, "splits": splits}
+    if motion_fps is not None:
+        spec.update(poses={"source": "motion"}, motion={"source": "procedural", "fps": float(motion_fps)})
     manifest = Manifest.create(root, name="band", spec=spec, template_sha256=template_sha256(template),
                                precision="float32", provenance=collect_provenance(device="cpu", seeds={"spec": seed}),
                                splits={s: [f"{s}-{k:03d}" for k in range(n)] for s, n in splits.items()})
@@ -69,18 +81,35 @@ def write_band_dataset(root: str | Path, body, *, splits: dict[str, int], frames
             shape = np.clip(body.shape_default + rng.uniform(-0.15, 0.15, body.shape_size), 0, 1).astype(np.float32)
             style = rng.uniform(-1, 1, 2).astype(np.float32)
             rest_body = body.rest(shape)[0][0].astype(np.float64)[index]
-            with ShardWriter(shard_path(root, task_id), template=template, task={
-                    "task_id": task_id, "garment": "band", "splits": [split], "seed": seed, "shape": shape,
-                    "style": style}, precision="float32", compression="gzip") as writer:
+            task = {"task_id": task_id, "garment": "band", "splits": [split], "seed": seed, "shape": shape, "style": style}
+            if motion_fps is not None:
+                task.update(motion="sine", fps=float(motion_fps))
+                frequency, phase = rng.uniform(1.0, 2.0), rng.uniform(0, 2 * np.pi, len(MOVING_POSE))
+            lagged, previous = None, None
+            with ShardWriter(shard_path(root, task_id), template=template, task=task, precision="float32",
+                             compression="gzip") as writer:
                 for frame in range(frames_per_task):
                     pose = np.zeros(body.pose_size, np.float32)
-                    pose[list(MOVING_POSE)] = rng.uniform(-0.3, 0.3, len(MOVING_POSE))
-                    ripple = 0.006 + 0.002 * (1 + np.sin(40 * y + 3 * pose[MOVING_POSE[0]] + style[0]))
+                    if motion_fps is None:
+                        pose[list(MOVING_POSE)] = rng.uniform(-0.3, 0.3, len(MOVING_POSE))
+                        driver = pose[MOVING_POSE[0]]
+                    else:
+                        pose[list(MOVING_POSE)] = 0.3 * np.sin(2 * np.pi * frequency * frame / motion_fps + phase)
+                        lagged = pose[MOVING_POSE[0]] if lagged is None else lagged + LAG_RATE * (pose[MOVING_POSE[0]] - lagged)
+                        driver = lagged
+                    ripple = 0.006 + 0.002 * (1 + np.sin(40 * y + 3 * driver + style[0]))
                     displacement = (0.008 + ripple)[:, None] * normals  # (V, 3), >= 14 mm outward
-                    transforms = body.pose_torch(shape, pose).skinning_transforms
+                    posed_body = body.pose_torch(shape, pose)
                     posed = lbs_torch(torch.as_tensor(rest_body + displacement, dtype=torch.float32)[None],
-                                      torch.as_tensor(template["skinning_weights"]), transforms)[0].numpy()
-                    writer.write_frame(posed, displacement, pose, {"penetration_fraction": 0.0}, frame_index=frame)
+                                      torch.as_tensor(template["skinning_weights"]), posed_body.skinning_transforms)[0].numpy()
+                    motion = {}
+                    if motion_fps is not None:
+                        velocity = np.zeros_like(posed) if previous is None else (posed - previous) * motion_fps
+                        root_joint = posed_body.joints[0, int(body.pose_joint_indices[0])].numpy()  # the pelvis
+                        motion = {"velocities": velocity, "root_joint": root_joint}
+                        previous = posed
+                    writer.write_frame(posed, displacement, pose, {"penetration_fraction": 0.0}, frame_index=frame,
+                                       **motion)
             manifest.add_shard(writer.record)
             manifest.save()
     manifest.finish()

@@ -3,8 +3,9 @@
 Seed 002 regresses with GRUs from a motion descriptor (pose, its velocity and acceleration, root
 motion) because its data are motion sequences with dynamics. The quasi-static datasets here
 have one equilibrium per pose, no velocities, so the regressor is an MLP of the current pose
-(the garment-relevant entries, as TailorNet's), shape and style; the recurrent form belongs
-with datasets that carry motion. Trained with the seed's L1 on the encoded positions.
+(the garment-relevant entries, as TailorNet's), shape and style; motion datasets get the
+recurrent form (:mod:`learn.collision_aware.recurrent_regressor`). Trained with the seed's L1 on
+the encoded positions.
 """
 
 from __future__ import annotations

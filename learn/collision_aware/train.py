@@ -6,7 +6,11 @@
 3. ``projection``: every training frame projected to the canonical space, cached per shard
    (:mod:`learn.collision_aware.canonicalize`); mean objective terms go to ``projection.json``;
 4. ``vae``: the garment VAE with the self-supervised collision loss (:mod:`learn.collision_aware.vae`);
-5. ``regressor``: (pose, shape, style) -> latent mean of each training frame.
+5. ``regressor``: (pose, shape, style) -> latent mean of each training frame: an MLP per frame
+   (:mod:`learn.collision_aware.regressor`) for quasi-static datasets, a GRU over each sequence's
+   motion descriptor (:mod:`learn.collision_aware.recurrent_regressor`) for motion datasets
+   (``poses.source: motion``). ``regressor.kind`` (``drape train --regressor``) picks it:
+   ``auto`` (the default: by the dataset), ``gru`` or ``mlp``.
 
 Each network stage runs through ``learn.tailornet.train.run_epochs`` (resumable checkpoints,
 ``<stage>_loss.csv``, dataset fingerprint checks); a finished stage is loaded, not retrained.
@@ -29,6 +33,9 @@ from learn.batches import is_streamed
 from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
 from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
+from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_times, sequence_rows
+from learn.collision_aware.recurrent_regressor import (RecurrentLatentRegressor, sequence_loss, sequence_windows)
+from learn.collision_aware.recurrent_regressor import input_normalisation as sequence_normalisation
 from learn.collision_aware.regressor import LatentRegressor, input_normalisation
 from learn.collision_aware.sdf import fit_body_sdf, new_body_sdf, sdf_targets
 from learn.collision_aware.vae import LATENT_SIZE, GarmentVAE, vae_loss
@@ -59,8 +66,12 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
             "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 10.0, "random_collision": 1.0, "kl": 1e-4,
             "epsilon_m": 2e-3, "random_samples": 32},
-    "regressor": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300, "hidden_size": 256,
-                  "dropout": 0.0},
+    # kind: auto | gru | mlp. batch_size counts frames (mlp) or windows (gru); layers, window
+    # (frames), stride (frames between window starts), velocity_weight and acceleration_weight
+    # (rho_1, rho_2 of seed Eq. 18) are the GRU's
+    "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
+                  "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
+                  "velocity_weight": 1.0, "acceleration_weight": 1.0},
     "model": {"checkpoint_interval_s": 60.0},
 }
 
@@ -165,12 +176,97 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
                       fingerprint=fingerprint, device=device, seed=seed, progress=progress)
 
 
+def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndarray, fps: float, *,
+                              run_dir: str | Path, hyperparameters: Mapping[str, Any],
+                              fingerprint: DatasetFingerprint | None = None, device: str = "cpu", seed: int = 0,
+                              progress: bool = True, checkpoint_interval_s: float = 60.0) -> RecurrentLatentRegressor:
+    """Fit the GRU R(beta, gamma) -> latent (N, L) (stage ``regressor``) on windows of the
+    training sequences (``data.sequence``, ``data.frame_index``; frames ``1/fps`` [s] apart per
+    index step) with seed Eq. 18. Each window starts from a zero state and sees only the
+    descriptor, shape and style (no latent fed back); the descriptor of its first frames uses
+    the frames before the window, as a sequence run from its start does."""
+    hyper = dict(hyperparameters)
+    if data.sequence is None or data.frame_index is None:
+        raise ValueError("the recurrent regressor needs each training frame's sequence and frame_index "
+                         "(FrameArrays.sequence, .frame_index)")
+    rows = sequence_rows(data.sequence, data.frame_index)
+    root = data.root_joint
+    if data.translation is not None:
+        root = data.translation if root is None else root + data.translation
+    torch.manual_seed(seed)
+    regressor = RecurrentLatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
+                                         latent.shape[1], fps, hidden_size=int(hyper["hidden_size"]),
+                                         layers=int(hyper["layers"]), dropout=float(hyper["dropout"]))
+
+    def gathered(values: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(padded(rows, np.asarray(values, np.float32)))
+
+    lengths = [len(r) for r in rows]
+    valid = np.arange(max(lengths))[None, :] < np.asarray(lengths)[:, None]  # (Q, T)
+    with torch.no_grad():  # un-normalised inputs, for the normalisation
+        raw = regressor.inputs(gathered(data.pose), gathered(data.shape), gathered(data.style),
+                               torch.as_tensor(padded_times(rows, data.frame_index, fps)),
+                               None if root is None else gathered(root)).numpy()
+    mean, scale = sequence_normalisation(raw, valid)
+    regressor = RecurrentLatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
+                                         latent.shape[1], fps, hidden_size=int(hyper["hidden_size"]),
+                                         layers=int(hyper["layers"]), dropout=float(hyper["dropout"]),
+                                         input_mean=mean, input_scale=scale)
+    inputs = torch.as_tensor((raw - np.asarray(mean, np.float32)) / np.asarray(scale, np.float32), device=device)
+    target = gathered(latent).to(device)
+    windows = sequence_windows(lengths, int(hyper["window"]), int(hyper["stride"]))
+    width = int(windows[:, 2].max())
+    offsets = np.arange(width)[None, :]
+    frame = np.minimum(windows[:, 1:2] + offsets, inputs.shape[1] - 1)  # (K, W), clipped past the end
+    inside = torch.as_tensor(offsets < windows[:, 2:3], device=device)  # (K, W)
+    seq_t, frame_t = torch.as_tensor(windows[:, :1], device=device), torch.as_tensor(frame, device=device)
+    batch_size = int(hyper["batch_size"])
+    weights = {"velocity_weight": float(hyper["velocity_weight"]), "acceleration_weight": float(hyper["acceleration_weight"])}
+    count = windows.shape[0]
+
+    def epoch_fn(net: RecurrentLatentRegressor, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        order = torch.randperm(count, generator=generator).to(device)
+        total = torch.zeros((), device=device)
+        for begin in range(0, count, batch_size):
+            batch = distributed.shard(order[begin:begin + batch_size])  # this rank's windows (all in one process)
+            where = (seq_t[batch], frame_t[batch])  # the batch's windows, gathered from the sequences: (b, W)
+            terms = sequence_loss(net.run_inputs(inputs[where]), target[where], inside[batch], **weights)
+            optimizer.zero_grad(set_to_none=True)
+            terms["loss"].backward()
+            optimizer.step()
+            total += terms["loss"].detach() * batch.numel()
+        return float(total) / count
+
+    return run_epochs("regressor", regressor, epoch_fn, run_dir=run_dir,
+                      hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+
+
+REGRESSOR_KINDS = ("auto", "gru", "mlp")
+
+
+def regressor_kind(requested: str, fps: float | None) -> str:
+    """``gru`` or ``mlp``: ``requested`` (``regressor.kind``, ``drape train --regressor``) resolved
+    against the dataset, whose frame rate ``fps`` is None when it is quasi-static."""
+    if requested not in REGRESSOR_KINDS:
+        raise ValueError(f"--regressor (regressor.kind) must be one of {', '.join(REGRESSOR_KINDS)}, got {requested!r}")
+    if requested == "auto":
+        return "mlp" if fps is None else "gru"
+    if requested == "gru" and fps is None:
+        raise ValueError("--regressor gru (regressor.kind: gru) needs a motion dataset (spec poses.source: motion, "
+                         "frames in sequences at motion.fps); this dataset is quasi-static: use --regressor mlp or auto")
+    return requested
+
+
 def collision_aware_context(*, body: Any, body_spec: Mapping[str, Any], template: Mapping[str, np.ndarray],
-                            dataset: Any, **_: Any) -> dict:
+                            dataset: Any, reader: Any = None, **_: Any) -> dict:
     """Extra ``fit`` arguments of :func:`fit_collision_aware` for ``drape train`` (see
     :mod:`learn.registry`): the body model, its ``{"backend", "path"}``, the shards'
-    template arrays and the training split's ``DrapeDataset``, as the command has them."""
-    return {"body": body, "body_spec": body_spec, "template": template, "dataset": dataset}
+    template arrays, the training split's ``DrapeDataset`` and the dataset's frame rate
+    (``motion_fps``: None unless its spec has ``poses.source: motion``), as the command has them."""
+    spec = reader.manifest.spec if reader is not None else None
+    return {"body": body, "body_spec": body_spec, "template": template, "dataset": dataset,
+            "motion_fps": motion_fps(spec)}
 
 
 def fit_collision_aware(
@@ -189,6 +285,7 @@ def fit_collision_aware(
     body_spec: Mapping[str, Any] | None = None,
     template: Mapping[str, np.ndarray] | None = None,
     dataset: Any = None,
+    motion_fps: float | None = None,
     log: Any = print,
 ) -> CollisionAwareModel:
     """Train every stage on ``data`` (training frames with ``posed_vertices``) and save the model.
@@ -198,8 +295,10 @@ def fit_collision_aware(
     garment template (faces, rest_vertices, skinning_weights, body_vertex_index). dataset: a
     ``learn.data.DrapeDataset`` of ``data``'s split; with it frames are grouped into their shards
     (sequences) and projections are cached per shard sha256, without it frames are grouped by
-    style-shape pair and not cached. ``canonical_pose`` is unused: the canonical space is the
-    body model's pose 0 and default shape.
+    style-shape pair and not cached. motion_fps: the frame rate [1/s] of a motion dataset (its
+    frames in sequences, ``data.sequence`` and ``data.frame_index`` set), None for a
+    quasi-static one; with ``regressor.kind`` it picks the regressor (:func:`regressor_kind`).
+    ``canonical_pose`` is unused: the canonical space is the body model's pose 0 and default shape.
     """
     del canonical_pose
     if is_streamed(data):
@@ -211,6 +310,8 @@ def fit_collision_aware(
     if data.posed_vertices is None:
         raise ValueError("fit_collision_aware needs data.posed_vertices: the canonical projection fits the simulated garments")
     hyper = merged_hyperparameters(hyperparameters, DEFAULT_HYPERPARAMETERS)
+    kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
+    hyper["regressor"]["kind"] = kind
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
@@ -267,8 +368,13 @@ def fit_collision_aware(
     with torch.no_grad():
         latent = torch.cat([vae.encode(torch.as_tensor(canonical[i:i + 256], device=device))[0]
                             for i in range(0, canonical.shape[0], 256)]).cpu().numpy()
-    regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
-                                checkpoint_interval_s=interval, **common)
+    if kind == "gru":
+        regressor = train_recurrent_regressor(data, latent, pose_indices, float(motion_fps),
+                                              hyperparameters=hyper["regressor"], seed=seed + 3,
+                                              checkpoint_interval_s=interval, **common)
+    else:
+        regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
+                                    checkpoint_interval_s=interval, **common)
     spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
     model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
     save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})

@@ -58,8 +58,13 @@ def predict_on_device(
     """Unposed displacements [m] for N frames as one float32 tensor on ``device``, (N, V, 3).
 
     The inputs go to the device once; batches are slices of them and the predictions stay
-    there (no host copy per batch)."""
+    there (no host copy per batch). For a model with ``recurrent`` true the N frames are one
+    sequence, consecutive frames in order."""
     model = model.to(device).eval()
+    if getattr(model, "recurrent", False):  # the rows are one sequence: run in order whatever the batch size
+        n = np.asarray(pose).shape[0]
+        return model.predict_frames(pose, shape, style, np.zeros(n, np.int64), np.arange(n), batch_size=batch_size,
+                                    device=device)
     inputs = [torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (pose, shape, style)]
     with torch.no_grad():
         out = [model(*(x[start:start + batch_size] for x in inputs)).float()
@@ -111,6 +116,9 @@ def evaluate_split(
     errors refer to those frames (``collision_rate_subset`` and ``posed_error_mm_subset``
     give the raw values on the same frames, for a like-for-like comparison).
 
+    A model with ``recurrent`` true (the collision-aware learner's GRU regressor) predicts with
+    ``model.predict_frames``: every sequence of the split run in frame order, the root joint
+    (plus ``data.translation``) feeding its root motion.
     Prediction, posing and errors run on ``device`` in batches of ``batch_size`` frames; the
     collision queries (Warp, ``collision_device``) get one host copy of each batch. The
     ground truth's collision count depends on the split only: pass the same
@@ -122,7 +130,17 @@ def evaluate_split(
         raise ValueError(f"postprocess_frames must be >= 1 or None, got {postprocess_frames}")
     if data.frame_count == 0:
         raise ValueError("evaluate_split: the split has no frames")
-    predicted = predict_on_device(model, data.pose, data.shape, data.style, batch_size=batch_size, device=device)
+    if getattr(model, "recurrent", False):  # each sequence through in frame order, state carried across frames
+        if data.sequence is None or data.frame_index is None:
+            raise ValueError("a recurrent model needs each frame's sequence and frame_index (FrameArrays.sequence, "
+                             ".frame_index) to run the split's sequences in order")
+        root = data.root_joint
+        if data.translation is not None:
+            root = data.translation if root is None else root + data.translation
+        predicted = model.predict_frames(data.pose, data.shape, data.style, data.sequence, data.frame_index, root,
+                                         batch_size=batch_size, device=device)
+    else:
+        predicted = predict_on_device(model, data.pose, data.shape, data.style, batch_size=batch_size, device=device)
     if tuple(predicted.shape) != data.displacements.shape:
         raise ValueError(
             f"model predicts {predicted.shape[1]} vertices but the data has {data.vertex_count}"

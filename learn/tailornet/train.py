@@ -192,7 +192,8 @@ def frame_arrays_from_split(arrays: Mapping[str, np.ndarray]) -> FrameArrays:
 def frame_arrays_from_dataset(dataset: Any) -> FrameArrays:
     """Build :class:`FrameArrays` from a ``learn.data.DrapeDataset`` (or any object with
     tensor/array attributes ``pose``, ``shape``, ``style``, ``displacements``, ``pair`` and
-    optional ``low_frequency``, ``posed_vertices``, ``translation``), reusing its cached
+    optional ``low_frequency``, ``posed_vertices``, ``translation``, ``sequence``,
+    ``frame_index``, ``root_joint``), reusing its cached
     frequency split."""
 
     def array(name: str, dtype: Any = np.float32) -> np.ndarray | None:
@@ -210,6 +211,8 @@ def frame_arrays_from_dataset(dataset: Any) -> FrameArrays:
         pose=array("pose"), shape=array("shape"), style=array("style"), displacements=array("displacements"),
         pair_id=array("pair", np.int64), low_frequency=array("low_frequency"),
         posed_vertices=array("posed_vertices"), translation=array("translation"),
+        sequence=array("sequence", np.int64), frame_index=array("frame_index", np.int64),
+        root_joint=array("root_joint"),
     )
 
 
