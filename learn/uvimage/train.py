@@ -9,6 +9,10 @@ MLP; both are settings, not tuned results. Epochs run through
 losses in ``<run>/<stage>_loss.csv``, dataset fingerprints); the trained model goes to
 ``<run>/<stage>_model.pt`` with the layout arrays it is built from, so loading needs
 the body model only.
+
+With a ``regularization`` split (seed 001's held-out 2k poses; ``regularization`` below)
+the training loss is evaluated on it after every epoch and the model saved is the epoch
+with the lowest (:mod:`learn.uvimage.regularization`); without one, the last epoch.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from learn.uvimage.features import PoseFeatures, input_joints
 from learn.uvimage.losses import NORMAL_WEIGHT, NORMS, masked_image_loss, normal_loss
 from learn.uvimage.model import LAYOUT_KEYS, UVImageLearner, layout_arrays
 from learn.uvimage.pca import offset_basis
+from learn.uvimage.regularization import BestEpoch
 from learn.uvimage.targets import cloth_targets
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
@@ -80,53 +85,88 @@ def build_learner(stage: str, template: Any, body: Any, data: FrameArrays, hyper
                           style_components=int(data.style.shape[1])).attach_body(body)
 
 
+class _Frames:
+    """A split's network inputs and cloth targets on ``device``."""
+
+    def __init__(self, learner: UVImageLearner, data: FrameArrays, device: str) -> None:
+        self.count = data.frame_count
+        self.targets = cloth_targets(learner, data.pose, data.shape, data.posed_vertices, translation=data.translation,
+                                     device=device)
+        self.pose, self.shape, self.style = (torch.as_tensor(a, dtype=torch.float32, device=device)
+                                             for a in (data.pose, data.shape, data.style))
+
+
+def _batch_loss(net: UVImageLearner, frames: _Frames, batch: torch.Tensor, mask: torch.Tensor, *, weight: float,
+                norm: str) -> torch.Tensor:
+    """The training loss of frames ``batch``: masked pixel loss (image decoder) or mean
+    |offset| L1 over cloth pixels (PCA variant), + ``weight`` x the normal loss."""
+    targets = frames.targets
+    features = net.features(frames.pose[batch], frames.shape[batch], frames.style[batch])
+    if net.kind == "image":
+        images = net.network(features)
+        loss = masked_image_loss(images, net.pixels.to_images(targets.local[batch]), mask, norm=norm)
+        local = net.pixels.sample(images) if weight > 0 else None
+    else:
+        local = net.network(features)
+        loss = (local - targets.local[batch]).abs().sum(-1).mean()
+    if weight > 0:
+        garment = net.embedding.to_world(local, targets.points[batch], targets.frames[batch], net.pixels.pixel_weight)
+        loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), targets.normals[batch])
+    return loss
+
+
 def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays, *, run_dir: str | os.PathLike[str],
                   hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None, device: str = "cpu",
-                  seed: int = 0, progress: bool = True) -> UVImageLearner:
-    """Trains ``learner`` on ``data`` (frames with ``posed_vertices``); see the module docstring."""
+                  seed: int = 0, progress: bool = True, regularization: FrameArrays | None = None) -> UVImageLearner:
+    """Trains ``learner`` on ``data`` (frames with ``posed_vertices``); see the module docstring.
+    ``regularization``: held-out frames whose loss picks the epoch kept (None or no frames:
+    the last epoch); the choice is in ``learner.regularization`` ({"epoch", "loss", "frames"})."""
     if data.frame_count == 0:
         raise ValueError(f"{stage}: no training frames")
     hyper = dict(hyperparameters)
-    targets = cloth_targets(learner, data.pose, data.shape, data.posed_vertices, translation=data.translation,
-                            device=device)
+    train = _Frames(learner, data, device)
     if learner.kind == "pca":
-        mean, basis, singular = offset_basis(targets.local.cpu(), int(hyper["components"]))
+        mean, basis, singular = offset_basis(train.targets.local.cpu(), int(hyper["components"]))
         learner.network.set_basis(mean.to(device), basis.to(device), singular.to(device), data.frame_count)
-    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
-    shape = torch.as_tensor(data.shape, dtype=torch.float32, device=device)
-    style = torch.as_tensor(data.style, dtype=torch.float32, device=device)
     batch_size, weight, norm = int(hyper["batch_size"]), float(hyper["normal_weight"]), str(hyper.get("norm", "l1"))
     mask = learner.pixels.mask.to(device)
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
-        order = torch.randperm(data.frame_count, generator=generator).to(device)
+        order = torch.randperm(train.count, generator=generator).to(device)
         total = torch.zeros((), device=device)
-        for begin in range(0, data.frame_count, batch_size):
+        for begin in range(0, train.count, batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
-            features = net.features(pose[batch], shape[batch], style[batch])
-            if net.kind == "image":
-                images = net.network(features)
-                loss = masked_image_loss(images, net.pixels.to_images(targets.local[batch]), mask, norm=norm)
-                local = net.pixels.sample(images) if weight > 0 else None
-            else:
-                local = net.network(features)
-                loss = (local - targets.local[batch]).abs().sum(-1).mean()
-            if weight > 0:
-                garment = net.embedding.to_world(local, targets.points[batch], targets.frames[batch], net.pixels.pixel_weight)
-                loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), targets.normals[batch])
+            loss = _batch_loss(net, train, batch, mask, weight=weight, norm=norm)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             total += loss.detach() * batch.numel()
-        return float(total) / data.frame_count
+        return float(total) / train.count
 
+    best = None
+    if regularization is not None and regularization.frame_count > 0:
+        held_out = _Frames(learner, regularization, device)
+
+        def held_out_loss(net: torch.nn.Module) -> float:
+            total = torch.zeros((), device=device)
+            for begin in range(0, held_out.count, batch_size):
+                batch = torch.arange(begin, min(begin + batch_size, held_out.count), device=device)
+                total += _batch_loss(net, held_out, batch, mask, weight=weight, norm=norm) * batch.numel()
+            return float(total) / held_out.count
+
+        best = BestEpoch(stage, run_dir, held_out_loss, writes=distributed.writes_files())
     learner.train()
-    return run_epochs(stage, learner.to(device), epoch_fn, run_dir=run_dir, hyperparameters=hyper,
-                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+    learner = run_epochs(stage, learner.to(device), epoch_fn, run_dir=run_dir, hyperparameters=hyper,
+                         fingerprint=fingerprint, device=device, seed=seed, progress=progress, after_epoch=best)
+    learner.regularization = None
+    if best is not None:
+        learner.regularization = {**best.restore(learner), "frames": held_out.count}
+    return learner
 
 
 def _fit(stage: str, data: FrameArrays, *, run_dir, hyperparameters, fingerprint, device, seed, progress,
-         template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+         template=None, body=None, garment_type: str = "tshirt",
+         regularization: FrameArrays | None = None) -> UVImageLearner:
     if template is None or body is None:
         raise ValueError(f"{stage} needs the garment template and the body model (drape train passes them: "
                          "learn.uvimage.garment.uvimage_context)")
@@ -134,33 +174,42 @@ def _fit(stage: str, data: FrameArrays, *, run_dir, hyperparameters, fingerprint
     torch.manual_seed(seed)  # deterministic initial weights
     learner = build_learner(stage, template, body, data, hyper, garment_type=garment_type)
     learner = train_learner(stage, learner, data, run_dir=run_dir, hyperparameters=hyper, fingerprint=fingerprint,
-                            device=device, seed=seed, progress=progress)
+                            device=device, seed=seed, progress=progress, regularization=regularization)
     save_uvimage(learner, stage, Path(run_dir) / f"{stage}_model.pt", fingerprint=fingerprint, hyperparameters=hyper,
                  body=body)
+    if learner.regularization is not None and progress and distributed.writes_files():
+        chosen = learner.regularization
+        print(f"{stage}: kept epoch {chosen['epoch']} of {hyper['epochs']}, the lowest loss on the "
+              f"{chosen['frames']} regularization frames ({chosen['loss']:.6g})")
     return learner
 
 
 def fit_uvimage(data: FrameArrays, faces: np.ndarray, *, run_dir: str | os.PathLike[str], pose_indices=None,
                 canonical_pose=None, hyperparameters: Mapping[str, Any] | None = None,
                 fingerprint: DatasetFingerprint | None = None, device: str = "cpu", seed: int = 0,
-                progress: bool = True, template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+                progress: bool = True, template=None, body=None, garment_type: str = "tshirt",
+                regularization: FrameArrays | None = None) -> UVImageLearner:
     """Registry ``fit`` of the whole-image decoder: trains and saves ``uvimage_model.pt``.
-    ``template`` (a ``GarmentTemplate``), ``body`` and ``garment_type`` come from
+    ``template`` (a ``GarmentTemplate``), ``body``, ``garment_type`` and ``regularization``
+    (the dataset's regularization frames, or None) come from
     :func:`learn.uvimage.garment.uvimage_context`; ``faces``, ``pose_indices`` and
     ``canonical_pose`` are unused (the inputs are joint rotations, :mod:`features`)."""
     del faces, pose_indices, canonical_pose
     return _fit("uvimage", data, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
-                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type)
+                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type,
+                regularization=regularization)
 
 
 def fit_uvimage_pca(data: FrameArrays, faces: np.ndarray, *, run_dir: str | os.PathLike[str], pose_indices=None,
                     canonical_pose=None, hyperparameters: Mapping[str, Any] | None = None,
                     fingerprint: DatasetFingerprint | None = None, device: str = "cpu", seed: int = 0,
-                    progress: bool = True, template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+                    progress: bool = True, template=None, body=None, garment_type: str = "tshirt",
+                    regularization: FrameArrays | None = None) -> UVImageLearner:
     """Registry ``fit`` of the fully connected 128-PC variant: saves ``uvimage_pca_model.pt``."""
     del faces, pose_indices, canonical_pose
     return _fit("uvimage_pca", data, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
-                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type)
+                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type,
+                regularization=regularization)
 
 
 def save_uvimage(learner: UVImageLearner, stage: str, path: str | os.PathLike[str], *,
@@ -169,7 +218,8 @@ def save_uvimage(learner: UVImageLearner, stage: str, path: str | os.PathLike[st
     layout = {k: torch.as_tensor(v) for k, v in learner.layout.items()}
     body_spec = {"backend": getattr(body, "name", "anny"), "path": getattr(body, "path", None)}
     return save_learner(learner, stage, path, fingerprint=fingerprint,
-                        extra={"hyperparameters": dict(hyperparameters), "layout": layout, "body": body_spec})
+                        extra={"hyperparameters": dict(hyperparameters), "layout": layout, "body": body_spec,
+                               "regularization": getattr(learner, "regularization", None)})
 
 
 def load_uvimage(path: str | os.PathLike[str], *, fingerprint: DatasetFingerprint | None = None,
