@@ -18,6 +18,9 @@ from simulate.body.base import BodyModel
 #: TailorNet's four splits: (pair group, pose set) of each.
 SPLIT_SOURCES = {"train_train": ("train", "train"), "train_test": ("train", "test"),
                  "test_train": ("test", "train"), "test_test": ("test", "test")}
+#: Seed 001's regularization split (``poses.regularization_count``): train pairs x the regularization
+#: pose set, every pose of it.
+REGULARIZATION_SPLIT = "regularization"
 
 
 @dataclass
@@ -48,7 +51,7 @@ class Plan:
     style_vectors: np.ndarray  # (n_styles, G)
     shapes: np.ndarray  # (n_shapes, S), train shapes first
     pairs: list[tuple[str, int, int]]  # (group, style index, shape index)
-    poses: dict[str, np.ndarray]  # "train"/"test" pose sets (N, 60)
+    poses: dict[str, np.ndarray]  # "train"/"test" (and "regularization") pose sets (N, 60)
     pruned_poses: np.ndarray
     pruned_reasons: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))  # (M,) why each went
     tasks: list[Task] = field(default_factory=list)
@@ -137,12 +140,14 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                                                                          np.zeros((0, body.pose_size), np.float32))))
     joints = spec["poses"]["joints"] or default_pose_joints(gtype)
     joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
-    total = int(spec["poses"]["train_count"]) + int(spec["poses"]["test_count"])
+    n_train, n_test = int(spec["poses"]["train_count"]), int(spec["poses"]["test_count"])
+    n_regularization = int(spec["poses"].get("regularization_count", 0))
+    total = n_train + n_test + n_regularization
     if spec["poses"]["source"] == "file":
         all_poses = load_pose_file(spec["poses"]["path"])
         if len(all_poses) < total:
             raise ValueError(f"spec.poses: the pose file has {len(all_poses)} poses, fewer than "
-                             f"train_count + test_count = {total}")
+                             f"train_count + test_count{' + regularization_count' if n_regularization else ''} = {total}")
         all_poses = all_poses[_rng(seed, 41).permutation(len(all_poses))[:total]]
         pruned = np.zeros((0, all_poses.shape[1]), np.float32)
         reasons: list[str] = []
@@ -155,12 +160,18 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42),
                                          min_clearance=None if min_clearance is None else float(min_clearance),
                                          clearance_pairs=kind, reasons=reasons)
-    pose_sets = {"train": all_poses[: spec["poses"]["train_count"]], "test": all_poses[spec["poses"]["train_count"]:]}
+    # regularization poses come after train and test, so a spec without them samples as before
+    pose_sets = {"train": all_poses[:n_train], "test": all_poses[n_train:n_train + n_test]}
+    sources, counts = dict(SPLIT_SOURCES), dict(spec["splits"])
+    if n_regularization:
+        pose_sets[REGULARIZATION_SPLIT] = all_poses[n_train + n_test:]
+        sources[REGULARIZATION_SPLIT] = ("train", REGULARIZATION_SPLIT)
+        counts[REGULARIZATION_SPLIT] = "all"
 
     plan = Plan(all_styles, style_vectors, all_shapes, pairs, pose_sets, pruned, np.array(reasons, dtype=str))
     orders: dict[tuple, np.ndarray] = {}  # pairs given the same poses ("all") share one visiting order
-    for split, (group, pose_group) in SPLIT_SOURCES.items():
-        count = spec["splits"][split]
+    for split, (group, pose_group) in sources.items():
+        count = counts[split]
         available = len(pose_sets[pose_group])
         if count == "all":
             count = available
@@ -171,7 +182,7 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         for p, (g, si, hi) in enumerate(pairs):
             if g != group:
                 continue
-            ids = np.sort(_rng(seed, 51, p, list(SPLIT_SOURCES).index(split)).permutation(available)[:count])
+            ids = np.sort(_rng(seed, 51, p, list(sources).index(split)).permutation(available)[:count])
             key = (pose_group, ids.tobytes())
             if key not in orders:
                 orders[key] = greedy_order(pose_sets[pose_group][ids], body.canonical_pose)

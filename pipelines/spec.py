@@ -49,6 +49,11 @@ records and hashes. Schema (every key optional unless marked required)::
                                         (simulate.body.clearance); null = only the capsule test
       train_count: int                  poses of the training pose set
       test_count: int                   unseen poses
+      regularization_count: int         poses of a third set, apart from train and test: split
+                                        ``regularization``, every train pair through all of them
+                                        (seed 001's 2k regularization set, held out of training to
+                                        catch overfitting; docs/learners/uvimage.md); optional key:
+                                        absent (0 poses), it stays out of the resolved spec
     splits:                             poses per pair in each TailorNet split
       train_train: int | all = all      train pairs x train poses
       train_test: int | all = all       train pairs x unseen poses
@@ -160,7 +165,8 @@ resolves, and hashes, as it did before the section existed)."""
 REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)}
 """Keys a spec must give (they have no default), by section path ("" = top level)."""
 
-OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",), "styles": ("limb_profiles",)}
+OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",), "styles": ("limb_profiles",),
+                                             "poses": ("regularization_count",)}
 """Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
 
 LIBRARY_SETTINGS: dict[str, tuple[str, str]] = {
@@ -376,6 +382,11 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
                                           "are pruned)")
     c.integer("poses.train_count", 1)
     c.integer("poses.test_count", 0)
+    if "regularization_count" in spec["poses"]:
+        c.integer("poses.regularization_count", 0)
+        if spec["poses"]["source"] == "motion":
+            c.fail("poses.regularization_count", "absent when poses.source is motion (motion datasets split by "
+                                                 "style-shape pair)")
     for split in SPLITS:
         c.integer(f"splits.{split}", 0, allow=("all",))
     sim = "simulation"

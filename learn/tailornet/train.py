@@ -312,6 +312,7 @@ def run_epochs(
     seed: int = 0,
     progress: bool = True,
     checkpoint_interval_s: float = DEFAULT_CHECKPOINT_INTERVAL_S,
+    after_epoch: Callable[[torch.nn.Module, int], None] | None = None,
 ) -> torch.nn.Module:
     """The resumable epoch loop shared by every stage.
 
@@ -323,7 +324,9 @@ def run_epochs(
     then ``<stage>.done`` (JSON) is written. Saving every epoch would dominate short
     epochs: the stacked HF checkpoint of a 7.7k-vertex garment (K = 20) is about 6 GB
     with Adam's moments. An existing checkpoint is resumed after checking the
-    fingerprint and the model configuration. Returns the model in eval mode.
+    fingerprint and the model configuration. ``after_epoch(model, epoch)`` (epoch counted
+    from 1), when given, runs on every rank after each epoch's log row and before its
+    checkpoint (e.g. a held-out loss). Returns the model in eval mode.
 
     Under torchrun with data parallelism (:mod:`learn.distributed`) every rank runs this loop on
     the same model: ``epoch_fn`` deals each global batch out with ``distributed.shard`` and returns
@@ -399,6 +402,8 @@ def run_epochs(
             with log_path.open("a", newline="") as handle:
                 csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
         bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}", refresh=False)  # redrawn at tqdm's pace, not per epoch
+        if after_epoch is not None:
+            after_epoch(model, epoch + 1)
         if epoch + 1 < epochs and time.monotonic() - last_save < checkpoint_interval_s:
             continue
         last_save = time.monotonic()

@@ -58,7 +58,16 @@ def dataset_template(spec: dict, expected_sha256: str, body: Any):
 def uvimage_context(reader: Any, body: Any, **_: Any) -> dict:
     """Extra ``fit`` arguments of the UV-image learners for ``drape train``: the
     dataset's template and the body, from its ``reader`` (a ``DatasetReader``) and
-    ``body``; the registry's other context keywords are not used (see
-    :mod:`learn.registry`)."""
+    ``body``, and its ``regularization`` split's frames (``FrameArrays``; None when the
+    dataset has none: :mod:`learn.uvimage.regularization`); the registry's other context
+    keywords are not used (see :mod:`learn.registry`)."""
+    from learn.uvimage.regularization import SPLIT
+
+    regularization = None
+    if SPLIT in reader.splits and reader.num_frames(SPLIT) > 0:
+        from learn.data import DrapeDataset
+        from learn.tailornet.train import frame_arrays_from_dataset
+
+        regularization = frame_arrays_from_dataset(DrapeDataset(reader.root, SPLIT, frequencies=False))
     return {"template": dataset_template(reader.manifest.spec, reader.manifest.template_sha256, body), "body": body,
-            "garment_type": reader.manifest.spec["garment"]["type"]}
+            "garment_type": reader.manifest.spec["garment"]["type"], "regularization": regularization}

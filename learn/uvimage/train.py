@@ -9,6 +9,10 @@ MLP; both are settings, not tuned results. Epochs run through
 losses in ``<run>/<stage>_loss.csv``, dataset fingerprints); the trained model goes to
 ``<run>/<stage>_model.pt`` with the layout arrays it is built from, so loading needs
 the body model only.
+
+With a ``regularization`` split (seed 001's held-out 2k poses; ``regularization`` below)
+the training loss is evaluated on it after every epoch and the model saved is the epoch
+with the lowest (:mod:`learn.uvimage.regularization`); without one, the last epoch.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from learn import distributed
 from learn.batches import MemoryBatches, StreamBatches, is_streamed
 from learn.common.normals import vertex_normals
 from learn.tailornet.train import (
@@ -36,6 +41,7 @@ from learn.uvimage.features import PoseFeatures, input_joints
 from learn.uvimage.losses import NORMAL_WEIGHT, NORMS, masked_image_loss, normal_loss
 from learn.uvimage.model import LAYOUT_KEYS, UVImageLearner, layout_arrays
 from learn.uvimage.pca import OffsetMoments, offset_basis
+from learn.uvimage.regularization import BestEpoch
 from learn.uvimage.targets import ClothTargets, cloth_targets
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
@@ -80,16 +86,36 @@ def build_learner(stage: str, template: Any, body: Any, data: FrameArrays, hyper
                           style_components=int(data.style.shape[1])).attach_body(body)
 
 
+def _batch_loss(net: UVImageLearner, target: ClothTargets, pose: torch.Tensor, shape: torch.Tensor,
+                style: torch.Tensor, mask: torch.Tensor, *, weight: float, norm: str) -> torch.Tensor:
+    """The training loss of a batch: masked pixel loss (image decoder) or mean |offset| L1 over
+    cloth pixels (PCA variant), + ``weight`` x the normal loss."""
+    features = net.features(pose, shape, style)
+    if net.kind == "image":
+        images = net.network(features)
+        loss = masked_image_loss(images, net.pixels.to_images(target.local), mask, norm=norm)
+        local = net.pixels.sample(images) if weight > 0 else None
+    else:
+        local = net.network(features)
+        loss = (local - target.local).abs().sum(-1).mean()
+    if weight > 0:
+        garment = net.embedding.to_world(local, target.points, target.frames, net.pixels.pixel_weight)
+        loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), target.normals)
+    return loss
+
+
 def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays | Any, *, run_dir: str | os.PathLike[str],
                   hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None, device: str = "cpu",
-                  seed: int = 0, progress: bool = True) -> UVImageLearner:
+                  seed: int = 0, progress: bool = True, regularization: FrameArrays | None = None) -> UVImageLearner:
     """Trains ``learner`` on ``data`` (frames with ``posed_vertices``); see the module docstring.
 
     In memory the targets of every frame are computed once. A streamed split
     (:class:`learn.streamed_split.StreamedSplit`) computes each batch's targets as it arrives,
     and the PCA variant's basis from the offsets' moments gathered in one streamed pass before
     training (:class:`learn.uvimage.pca.OffsetMoments`). ``hyperparameters["shuffle"]`` false
-    keeps the frames' order (default: shuffled).
+    keeps the frames' order (default: shuffled). ``regularization``: held-out frames (in memory)
+    whose loss picks the epoch kept (None or no frames: the last epoch); the choice is in
+    ``learner.regularization`` ({"epoch", "loss", "frames"}).
     """
     if data.frame_count == 0:
         raise ValueError(f"{stage}: no training frames")
@@ -123,26 +149,40 @@ def train_learner(stage: str, learner: UVImageLearner, data: FrameArrays | Any, 
         for batch in source.epoch(generator, optimizer):  # this rank's frames (all in one process)
             target = _targets(net, batch, device) if streamed else ClothTargets(
                 batch["local"], batch["points"], batch["frames"], batch["normals"])
-            features = net.features(batch["pose"], batch["shape"], batch["style"])
-            if net.kind == "image":
-                images = net.network(features)
-                loss = masked_image_loss(images, net.pixels.to_images(target.local), mask, norm=norm)
-                local = net.pixels.sample(images) if weight > 0 else None
-            else:
-                local = net.network(features)
-                loss = (local - target.local).abs().sum(-1).mean()
-            if weight > 0:
-                garment = net.embedding.to_world(local, target.points, target.frames, net.pixels.pixel_weight)
-                loss = loss + weight * normal_loss(vertex_normals(garment, net.faces), target.normals)
+            loss = _batch_loss(net, target, batch["pose"], batch["shape"], batch["style"], mask, weight=weight,
+                               norm=norm)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             total += loss.detach() * batch.frames
         return float(total) / data.frame_count
 
+    best = None
+    held_out_count = 0
+    if regularization is not None and regularization.frame_count > 0:
+        held_out_count = regularization.frame_count
+        held = cloth_targets(learner, regularization.pose, regularization.shape, regularization.posed_vertices,
+                             translation=regularization.translation, device=device)
+        held_inputs = [torch.as_tensor(a, dtype=torch.float32, device=device)
+                       for a in (regularization.pose, regularization.shape, regularization.style)]
+
+        def held_out_loss(net: torch.nn.Module) -> float:
+            total = torch.zeros((), device=device)
+            for begin in range(0, held_out_count, batch_size):
+                rows = slice(begin, min(begin + batch_size, held_out_count))
+                target = ClothTargets(held.local[rows], held.points[rows], held.frames[rows], held.normals[rows])
+                loss = _batch_loss(net, target, *(a[rows] for a in held_inputs), mask, weight=weight, norm=norm)
+                total += loss * (rows.stop - rows.start)
+            return float(total) / held_out_count
+
+        best = BestEpoch(stage, run_dir, held_out_loss, writes=distributed.writes_files())
     learner.train()
-    return run_epochs(stage, learner.to(device), epoch_fn, run_dir=run_dir, hyperparameters=hyper,
-                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+    learner = run_epochs(stage, learner.to(device), epoch_fn, run_dir=run_dir, hyperparameters=hyper,
+                         fingerprint=fingerprint, device=device, seed=seed, progress=progress, after_epoch=best)
+    learner.regularization = None
+    if best is not None:
+        learner.regularization = {**best.restore(learner), "frames": held_out_count}
+    return learner
 
 
 def _targets(learner: UVImageLearner, batch: Mapping[str, torch.Tensor], device: str) -> ClothTargets:
@@ -152,7 +192,8 @@ def _targets(learner: UVImageLearner, batch: Mapping[str, torch.Tensor], device:
 
 
 def _fit(stage: str, data: FrameArrays, *, run_dir, hyperparameters, fingerprint, device, seed, progress,
-         template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+         template=None, body=None, garment_type: str = "tshirt",
+         regularization: FrameArrays | None = None) -> UVImageLearner:
     if template is None or body is None:
         raise ValueError(f"{stage} needs the garment template and the body model (drape train passes them: "
                          "learn.uvimage.garment.uvimage_context)")
@@ -160,33 +201,42 @@ def _fit(stage: str, data: FrameArrays, *, run_dir, hyperparameters, fingerprint
     torch.manual_seed(seed)  # deterministic initial weights
     learner = build_learner(stage, template, body, data, hyper, garment_type=garment_type)
     learner = train_learner(stage, learner, data, run_dir=run_dir, hyperparameters=hyper, fingerprint=fingerprint,
-                            device=device, seed=seed, progress=progress)
+                            device=device, seed=seed, progress=progress, regularization=regularization)
     save_uvimage(learner, stage, Path(run_dir) / f"{stage}_model.pt", fingerprint=fingerprint, hyperparameters=hyper,
                  body=body)
+    if learner.regularization is not None and progress and distributed.writes_files():
+        chosen = learner.regularization
+        print(f"{stage}: kept epoch {chosen['epoch']} of {hyper['epochs']}, the lowest loss on the "
+              f"{chosen['frames']} regularization frames ({chosen['loss']:.6g})")
     return learner
 
 
 def fit_uvimage(data: FrameArrays, faces: np.ndarray, *, run_dir: str | os.PathLike[str], pose_indices=None,
                 canonical_pose=None, hyperparameters: Mapping[str, Any] | None = None,
                 fingerprint: DatasetFingerprint | None = None, device: str = "cpu", seed: int = 0,
-                progress: bool = True, template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+                progress: bool = True, template=None, body=None, garment_type: str = "tshirt",
+                regularization: FrameArrays | None = None) -> UVImageLearner:
     """Registry ``fit`` of the whole-image decoder: trains and saves ``uvimage_model.pt``.
-    ``template`` (a ``GarmentTemplate``), ``body`` and ``garment_type`` come from
+    ``template`` (a ``GarmentTemplate``), ``body``, ``garment_type`` and ``regularization``
+    (the dataset's regularization frames, or None) come from
     :func:`learn.uvimage.garment.uvimage_context`; ``faces``, ``pose_indices`` and
     ``canonical_pose`` are unused (the inputs are joint rotations, :mod:`features`)."""
     del faces, pose_indices, canonical_pose
     return _fit("uvimage", data, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
-                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type)
+                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type,
+                regularization=regularization)
 
 
 def fit_uvimage_pca(data: FrameArrays, faces: np.ndarray, *, run_dir: str | os.PathLike[str], pose_indices=None,
                     canonical_pose=None, hyperparameters: Mapping[str, Any] | None = None,
                     fingerprint: DatasetFingerprint | None = None, device: str = "cpu", seed: int = 0,
-                    progress: bool = True, template=None, body=None, garment_type: str = "tshirt") -> UVImageLearner:
+                    progress: bool = True, template=None, body=None, garment_type: str = "tshirt",
+                    regularization: FrameArrays | None = None) -> UVImageLearner:
     """Registry ``fit`` of the fully connected 128-PC variant: saves ``uvimage_pca_model.pt``."""
     del faces, pose_indices, canonical_pose
     return _fit("uvimage_pca", data, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
-                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type)
+                device=device, seed=seed, progress=progress, template=template, body=body, garment_type=garment_type,
+                regularization=regularization)
 
 
 def save_uvimage(learner: UVImageLearner, stage: str, path: str | os.PathLike[str], *,
@@ -195,7 +245,8 @@ def save_uvimage(learner: UVImageLearner, stage: str, path: str | os.PathLike[st
     layout = {k: torch.as_tensor(v) for k, v in learner.layout.items()}
     body_spec = {"backend": getattr(body, "name", "anny"), "path": getattr(body, "path", None)}
     return save_learner(learner, stage, path, fingerprint=fingerprint,
-                        extra={"hyperparameters": dict(hyperparameters), "layout": layout, "body": body_spec})
+                        extra={"hyperparameters": dict(hyperparameters), "layout": layout, "body": body_spec,
+                               "regularization": getattr(learner, "regularization", None)})
 
 
 def load_uvimage(path: str | os.PathLike[str], *, fingerprint: DatasetFingerprint | None = None,
