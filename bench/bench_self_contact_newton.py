@@ -165,6 +165,9 @@ class NewtonSelfContactRun:
         self.frame_dt = sim.frame_dt
         self.factor = max(0.0, 1.0 - (fabric.damping + sim.damping) * self.dt)
         self.rule = RestRule(sim, self.model.particle_count, self.device)
+        self.use_graph = not args.newton_eager
+        self.graph = None
+        self.graph_error = None
 
     def set_body_target(self, vertices: np.ndarray) -> None:
         """The body at the end of the next frame [m] (Vb, 3); the mesh's velocities carry the frame's motion."""
@@ -173,8 +176,9 @@ class NewtonSelfContactRun:
         wp.launch(frame_velocity, dim=len(self.body_to), inputs=[self.body_from, self.body_to, 1.0 / self.frame_dt],
                   outputs=[self.body_mesh.velocities], device=self.device)
 
-    def step_frame(self) -> WorldStatus:
-        """One frame (the body moved linearly over its substeps); the stopping rule's verdict."""
+    def _substeps(self) -> None:
+        """The frame's substeps: body moved to (s + 1) / substeps of its motion and refit, Newton's
+        collision pass, a SolverVBD step, our damping (graph-capturable: no allocation)."""
         for s in range(self.substeps):
             wp.launch(lerp_points, dim=len(self.body_to), inputs=[self.body_from, self.body_to, (s + 1) / self.substeps],
                       outputs=[self.body_mesh.points], device=self.device)
@@ -185,6 +189,31 @@ class NewtonSelfContactRun:
             self.state_0, self.state_1 = self.state_1, self.state_0
             wp.launch(scale_velocities, dim=self.model.particle_count, inputs=[self.state_0.particle_qd, self.factor],
                       device=self.device)
+        if self.substeps % 2 == 1:  # end in the buffer the frame started from, so a replayed graph chains
+            wp.copy(self.state_1.particle_q, self.state_0.particle_q)
+            wp.copy(self.state_1.particle_qd, self.state_0.particle_qd)
+            self.state_0, self.state_1 = self.state_1, self.state_0
+
+    def step_frame(self) -> WorldStatus:
+        """One frame (the body moved linearly over its substeps); the stopping rule's verdict. On
+        CUDA the substeps are captured once as a graph and replayed (as our simulator's frames; Newton's
+        examples capture theirs), unless ``use_graph`` is off or the capture fails (then eager)."""
+        if self.device.is_cuda and self.use_graph:
+            if self.graph is None:
+                self._substeps()  # eager first frame: every kernel compiled and loaded before capture
+                states = (self.state_0, self.state_1)
+                try:
+                    with wp.ScopedCapture(device=self.device) as capture:
+                        self._substeps()
+                    self.graph = capture.graph
+                except Exception as exc:  # keep stepping eagerly, and say so in the run's line
+                    self.state_0, self.state_1 = states
+                    self.use_graph = False
+                    self.graph_error = f"{type(exc).__name__}: {exc}"
+                return self.rule.frame(self.state_0.particle_q, self.state_0.particle_qd)
+            wp.capture_launch(self.graph)
+        else:
+            self._substeps()
         return self.rule.frame(self.state_0.particle_q, self.state_0.particle_qd)
 
     def positions(self) -> np.ndarray:
@@ -265,7 +294,8 @@ def run_newton(newton, scene, run: str, args, start: np.ndarray) -> dict:
             "lowering_frames": len(bodies) - 2, "hold_frames": held, "time_to_rest_s": time.perf_counter() - t0,
             "settle_frames": settle_frames, "settle_status": settle_status.name, "settle_s": settle_s,
             "self_contact_distance_m": sim.self_contact_distance, "contact_ke": args.newton_contact_ke,
-            "newton": newton.__version__}
+            "newton": newton.__version__, "newton_cuda_graph": sim.graph is not None,
+            **({"newton_graph_error": sim.graph_error} if sim.graph_error else {})}
 
 
 def main() -> None:
@@ -281,6 +311,8 @@ def main() -> None:
                         help="0: body friction off (default: the fabric's coefficient)")
     parser.add_argument("--newton-contact-ke", type=float, default=1.0e4,
                         help="Newton's soft_contact_ke [N/m] (body and self-contact alike; ours: 1e4 for self-contact)")
+    parser.add_argument("--newton-eager", action="store_true",
+                        help="CUDA: step Newton eagerly instead of replaying its frame as a CUDA graph")
     parser.add_argument("--runs", default="vbd-sc,xpbd-sc,newton-vbd-sc",
                         help="comma-separated: vbd-sc, xpbd-sc (ours, any of bench_self_contact's), newton-vbd-sc, "
                              "newton-vbd (Newton without self-contact)")
