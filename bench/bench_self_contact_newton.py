@@ -324,7 +324,7 @@ def main() -> None:
             try:
                 run_settings(run, max_frames=1, min_hold_frames=1, step=args.step, friction=args.friction)
             except ValueError as exc:
-                parser.error(f"--runs: {exc}")
+                parser.error(f"--runs: {exc}, or one of {', '.join(NEWTON_RUNS)}")
     if args.min_hold_frames < 1 or args.max_hold_frames < args.min_hold_frames:
         parser.error(f"--min-hold-frames must be >= 1 and <= --max-hold-frames (got {args.min_hold_frames}, "
                      f"{args.max_hold_frames})")
