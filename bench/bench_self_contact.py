@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,6 +31,79 @@ from simulate.quasi_static import SimSettings
 from simulate.sequence import SequenceSettings, SequenceTask, drape_static, run_sequences
 
 STEPPING = {"vbd": (20, 3), "xpbd": (15, 5)}
+
+
+@dataclass
+class ArmsLoweredScene:
+    """The t-shirt on the neutral anny body and the lowered pose its arms turn to.
+
+    Attributes:
+        body: the anny body model; template: the t-shirt template (rest ``vertices`` (V, 3) [m],
+        ``faces`` (F, 3), ``face_uv``); body_faces: the body faces the t-shirt meets (Fb, 3);
+        parts: its primary collision bodies; garment_part: each garment vertex's part (V,);
+        canonical / lowered: the canonical pose and the pose with both shoulders turned to the
+        torso (60,); rest_body: the body in the canonical pose [m] (Vb, 3).
+    """
+
+    body: object
+    template: object
+    body_faces: np.ndarray
+    parts: object
+    garment_part: np.ndarray
+    canonical: np.ndarray
+    lowered: np.ndarray
+    rest_body: np.ndarray
+
+    def meter(self, device: str) -> QualityMeter:
+        """The dataset's quality meter on this scene (exact crossings, penetration, distortion)."""
+        return QualityMeter(self.template.faces, self.template.vertices, self.body_faces, len(self.rest_body),
+                            device=device, body_face_groups=self.parts.face_groups, garment_part=self.garment_part)
+
+    def sim_arguments(self, device: str) -> dict:
+        """The body and collision-part keywords ``drape_static`` and ``run_sequences`` take."""
+        return dict(body_faces=self.body_faces, body_face_groups=self.parts.face_groups, body_part=self.garment_part,
+                    device=device)
+
+
+def arms_lowered_scene(resolution: int, angle: float) -> ArmsLoweredScene:
+    """The scene at ``resolution`` garment vertices (approximate), shoulders turned by ``angle`` [rad]."""
+    body = load_body_model("anny")
+    template = make_template("tshirt", body, resolution=resolution)
+    body_faces = body.part_faces(COLLISION_PARTS["tshirt"])
+    parts = collision_parts(body, "tshirt", body_faces)
+    canonical = np.asarray(body.canonical_pose, np.float32)
+    rest_body = np.asarray(body.pose(body.shape_default, canonical).vertices).reshape(-1, 3)
+    garment_part = parts.garment_vertex_parts(template.vertices, rest_body)
+    lowered = canonical + body.pose_from_dict({"left_shoulder": [0.0, 0.0, -angle],
+                                               "right_shoulder": [0.0, 0.0, angle]})
+    return ArmsLoweredScene(body, template, body_faces, parts, garment_part, canonical, lowered, rest_body)
+
+
+def run_settings(run: str, *, max_frames: int, min_hold_frames: int, step: float,
+                 friction: float | None) -> SequenceSettings:
+    """Sequence settings of run ``<solver>[-sc|-scb][-untangle]`` (scb: XPBD with the displacement
+    bounds; untangle: intersection contour minimization after every substep): the solver's
+    shipped stepping, frames of 1/45 s, damping 20/s, holds of at least ``min_hold_frames`` and
+    at most ``max_frames`` frames, joints turning ``step`` [rad] per frame."""
+    solver, *flags = run.split("-")
+    if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle"} or {"sc", "scb"} <= set(flags):
+        raise ValueError(f"run must be <solver>[-sc|-scb][-untangle] with solver in {sorted(STEPPING)} (got {run!r})")
+    substeps, iterations = STEPPING[solver]
+    sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
+                      outlier_fraction=0.02, max_frames=max_frames, limit_cycle_window=8,
+                      self_contact_bounds="scb" in flags, untangle="untangle" in flags)
+    return SequenceSettings(sim=sim, solver=solver, self_contact=bool({"sc", "scb"} & set(flags)),
+                            shape_transition_frames=1, interpolation_threshold=step, min_hold_frames=min_hold_frames,
+                            friction=friction)
+
+
+def canonical_drape(scene: ArmsLoweredScene, settings: SequenceSettings, device: str) -> tuple[np.ndarray, float]:
+    """The t-shirt relaxed on the canonical body with ``settings`` (at most 80 frames): ((V, 3) [m], wall [s])."""
+    t0 = time.perf_counter()
+    start, _ = drape_static(scene.body, scene.template.faces, scene.template.vertices[None],
+                            shapes=scene.body.shape_default[None], poses=scene.canonical[None], settings=settings,
+                            max_frames=80, material_uv=scene.template.face_uv, **scene.sim_arguments(device))
+    return start[0], time.perf_counter() - t0
 
 
 def main() -> None:
@@ -45,46 +119,28 @@ def main() -> None:
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each run's held garment and body (RUN.npz: garment, body, faces, area ratios)")
     args = parser.parse_args()
-
-    body = load_body_model("anny")
-    template = make_template("tshirt", body, resolution=args.resolution)
-    body_faces = body.part_faces(COLLISION_PARTS["tshirt"])
-    parts = collision_parts(body, "tshirt", body_faces)
-    canonical = np.asarray(body.canonical_pose, np.float32)
-    rest_body = np.asarray(body.pose(body.shape_default, canonical).vertices).reshape(-1, 3)
-    garment_part = parts.garment_vertex_parts(template.vertices, rest_body)
-    lowered = canonical + body.pose_from_dict({"left_shoulder": [0.0, 0.0, -args.angle],
-                                               "right_shoulder": [0.0, 0.0, args.angle]})
-    meter = QualityMeter(template.faces, template.vertices, body_faces, len(rest_body), device=args.device,
-                         body_face_groups=parts.face_groups, garment_part=garment_part)
     for run in args.runs.split(","):
-        solver, *flags = run.split("-")
-        if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle"}:
-            parser.error(f"--runs: {run!r} is not <solver>[-sc|-scb][-untangle] with a solver of {sorted(STEPPING)}")
-        substeps, iterations = STEPPING[solver]
-        sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
-                          outlier_fraction=0.02, max_frames=args.hold_frames, limit_cycle_window=8,
-                          untangle="untangle" in flags, self_contact_bounds="scb" in flags)
-        settings = SequenceSettings(sim=sim, solver=solver, self_contact=bool({"sc", "scb"} & set(flags)),
-                                    shape_transition_frames=1,
-                                    interpolation_threshold=args.step, min_hold_frames=args.hold_frames,
-                                    friction=args.friction)
-        common = dict(body_faces=body_faces, body_face_groups=parts.face_groups, body_part=garment_part,
-                      device=args.device)
-        t0 = time.perf_counter()
-        start, _ = drape_static(body, template.faces, template.vertices[None], shapes=body.shape_default[None],
-                                poses=canonical[None], settings=settings, max_frames=80, material_uv=template.face_uv,
-                                **common)
-        drape_s = time.perf_counter() - t0
-        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start[0],
-                            shape=np.asarray(body.shape_default, np.float32), poses=lowered[None])
+        try:
+            run_settings(run, max_frames=1, min_hold_frames=1, step=args.step, friction=args.friction)
+        except ValueError as exc:
+            parser.error(f"--runs: {exc}")
+
+    scene = arms_lowered_scene(args.resolution, args.angle)
+    template, body = scene.template, scene.body
+    meter = scene.meter(args.device)
+    for run in args.runs.split(","):
+        settings = run_settings(run, max_frames=args.hold_frames, min_hold_frames=args.hold_frames, step=args.step,
+                                friction=args.friction)
+        start, drape_s = canonical_drape(scene, settings, args.device)
+        task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
+                            shape=np.asarray(body.shape_default, np.float32), poses=scene.lowered[None])
         frames = []
         t0 = time.perf_counter()
         run_sequences(body, template.faces, [task], settings=settings, on_frame=frames.append,
-                      material_uv=template.face_uv, **common)
+                      material_uv=template.face_uv, **scene.sim_arguments(args.device))
         hold_s = time.perf_counter() - t0
         frame = frames[-1]
-        start_q = meter.measure(start[0], rest_body)
+        start_q = meter.measure(start, scene.rest_body)
         held = meter.measure(frame.positions, frame.body_vertices, area_bounds=(0.25, 2.0))
         if args.save:
             from pathlib import Path
@@ -94,7 +150,8 @@ def main() -> None:
             Path(args.save).mkdir(parents=True, exist_ok=True)
             ratio = triangle_areas(frame.positions, template.faces) / triangle_areas(template.vertices, template.faces)
             np.savez(Path(args.save) / f"{run}.npz", garment=frame.positions, body=frame.body_vertices,
-                     faces=template.faces, body_faces=body_faces, area_ratio=ratio, garment_part=garment_part)
+                     faces=template.faces, body_faces=scene.body_faces, area_ratio=ratio,
+                     garment_part=scene.garment_part)
         print(json.dumps({
             "run": run, "friction": args.friction, "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
             "angle_rad": args.angle, "drape_self_intersections": start_q["self_intersections"],

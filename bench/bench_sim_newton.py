@@ -45,6 +45,28 @@ def damp_and_measure(qd: wp.array(dtype=wp.vec3), factor: float, max_speed: wp.a
     wp.atomic_max(max_speed, 0, s)
 
 
+def cloth_mesh_arguments(vertices: np.ndarray, faces: np.ndarray, fabric, particle_radius: float,
+                         springs: bool = False) -> dict:
+    """Keywords of Newton's ``ModelBuilder.add_cloth_mesh`` for our ``fabric`` on the cloth
+    ``vertices`` (V, 3) [m] (rest and start) / ``faces`` (F, 3), matched to first order (module
+    docstring): isotropic membrane tri_ke = tri_ka = 3 Y / 8, or with ``springs`` (SolverXPBD)
+    spring_ke = Y / 3; bending edge_ke = 3 B / h (h: the mean edge length); no element damping
+    (damping is a velocity scale after every substep, as ours)."""
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces, np.int32)
+    edge = float(np.mean(np.linalg.norm(v[f[:, 1]] - v[f[:, 0]], axis=1)))
+    young = fabric.stretch_stiffness
+    out = dict(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
+               vertices=[wp.vec3(*p) for p in v], indices=f.reshape(-1).tolist(),
+               density=fabric.density, edge_ke=3.0 * fabric.bending_stiffness / edge, edge_kd=0.0,
+               particle_radius=float(particle_radius))
+    if springs:
+        out.update(tri_ke=0.0, tri_ka=0.0, tri_kd=0.0, add_springs=True, spring_ke=young / 3.0, spring_kd=0.0)
+    else:
+        out.update(tri_ke=3.0 * young / 8.0, tri_ka=3.0 * young / 8.0, tri_kd=0.0)
+    return out
+
+
 class NewtonRun:
     """Newton model of the scene with our damping and stopping rule around its solver."""
 
@@ -52,25 +74,15 @@ class NewtonRun:
                  worlds: int) -> None:
         self.device = wp.get_device(args.device)
         cloth_v = scene["cloth_vertices"].astype(np.float32)
-        cloth_f = scene["cloth_faces"].astype(np.int32)
-        edge = float(np.mean(np.linalg.norm(cloth_v[cloth_f[:, 1]] - cloth_v[cloth_f[:, 0]], axis=1)))
-        young = fabric.stretch_stiffness
         sub = newton.ModelBuilder(up_axis=newton.Axis.Y)
         cfg = sub.default_shape_cfg.copy()
         cfg.mu = fabric.friction
         mesh = newton.Mesh(scene["body_vertices"].astype(np.float32), scene["body_faces"].astype(np.int32).reshape(-1),
                            compute_inertia=False)
         sub.add_shape_mesh(body=-1, mesh=mesh, cfg=cfg)
-        cloth_args = dict(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(0.0, 0.0, 0.0),
-                          vertices=[wp.vec3(*p) for p in cloth_v], indices=cloth_f.reshape(-1).tolist(),
-                          density=fabric.density, edge_ke=3.0 * fabric.bending_stiffness / edge, edge_kd=0.0,
-                          particle_radius=args.thickness + 0.5 * fabric.thickness)
-        if solver == "newton_vbd":
-            cloth_args.update(tri_ke=3.0 * young / 8.0, tri_ka=3.0 * young / 8.0, tri_kd=0.0)
-        else:
-            cloth_args.update(tri_ke=0.0, tri_ka=0.0, tri_kd=0.0, add_springs=True, spring_ke=young / 3.0,
-                              spring_kd=0.0)
-        sub.add_cloth_mesh(**cloth_args)
+        sub.add_cloth_mesh(**cloth_mesh_arguments(cloth_v, scene["cloth_faces"], fabric,
+                                                  args.thickness + 0.5 * fabric.thickness,
+                                                  springs=solver != "newton_vbd"))
         for i in scene.get("pinned", []):
             sub.particle_mass[int(i)] = 0.0  # cloth particles come first in `sub`; mass 0 pins them
         builder = newton.ModelBuilder(up_axis=newton.Axis.Y)
