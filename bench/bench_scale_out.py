@@ -72,6 +72,8 @@ def bench_generate(args: argparse.Namespace) -> dict:
         if d.exists() and not args.keep:
             shutil.rmtree(d)
     local = _generate(spec, local_out, executor="local", device=args.sim_device(0), gpus=1, cpus=None)
+    # the local run's figures first, on stderr: a run stopped during the Ray half keeps them
+    print(json.dumps({"local": local}), file=sys.stderr, flush=True)
     if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
         shutil.copytree(local_out / "cache", ray_out / "cache")
     ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=args.gpus, cpus=args.cpus)
