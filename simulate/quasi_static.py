@@ -116,6 +116,9 @@ class SimSettings:
     cloth that passes through itself (``simulate.contact.untangle``), in worlds whose
     self-contact is on (``ClothControl.world_self_contact``), whether or not the model has
     self-contact."""
+    untangle_every: int = 1
+    """With ``untangle``: its step on every this-many-th substep of a frame (the search for
+    crossings is most of its cost)."""
     body_contact_detect_every: int = 5
     """Query the body for contact planes on substeps 0, N, 2N, ... of each frame; in between the
     planes move with the body (which moves linearly within a frame), and the body mesh is moved
@@ -153,6 +156,7 @@ class SimSettings:
             "self_contact_rest_exclusion": self.self_contact_rest_exclusion is None
             or (np.isfinite(self.self_contact_rest_exclusion) and self.self_contact_rest_exclusion >= 0.0),
             "untangle": isinstance(self.untangle, bool),
+            "untangle_every": int(self.untangle_every) == self.untangle_every and self.untangle_every >= 1,
             "body_contact_detect_every": int(self.body_contact_detect_every) == self.body_contact_detect_every
             and self.body_contact_detect_every >= 1,
             "limit_cycle_window": int(self.limit_cycle_window) == self.limit_cycle_window and self.limit_cycle_window >= 0,
@@ -202,7 +206,7 @@ class QuasiStaticSimulator:
         opts.setdefault("extra_damping", s.damping)
         opts.setdefault("contact_detect_every", int(s.body_contact_detect_every))
         if solver in ("xpbd", "vbd"):
-            opts.setdefault("untangle", s.untangle)
+            opts.setdefault("untangle", {"every": int(s.untangle_every)} if s.untangle else False)
         if solver == "xpbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("mode", s.xpbd_mode)

@@ -237,7 +237,7 @@ class Untangler:
     step toward shorter intersection contours, in every world at once."""
 
     def __init__(self, model: ClothModel, *, thickness: float | None = None, step: float = STEP,
-                 normal_factor: float = 1.0) -> None:
+                 normal_factor: float = 1.0, every: int = 1) -> None:
         """
         Args:
             model: cloth model.
@@ -249,6 +249,8 @@ class Untangler:
             normal_factor: weight of the normal term of the contour descent (module docstring), in
                 [0, 4]: 1 is the steepest descent of the contour segments' length at a crossing;
                 Volino and Magnenat-Thalmann write 2.
+            every: a solver applies it on every ``every``-th substep of a frame (substeps 0,
+                every, 2 every, ...); the search for crossings is most of its cost.
         """
         self.model = model
         dev = model.device
@@ -260,6 +262,9 @@ class Untangler:
             raise ValueError(f"untangle step must be in (0, 1] (a share of the thickness) (got {step!r})")
         if not (np.isfinite(normal_factor) and 0.0 <= normal_factor <= 4.0):
             raise ValueError(f"untangle normal_factor must be in [0, 4] (got {normal_factor!r})")
+        if int(every) != every or every < 1:
+            raise ValueError(f"untangle every must be an integer >= 1 (got {every!r})")
+        self.every = int(every)
         self.thickness = float(thickness)
         self.step = float(step)
         self.normal_factor = float(normal_factor)

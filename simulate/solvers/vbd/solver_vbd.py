@@ -237,6 +237,6 @@ class SolverVBD(SolverBase):
                           self.contact_normal, self.contact_motion, self.contact_depth, self._x64_prev,
                           state_in.particle_qd, *self._sc_bounds, control.world_self_contact, self.x64],
                   outputs=[state_out.particle_q, state_out.particle_qd, self.gravity_share], device=dev)
-        if self.untangler is not None:
+        if self.untangler is not None and substep % self.untangler.every == 0:
             self.untangler.apply(state_out.particle_q, control.world_active, control.world_self_contact, x64=self.x64,
                                  v=state_out.particle_qd, dt=dt)

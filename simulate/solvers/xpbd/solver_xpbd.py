@@ -407,7 +407,7 @@ class SolverXPBD(SolverBase):
                                     self.iterations, *self._particle_pass_args(control), self.tri_lambda,
                                     self.bend_lambda, x],
                             block_dim=self.gs_block_dim, device=dev)
-            if self.untangler is not None:
+            if self.untangler is not None and substep % self.untangler.every == 0:
                 self.untangler.apply(x, control.world_active, control.world_self_contact)
             self.finalize_substep(state_in, state_out, control, dt)
             return
@@ -467,6 +467,6 @@ class SolverXPBD(SolverBase):
                 wp.launch(ck.clamp_to_bounds, dim=m.particle_count,
                           inputs=[m.particle_inv_mass, m.particle_world, control.world_active,
                                   control.world_self_contact, *self._bound_args, x], device=dev)
-        if self.untangler is not None:  # before the velocities, which carry the step on (Untangler)
+        if self.untangler is not None and substep % self.untangler.every == 0:  # before the velocities, which carry the step on (Untangler)
             self.untangler.apply(x, control.world_active, control.world_self_contact)
         self.finalize_substep(state_in, state_out, control, dt)
