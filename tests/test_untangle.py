@@ -289,3 +289,20 @@ def test_bad_untangle_option_names_it(solver: str) -> None:
     verts, faces = _crossed_layers()
     with pytest.raises(ValueError, match="untangle"):
         QuasiStaticSimulator(_model(verts, faces, "cpu"), None, solver=solver, solver_options={"untangle": "yes"})
+
+
+@pytest.mark.parametrize("self_contact", [True, False])
+def test_the_library_untangles_models_with_self_contact_only(self_contact: bool) -> None:
+    """``SimSettings`` untangles on every 5th substep where the model has self-contact; a model
+    without it gets no Untangler (none of its kernels compile)."""
+    from simulate.quasi_static import SimSettings
+
+    verts, faces = _crossed_layers()
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton")
+    model = builder.finalize("cpu", features=Features(self_contact=self_contact, body_contact=False))
+    sim = QuasiStaticSimulator(model, None, solver="xpbd", settings=SimSettings())
+    if self_contact:
+        assert sim.solver.untangler is not None and sim.solver.untangler.every == 5
+    else:
+        assert sim.solver.untangler is None
