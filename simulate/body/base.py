@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -249,11 +250,13 @@ class BodyModel(abc.ABC):
 
     def _rest_kept(self, shapes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``_rest_torch`` of each row (B, S), each blended alone the first time and then kept per
-        device (up to ``REST_CACHE_SIZE`` shapes): a dataset run poses a few hundred shapes
+        device (up to ``REST_CACHE_SIZE`` shapes, the least recently used going first: a motion
+        run's shape transitions blend thousands of shapes used for a frame or two, which must not
+        push out the shapes its worlds pose every frame): a dataset run poses a few hundred shapes
         thousands of times, and anny's blend was ~8 ms of a ~12 ms batched posing call on the
         H200, mostly per-call overhead. Blending a row alone makes it independent of the batch it
         arrives in, so a body does not depend on which run or batch first asked for its shape."""
-        cache = self.__dict__.setdefault("_rest_cache", {})
+        cache = self.__dict__.setdefault("_rest_cache", OrderedDict())
         rows = shapes.detach().cpu().numpy()
         device = str(getattr(self, "device", shapes.device))
         kept_v, kept_j = [], []
@@ -261,11 +264,13 @@ class BodyModel(abc.ABC):
             key = (device, str(shapes.dtype), row.tobytes())
             hit = cache.get(key)
             if hit is None:
-                if len(cache) >= REST_CACHE_SIZE:
-                    cache.clear()
+                while len(cache) >= REST_CACHE_SIZE:  # the least recently used goes: a run's task shapes
+                    cache.popitem(last=False)         # stay while its one-frame blend shapes pass through
                 with one_thread_on_cpu(getattr(self, "device", "cpu")):
                     v, j = self._rest_torch(shapes.new_tensor(row[None]))
                 hit = cache[key] = (v[0], j[0])
+            else:
+                cache.move_to_end(key)
             kept_v.append(hit[0])
             kept_j.append(hit[1])
         return torch.stack(kept_v), torch.stack(kept_j)
