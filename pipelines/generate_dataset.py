@@ -126,11 +126,11 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         return _CONTEXTS[key]
     from simulate.body import load_body_model
     from simulate.garment.drape import COLLISION_PARTS
-    from simulate.garment.templates import generate_garment
     from simulate.garment.templates import make_template
     from simulate.sequence import drape_static
 
     from pipelines.dataset_plan import plan_dataset
+    from pipelines.styled_garments import styled_garments
 
     device = resolve_device(device or spec["simulation"]["device"])
     body = load_body_model(spec["body"]["backend"], path=spec["body"]["path"])
@@ -154,8 +154,9 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             style_rest, style_start = z["style_rest"], z["style_start"]
     else:
         t0 = time.perf_counter()
-        style_rest = np.stack([generate_garment(gtype, plan.styles[si], body, template=template, shape=shape)
-                               for si, shape in plan.garments]).astype(np.float32)
+        style_rest = styled_garments(gtype, [(plan.styles[si], shape) for si, shape in plan.garments], body, template,
+                                     backend=spec["body"]["backend"], body_path=spec["body"]["path"])
+        t_styled = time.perf_counter()
         drape_shapes = np.stack([body.shape_default if shape is None else shape for _, shape in plan.garments])
         fabrics = [plan.fabrics[si] for si, _ in plan.garments]
         # the canonical drape starts from the pattern: it gets its own frame budget, not a pose hold's,
@@ -180,7 +181,8 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             tmp.unlink(missing_ok=True)
             raise
         log(f"prepared {len(style_rest)} garment drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
-            f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
+            f"(garments {t_styled - t0:.1f} s, drapes {time.perf_counter() - t_styled:.1f} s; statuses "
+            f"{np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
     template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
                      "body_vertex_index": template.body_vertex_index, "uv": template.uv}
     ctx = Context(spec, device, body, template, template_dict, body_faces, plan, style_rest, style_start,
