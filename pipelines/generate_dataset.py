@@ -239,7 +239,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     """
     import torch
 
-    from data_manifest.background import BackgroundWriter
+    from data_manifest.background import WriterLanes, lane_count, resolve_mode
     from data_manifest.shard import ShardWriterSet
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
@@ -259,10 +259,12 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     motion = spec["poses"]["source"] == "motion"
     roots = root_joints(ctx.body, [t.shape for t in tasks]) if motion else None  # (n, 3) rest root joint per task
     started_at = time.time()
-    # shards are written, closed and hashed by a worker of their own while the simulation goes on
-    # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
+    # shards are written, closed and hashed by workers of their own while the simulation goes on
+    # (processes on CUDA: see data_manifest.background), each owning the shard writers of its lane
+    # (task index modulo the workers)
     in_daemon = multiprocessing.current_process().daemon  # e.g. a Pool worker: it may not start processes
-    background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
+    mode = resolve_mode("process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
+    background = WriterLanes(lane_count(mode), mode=mode)
     shards = "shards"  # the ShardWriterSet's key on the worker
     background.create(shards, ShardWriterSet, out_dir, ctx.template_dict, precision=spec["output"]["precision"],
                       compression=spec["output"]["compression"])
@@ -281,7 +283,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                     about.update(tightness=t.tightness, sized_shape=t.start_shape)
                 if t.motion_steps:  # the motion and its frame rate: frames are 1 / fps apart
                     about.update(motion=t.motion, fps=float(spec["motion"]["fps"]))
-                background.call(shards, ShardWriterSet.open, i, about)
+                background.lane(i).call(shards, ShardWriterSet.open, i, about)
         return written[i]
     # a motion frame is recorded after its frames whether or not the garment is at rest: the
     # convergence filter is for held targets
@@ -322,23 +324,25 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
+            lane = background.lane(frame.task)
             if reason is None:
-                x = np.asarray(frame.positions, np.float64)
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
                 # (a motion's frame number); motion frames add velocities and the root joint
                 moving = {} if frame.velocities is None else {
                     "velocities": frame.velocities, "root_joint": root_position(frame, roots[frame.task], ctx.body)}
-                background.call(shards, ShardWriterSet.write_frame, frame.task, x, unposed[unposed_row[i]] - base,
-                                t.poses[frame.key], row, frame_index=int(frame.key),
-                                pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)
+                # the positions travel as simulated (float32: half the bytes to pickle); the writer
+                # widens them to float64 itself, exactly
+                lane.call(shards, ShardWriterSet.write_frame, frame.task, frame.positions, unposed[unposed_row[i]] - base,
+                          t.poses[frame.key], row, frame_index=int(frame.key),
+                          pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)
             else:
-                background.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
-                                pose=t.poses[frame.key])
+                lane.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
+                          pose=t.poses[frame.key])
             remaining[frame.task] -= 1
             if remaining[frame.task] == 0:
-                background.call_collect(shards, ShardWriterSet.close, frame.task, started_at=started_at)
+                lane.call_collect(shards, ShardWriterSet.close, frame.task, started_at=started_at)
         list_finished(background.completed())
         phases = ctx.phases
         for key, seconds in (("record_meter_s", t_unskin - t_meter), ("record_unskin_s", t_submit - t_unskin),
