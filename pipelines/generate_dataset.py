@@ -155,7 +155,8 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
     else:
         t0 = time.perf_counter()
         style_rest = styled_garments(gtype, [(plan.styles[si], shape) for si, shape in plan.garments], body, template,
-                                     backend=spec["body"]["backend"], body_path=spec["body"]["path"])
+                                     backend=spec["body"]["backend"], body_path=spec["body"]["path"],
+                                     meanwhile=lambda: keep_schedule_bodies(body, plan.tasks, spec, device))
         t_styled = time.perf_counter()
         drape_shapes = np.stack([body.shape_default if shape is None else shape for _, shape in plan.garments])
         fabrics = [plan.fabrics[si] for si, _ in plan.garments]
@@ -189,6 +190,26 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
                   body_face_groups=face_groups, body_part=garment_part)
     _CONTEXTS[key] = ctx
     return ctx
+
+
+def keep_schedule_bodies(body: Any, tasks: list, spec: dict, device: str) -> int:
+    """Blends, on the simulation's device, the rest body of every shape the tasks' schedules pose
+    first (start shape, shape transition, shape; ``simulate.sequence.schedule``) and keeps them
+    (``BodyModel.keep_rest``): one blend per shape, each alone, as posing would blend them between
+    frames (5,500 for a cloth3d type). Returns the number blended."""
+    import torch
+
+    from simulate.sequence.schedule import transition_shapes
+
+    n = sequence_settings(spec).shape_transition_frames
+    neutral = np.asarray(body.shape_default, np.float32)
+    shapes = []
+    for t in tasks:
+        start = neutral if t.start_shape is None else np.asarray(t.start_shape, np.float32)
+        shapes += [start[None], transition_shapes(start, t.shape, n)]
+    torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
+    with torch.no_grad():
+        return body.on_device(torch_device).keep_rest(np.concatenate(shapes)) if shapes else 0
 
 
 class Unskinner:

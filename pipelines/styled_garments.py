@@ -15,7 +15,7 @@ import math
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -54,7 +54,8 @@ def worker_count(garments: int, cpus: int | None = None) -> int:
 
 
 def styled_garments(gtype: str, jobs: list[tuple[Any, np.ndarray | None]], body: Any, template: Any, *,
-                    backend: str, body_path: str | None = None, workers: int | None = None) -> np.ndarray:
+                    backend: str, body_path: str | None = None, workers: int | None = None,
+                    meanwhile: Callable[[], Any] | None = None) -> np.ndarray:
     """Rest vertices [m] of each garment, (n, V, 3) float32, in the order of ``jobs``.
 
     Args:
@@ -64,6 +65,8 @@ def styled_garments(gtype: str, jobs: list[tuple[Any, np.ndarray | None]], body:
         template: the type's GarmentTemplate.
         backend, body_path: how workers load the same body model (``load_body_model``).
         workers: worker processes (default ``worker_count``); 1: one after another in this process.
+        meanwhile: called in this process while the workers make the garments (not at all
+            without workers).
     """
     import torch
 
@@ -74,5 +77,8 @@ def styled_garments(gtype: str, jobs: list[tuple[Any, np.ndarray | None]], body:
     chunks = [jobs[i:i + size] for i in range(0, len(jobs), size)]
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
                              initializer=_start_worker, initargs=(backend, body_path, torch.get_num_threads())) as pool:
-        parts = list(pool.map(_make, [gtype] * len(chunks), [template] * len(chunks), chunks))
+        parts = pool.map(_make, [gtype] * len(chunks), [template] * len(chunks), chunks)  # submitted at once
+        if meanwhile is not None:
+            meanwhile()
+        parts = list(parts)
     return np.stack([g for part in parts for g in part])

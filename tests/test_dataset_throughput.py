@@ -71,21 +71,71 @@ def test_the_rest_cache_drops_the_least_recently_used_shape(anny_body, monkeypat
         anny_body.__dict__.pop("_rest_cache", None)
 
 
-def test_garments_made_by_worker_processes_are_the_bytes_of_one_process(anny_body):
-    from simulate.garment.style import sample_styles
-    from simulate.garment.templates import make_template
+def test_bodies_kept_ahead_are_not_blended_again_and_stay(anny_body, monkeypatch):
+    import simulate.body.base as base
 
-    from pipelines.styled_garments import styled_garments, worker_count
+    monkeypatch.setattr(base, "REST_CACHE_SIZE", 2)
+    anny_body.__dict__.pop("_rest_cache", None)
+    anny_body.__dict__.pop("_rest_capacity", None)
+    shapes = np.random.default_rng(5).uniform(0.2, 0.8, (5, 6)).astype(np.float32)
+    try:
+        assert anny_body.keep_rest(np.concatenate([shapes, shapes[:2]])) == 5  # repeats blended once
+        assert anny_body.keep_rest(shapes[1:3]) == 0
+        blended = []
+        blend = anny_body._rest_torch
+        monkeypatch.setattr(anny_body, "_rest_torch", lambda shape: blended.append(1) or blend(shape))
+        with torch.no_grad():
+            posed = anny_body.pose_torch(shapes[::-1].copy(), np.zeros((5, 60), np.float32))
+        assert not blended, "the kept bodies served the posing: none blended again, none dropped"
+        with one_thread_on_cpu("cpu"):
+            for i, row in enumerate(shapes[::-1]):
+                assert torch.equal(posed.rest_vertices[i], _reference_rest(anny_body, torch.as_tensor(row[None]))[0][0])
+        with pytest.raises(ValueError, match="shapes must have 6 values"):
+            anny_body.keep_rest(np.zeros((2, 5)))
+    finally:
+        anny_body.__dict__.pop("_rest_cache", None)
+        anny_body.__dict__.pop("_rest_capacity", None)
 
-    template = make_template("top", anny_body, resolution=200)
-    styles = sample_styles("top", 3, seed=7)
-    jobs = [(styles[0], None), (styles[1], np.array([0.3, 0.5, 0.6, 0.7, 0.4, 0.5], np.float32)), (styles[2], None)]
-    here = styled_garments("top", jobs, anny_body, template, backend="anny", workers=1)
-    spread = styled_garments("top", jobs, anny_body, template, backend="anny", workers=2)
-    assert here.shape == (3, len(template.vertices), 3) and here.dtype == np.float32
-    assert here.tobytes() == spread.tobytes()
-    assert not np.array_equal(here[0], here[2]), "two styles make two garments"
-    assert worker_count(7, cpus=16) == 1 and worker_count(500, cpus=16) == 16 and worker_count(40, cpus=16) == 5
+
+def test_the_bodies_blended_ahead_are_the_shapes_the_schedules_pose(anny_body):
+    from pipelines.generate_dataset import keep_schedule_bodies
+    from pipelines.spec import validate_spec
+    from simulate.sequence import SequenceSettings, SequenceTask
+    from simulate.sequence.schedule import build_schedule
+
+    spec = validate_spec(dict(SPEC))
+    rng = np.random.default_rng(9)
+    tasks = [SequenceTask(rest_vertices=np.zeros((3, 3)), start_vertices=np.zeros((3, 3)), shape=rng.uniform(0, 1, 6),
+                          poses=np.zeros((2, 60), np.float32), start_shape=start)
+             for start in (None, rng.uniform(0, 1, 6))]  # float64 shapes, as plans give them
+
+    class Recorder:
+        shape_default = anny_body.shape_default
+
+        def on_device(self, device):
+            return self
+
+        def keep_rest(self, shapes):
+            self.kept = {row.tobytes() for row in np.asarray(shapes, np.float32)}
+            return len(self.kept)
+
+    recorder = Recorder()
+    keep_schedule_bodies(recorder, tasks, spec, "cpu")
+    n = SequenceSettings().shape_transition_frames
+    canonical, neutral = np.zeros(60, np.float32), np.asarray(anny_body.shape_default, np.float32)
+    posed_first = set()
+    for t in tasks:
+        shapes = build_schedule(t, canonical, neutral, SequenceSettings())[0]
+        posed_first |= {row.tobytes() for row in shapes[:n + 1]}  # the transition, then the settle on the shape
+        posed_first.add((neutral if t.start_shape is None else np.asarray(t.start_shape, np.float32)).tobytes())
+    assert recorder.kept == posed_first and len(posed_first) == 2 * (n + 1)
+
+
+def test_garment_workers_are_one_per_eight_garments_up_to_one_per_cpu():
+    from pipelines.styled_garments import worker_count
+
+    assert [worker_count(n, cpus=16) for n in (1, 7, 8, 40, 500)] == [1, 1, 1, 5, 16]
+    assert worker_count(500, cpus=1) == 1
 
 
 def _tube_template(v: int = 24) -> dict:
@@ -159,18 +209,21 @@ SPEC = {
 def _generate(out, monkeypatch, *, reference: bool) -> list[tuple[str, str]]:
     import data_manifest.background as background
     import pipelines.generate_dataset as gd
+    import pipelines.styled_garments as sg
     from simulate.body.anny_backend import AnnyBody, anny_on
     from simulate.body import load_body_model
 
     gd._CONTEXTS.clear()  # a context keeps its garments and drapes; bodies keep their blended shapes
     for body in {id(b): b for b in (anny_on("cpu"), load_body_model("anny"))}.values():
         body.__dict__.pop("_rest_cache", None)
+        body.__dict__.pop("_rest_capacity", None)
     with monkeypatch.context() as patch:
         if reference:  # anny's whole rest model, one shard writer
             patch.setattr(AnnyBody, "_rest_torch", _reference_rest)
             patch.setattr(background, "lane_count", lambda mode, cpus=None: 1)
-        else:  # two shard writers (threads on the CPU); garments by workers: tested above
-            patch.setattr(background, "lane_count", lambda mode, cpus=None: 2)
+        else:  # two shard writers (threads on the CPU), the garments by two worker processes
+            patch.setattr(background, "lane_count", lambda mode, cpus=None: 2)  # while the schedules'
+            patch.setattr(sg, "worker_count", lambda garments, cpus=None: 2)  # bodies are blended here
         gd.generate(SPEC, out, progress=False, log=lambda m: None)
     gd._CONTEXTS.clear()
     manifest = json.loads((out / "manifest.json").read_text())
@@ -178,9 +231,19 @@ def _generate(out, monkeypatch, *, reference: bool) -> list[tuple[str, str]]:
 
 
 def test_a_tiny_motion_dataset_is_the_bytes_the_straightforward_paths_write(tmp_path, monkeypatch):
+    from simulate.body.anny_backend import anny_on
+
     reference = _generate(tmp_path / "reference", monkeypatch, reference=True)
     fast = _generate(tmp_path / "fast", monkeypatch, reference=False)
     assert len(reference) == 2 and fast == reference
+    assert anny_on("cpu").__dict__.pop("_rest_capacity", 0) > 0, "the fast run blended its schedules' bodies ahead"
+    anny_on("cpu").__dict__.pop("_rest_cache", None)
+    # the garments the workers made are those one process makes (a garment the cache holds for
+    # both runs would make the shards agree whatever the workers returned)
+    ref_cache, fast_cache = (next((tmp_path / run / "cache").glob("garments-*.npz")) for run in ("reference", "fast"))
+    with np.load(ref_cache) as ref_z, np.load(fast_cache) as fast_z:
+        assert ref_z["style_rest"].tobytes() == fast_z["style_rest"].tobytes()
+        assert ref_z["style_start"].tobytes() == fast_z["style_start"].tobytes()
     # the shards hold motion frames (not empty files that would trivially agree)
     from data_manifest.reader import DatasetReader
 
