@@ -126,11 +126,11 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
         return _CONTEXTS[key]
     from simulate.body import load_body_model
     from simulate.garment.drape import COLLISION_PARTS
-    from simulate.garment.templates import generate_garment
     from simulate.garment.templates import make_template
     from simulate.sequence import drape_static
 
     from pipelines.dataset_plan import plan_dataset
+    from pipelines.styled_garments import styled_garments
 
     device = resolve_device(device or spec["simulation"]["device"])
     body = load_body_model(spec["body"]["backend"], path=spec["body"]["path"])
@@ -154,8 +154,10 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             style_rest, style_start = z["style_rest"], z["style_start"]
     else:
         t0 = time.perf_counter()
-        style_rest = np.stack([generate_garment(gtype, plan.styles[si], body, template=template, shape=shape)
-                               for si, shape in plan.garments]).astype(np.float32)
+        style_rest = styled_garments(gtype, [(plan.styles[si], shape) for si, shape in plan.garments], body, template,
+                                     backend=spec["body"]["backend"], body_path=spec["body"]["path"],
+                                     meanwhile=lambda: keep_schedule_bodies(body, plan.tasks, spec, device))
+        t_styled = time.perf_counter()
         drape_shapes = np.stack([body.shape_default if shape is None else shape for _, shape in plan.garments])
         fabrics = [plan.fabrics[si] for si, _ in plan.garments]
         # the canonical drape starts from the pattern: it gets its own frame budget, not a pose hold's,
@@ -180,13 +182,34 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
             tmp.unlink(missing_ok=True)
             raise
         log(f"prepared {len(style_rest)} garment drapes on the canonical body in {time.perf_counter() - t0:.1f} s "
-            f"(statuses {np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
+            f"(garments {t_styled - t0:.1f} s, drapes {time.perf_counter() - t_styled:.1f} s; statuses "
+            f"{np.bincount(status, minlength=4).tolist()} running/converged/max-steps/exploded)")
     template_dict = {"faces": template.faces, "rest_vertices": template.vertices, "skinning_weights": template.skinning_weights,
                      "body_vertex_index": template.body_vertex_index, "uv": template.uv}
     ctx = Context(spec, device, body, template, template_dict, body_faces, plan, style_rest, style_start,
                   body_face_groups=face_groups, body_part=garment_part)
     _CONTEXTS[key] = ctx
     return ctx
+
+
+def keep_schedule_bodies(body: Any, tasks: list, spec: dict, device: str) -> int:
+    """Blends, on the simulation's device, the rest body of every shape the tasks' schedules pose
+    first (start shape, shape transition, shape; ``simulate.sequence.schedule``) and keeps them
+    (``BodyModel.keep_rest``): one blend per shape, each alone, as posing would blend them between
+    frames (5,500 for a cloth3d type). Returns the number blended."""
+    import torch
+
+    from simulate.sequence.schedule import transition_shapes
+
+    n = sequence_settings(spec).shape_transition_frames
+    neutral = np.asarray(body.shape_default, np.float32)
+    shapes = []
+    for t in tasks:
+        start = neutral if t.start_shape is None else np.asarray(t.start_shape, np.float32)
+        shapes += [start[None], transition_shapes(start, t.shape, n)]
+    torch_device = "cuda" if str(device).startswith("cuda") and torch.cuda.is_available() else "cpu"
+    with torch.no_grad():
+        return body.on_device(torch_device).keep_rest(np.concatenate(shapes)) if shapes else 0
 
 
 class Unskinner:
@@ -237,7 +260,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     """
     import torch
 
-    from data_manifest.background import BackgroundWriter
+    from data_manifest.background import WriterLanes, lane_count, resolve_mode
     from data_manifest.shard import ShardWriterSet
     from simulate.quality import QualityMeter
     from simulate.sequence import SequenceTask, run_sequences
@@ -257,10 +280,12 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
     motion = spec["poses"]["source"] == "motion"
     roots = root_joints(ctx.body, [t.shape for t in tasks]) if motion else None  # (n, 3) rest root joint per task
     started_at = time.time()
-    # shards are written, closed and hashed by a worker of their own while the simulation goes on
-    # (a process on CUDA: see data_manifest.background), which owns the batch's shard writers
+    # shards are written, closed and hashed by workers of their own while the simulation goes on
+    # (processes on CUDA: see data_manifest.background), each owning the shard writers of its lane
+    # (task index modulo the workers)
     in_daemon = multiprocessing.current_process().daemon  # e.g. a Pool worker: it may not start processes
-    background = BackgroundWriter(mode="process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
+    mode = resolve_mode("process" if str(ctx.device).startswith("cuda") and not in_daemon else "thread")
+    background = WriterLanes(lane_count(mode), mode=mode)
     shards = "shards"  # the ShardWriterSet's key on the worker
     background.create(shards, ShardWriterSet, out_dir, ctx.template_dict, precision=spec["output"]["precision"],
                       compression=spec["output"]["compression"])
@@ -279,7 +304,7 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
                     about.update(tightness=t.tightness, sized_shape=t.start_shape)
                 if t.motion_steps:  # the motion and its frame rate: frames are 1 / fps apart
                     about.update(motion=t.motion, fps=float(spec["motion"]["fps"]))
-                background.call(shards, ShardWriterSet.open, i, about)
+                background.lane(i).call(shards, ShardWriterSet.open, i, about)
         return written[i]
     # a motion frame is recorded after its frames whether or not the garment is at rest: the
     # convergence filter is for held targets
@@ -320,23 +345,25 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
         for i, reason in reasons.items():
             frame = frames[i]
             t = tasks[frame.task]
+            lane = background.lane(frame.task)
             if reason is None:
-                x = np.asarray(frame.positions, np.float64)
                 base = np.where(on_body[:, None], frame.rest_body_vertices[np.maximum(index, 0)], tmpl.vertices)
                 row = dict(metrics[i], status=float(frame.status), frames=float(frame.frames))
                 # frame_index: position in the visiting order; pose_id: index into the split's pose set
                 # (a motion's frame number); motion frames add velocities and the root joint
                 moving = {} if frame.velocities is None else {
                     "velocities": frame.velocities, "root_joint": root_position(frame, roots[frame.task], ctx.body)}
-                background.call(shards, ShardWriterSet.write_frame, frame.task, x, unposed[unposed_row[i]] - base,
-                                t.poses[frame.key], row, frame_index=int(frame.key),
-                                pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)
+                # the positions travel as simulated (float32: half the bytes to pickle); the writer
+                # widens them to float64 itself, exactly
+                lane.call(shards, ShardWriterSet.write_frame, frame.task, frame.positions, unposed[unposed_row[i]] - base,
+                          t.poses[frame.key], row, frame_index=int(frame.key),
+                          pose_id=np.array([t.pose_ids[frame.key]], np.float32), **moving)
             else:
-                background.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
-                                pose=t.poses[frame.key])
+                lane.call(shards, ShardWriterSet.record_dropped, frame.task, reason, frame_index=int(frame.key),
+                          pose=t.poses[frame.key])
             remaining[frame.task] -= 1
             if remaining[frame.task] == 0:
-                background.call_collect(shards, ShardWriterSet.close, frame.task, started_at=started_at)
+                lane.call_collect(shards, ShardWriterSet.close, frame.task, started_at=started_at)
         list_finished(background.completed())
         phases = ctx.phases
         for key, seconds in (("record_meter_s", t_unskin - t_meter), ("record_unskin_s", t_submit - t_unskin),

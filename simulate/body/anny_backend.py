@@ -111,12 +111,23 @@ class AnnyBody(BodyModel):
         shape = shape.to(self.device)
         batch = shape.shape[0]
         extra = self._no_extra.expand(batch, 0)
-        coeffs = self.anny_model._get_phenotype_blendshape_coefficients(shape, extra, extra)
-        rest = self.anny_model.get_rest_model(coeffs)
+        model = self.anny_model
+        coeffs = model._get_phenotype_blendshape_coefficients(shape, extra, extra)
+        # the rest vertices and bone heads by the expressions anny's get_rest_model uses for them
+        # (the same bits), without the rest bone orientations it also makes and nothing here reads
+        # (a batched SVD per call: most of a one-shape blend on a GPU, and a dataset blends one
+        # shape at a time, thousands of them in a motion run's shape transitions)
+        vertices = model.get_rest_vertices(coeffs)
+        heads = _anny_skinning().apply_linear_blendshape(model.template_bone_heads, model.bone_heads_blendshapes, coeffs)
         rot = _ZUP_TO_YUP.to(shape.device)
-        vertices = rest["rest_vertices"] @ rot.T  # (B, V, 3)
-        joints = rest["rest_bone_heads"] @ rot.T  # (B, J, 3)
-        return vertices, joints
+        return vertices @ rot.T, heads @ rot.T  # (B, V, 3), (B, J, 3)
+
+
+def _anny_skinning():
+    """anny's skinning module (``apply_linear_blendshape``, which its rest models use)."""
+    import anny.skinning.skinning as skinning
+
+    return skinning
 
 
 @lru_cache(maxsize=4)

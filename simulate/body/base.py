@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 import contextlib
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -249,26 +250,52 @@ class BodyModel(abc.ABC):
 
     def _rest_kept(self, shapes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``_rest_torch`` of each row (B, S), each blended alone the first time and then kept per
-        device (up to ``REST_CACHE_SIZE`` shapes): a dataset run poses a few hundred shapes
+        device (up to ``REST_CACHE_SIZE`` shapes, more after ``keep_rest``, the least recently used going first: a motion
+        run's shape transitions blend thousands of shapes used for a frame or two, which must not
+        push out the shapes its worlds pose every frame): a dataset run poses a few hundred shapes
         thousands of times, and anny's blend was ~8 ms of a ~12 ms batched posing call on the
         H200, mostly per-call overhead. Blending a row alone makes it independent of the batch it
         arrives in, so a body does not depend on which run or batch first asked for its shape."""
-        cache = self.__dict__.setdefault("_rest_cache", {})
-        rows = shapes.detach().cpu().numpy()
-        device = str(getattr(self, "device", shapes.device))
-        kept_v, kept_j = [], []
+        hits = self._kept_rows(shapes.detach().cpu().numpy(), shapes.dtype, shapes.device)
+        return torch.stack([v for v, _ in hits]), torch.stack([j for _, j in hits])
+
+    def _kept_rows(self, rows: np.ndarray, dtype: torch.dtype,
+                   given_on: torch.device | str = "cpu") -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """(rest vertices (V, 3), rest joints (J, 3)) of each row of ``rows`` (B, S) from the cache,
+        blending the missing ones alone (see ``_rest_kept``); ``given_on``: where the shapes came
+        from (the blend's input is made there)."""
+        cache = self.__dict__.setdefault("_rest_cache", OrderedDict())
+        capacity = max(REST_CACHE_SIZE, self.__dict__.get("_rest_capacity", 0))
+        device = str(getattr(self, "device", given_on))
+        hits = []
         for row in rows:
-            key = (device, str(shapes.dtype), row.tobytes())
+            key = (device, str(dtype), row.tobytes())
             hit = cache.get(key)
             if hit is None:
-                if len(cache) >= REST_CACHE_SIZE:
-                    cache.clear()
+                while len(cache) >= capacity:  # the least recently used goes: a run's task shapes
+                    cache.popitem(last=False)  # stay while its one-frame blend shapes pass through
                 with one_thread_on_cpu(getattr(self, "device", "cpu")):
-                    v, j = self._rest_torch(shapes.new_tensor(row[None]))
+                    v, j = self._rest_torch(torch.as_tensor(row[None], dtype=dtype, device=given_on))
                 hit = cache[key] = (v[0], j[0])
-            kept_v.append(hit[0])
-            kept_j.append(hit[1])
-        return torch.stack(kept_v), torch.stack(kept_j)
+            else:
+                cache.move_to_end(key)
+            hits.append(hit)
+        return hits
+
+    def keep_rest(self, shapes) -> int:
+        """Blends the rest bodies of ``shapes`` (B, S) now, each alone as posing blends them, and
+        keeps them: the cache grows to hold these and ``REST_CACHE_SIZE`` more. A dataset run knows
+        every shape its schedules will pose (shape transitions included) before it simulates, and
+        blends them while worker processes make its garments, instead of one by one between frames.
+        Returns the number of shapes blended (those not kept already)."""
+        rows = self.check_shape(shapes, field="shapes", move=False).detach().cpu().numpy()
+        rows = rows[np.sort(np.unique(rows, axis=0, return_index=True)[1])]
+        cache = self.__dict__.setdefault("_rest_cache", OrderedDict())
+        self.__dict__["_rest_capacity"] = max(self.__dict__.get("_rest_capacity", 0), len(rows) + REST_CACHE_SIZE)
+        device = str(getattr(self, "device", "cpu"))
+        missing = sum((device, str(torch.float32), row.tobytes()) not in cache for row in rows)
+        self._kept_rows(rows, torch.float32)
+        return missing
 
     def pose_torch(self, shape, pose, translation=None) -> PosedBody:
         """Differentiable posing in torch; shape (B,S) or (S,), pose (B,60) or (60,) broadcast."""

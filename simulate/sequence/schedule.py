@@ -34,9 +34,8 @@ def build_schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape
     ``task.start_shape``, or ``neutral_shape`` when it is None), settle, then the target poses
     from ``first_key`` on."""
     n = s.shape_transition_frames
-    blend = (np.arange(1, n + 1) / n)[:, None]
     start = neutral_shape if task.start_shape is None else np.asarray(task.start_shape, np.float32)
-    shapes = [start[None] * (1 - blend) + task.shape[None] * blend, task.shape[None]]
+    shapes = [transition_shapes(start, task.shape, n), task.shape[None]]
     poses = [np.tile(canonical_pose, (n, 1)), canonical_pose[None]]
     kinds = [np.full(n, TRANSITION), np.array([SETTLE])]
     keys = [np.full(n, -1), np.array([-1])]
@@ -46,6 +45,14 @@ def build_schedule(task: SequenceTask, canonical_pose: np.ndarray, neutral_shape
         visit = visit_entries(task, first_key, canonical_pose, s.interpolation_threshold)
     out = [np.concatenate([*part, v]) for part, v in zip((shapes, poses, kinds, keys), visit)]
     return out[0].astype(np.float32), out[1].astype(np.float32), out[2], out[3]
+
+
+def transition_shapes(start: np.ndarray, shape: np.ndarray, n: int) -> np.ndarray:
+    """The bodies of a shape transition: ``start`` (S,) blended linearly to ``shape`` (S,) over ``n``
+    frames, (n, S) float32, the last one ``shape`` (the schedule's first entries; a caller that
+    blends these bodies ahead of the run gets the very shapes the run poses)."""
+    blend = (np.arange(1, n + 1) / n)[:, None]
+    return (np.asarray(start)[None] * (1 - blend) + np.asarray(shape)[None] * blend).astype(np.float32)
 
 
 def visit_entries(task: SequenceTask, first_key: int, start_pose: np.ndarray, threshold: float,
