@@ -20,7 +20,9 @@ after the learner.
 ``gcvae`` (seed 004; docs/learners/gcvae.md) trains on a static set from ``drape static-set``
 instead of a dataset (its registry ``data`` is ``static_set``): one resumable stage ``train``
 (checkpoint ``RUN/gcvae.pt``, per-epoch loss terms and validation error in ``RUN/gcvae_terms.csv``),
-the best validation epoch in ``RUN/gcvae_model.pt``.
+the best validation epoch in ``RUN/gcvae_model.pt``. Given a motion dataset (``poses.source:
+motion``, or a directory with ``datasets.json``) it trains the dynamic variant (``--dynamic``
+says so explicitly; learn/gcvae/dynamic_set.py).
 """
 from __future__ import annotations
 
@@ -113,10 +115,11 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
 
 
 def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu", epochs: int | None = None,
-          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True) -> Path:
+          config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True,
+          dynamic: bool = False) -> Path:
     """Library form of the command; returns the run directory."""
     args = argparse.Namespace(learner=learner, data=str(data), out=str(out), device=device, epochs=epochs, config=config,
-                              prototypes=prototypes, seed=seed, no_progress=not progress)
+                              prototypes=prototypes, seed=seed, no_progress=not progress, dynamic=dynamic)
     run(args)
     return Path(out)
 
@@ -152,6 +155,8 @@ def _run(args: argparse.Namespace, entry) -> int:
     hyper = _overrides(args, entry.stages)
     if Path(args.out).resolve() == Path(args.data).resolve():
         raise UsageError(f"--out {args.out!r} is the dataset directory; give the run its own directory")
+    if getattr(args, "dynamic", False) and entry.data != "static_set":
+        raise UsageError(f"--dynamic applies to gcvae only, not {args.learner}")
     out = check_output_dir(args.out, "--out")
     if entry.data == "static_set":
         return _train_on_static_set(entry, args, hyper, out)
@@ -217,10 +222,28 @@ def _run(args: argparse.Namespace, entry) -> int:
 
 def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path) -> int:
     """``drape train`` of a learner whose registry ``data`` is ``static_set`` (gcvae): fits it on
-    the ``drape static-set`` directory ``--data`` and writes ``run.json``."""
+    the ``drape static-set`` directory ``--data`` (or, the dynamic variant, on the frames of the
+    motion dataset ``--data``) and writes ``run.json``."""
+    from learn.gcvae.dynamic_set import DynamicSet, is_motion_source
+    from learn.gcvae.hyperparameters import merged
     from learn.gcvae.static_set import StaticSet
 
-    data = StaticSet(args.data)
+    if is_motion_source(args.data):
+        try:
+            settings = merged(hyper)
+        except ValueError as error:
+            raise UsageError(f"--config {args.config}: {error}") from None
+        data = DynamicSet(args.data, frames=settings["dynamic"]["frames"],
+                          frame_stride=settings["dynamic"]["frame_stride"], representation=settings["representation"])
+        for skipped in data.skipped:
+            print(f"note: skipped {skipped['type']} {skipped['task_id']}: its garment is not on the body "
+                  f"(registration {skipped['registration_mm']:.1f} mm)")
+    elif getattr(args, "dynamic", False):
+        raise UsageError(f"--dynamic needs a motion dataset (a drape generate-dataset directory with poses.source: "
+                         f"motion, or one with datasets.json); --data {args.data} is not one (a static set trains the "
+                         f"static gcvae: drop --dynamic)")
+    else:
+        data = StaticSet(args.data)
     t0 = time.perf_counter()
     model = entry.fit(data, run_dir=out, hyperparameters=hyper, device=args.device, seed=args.seed,
                       progress=not args.no_progress)
@@ -233,7 +256,7 @@ def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path
             "train_samples": train_samples, "validation_samples": validation_samples, "types": data.types,
             "best_epoch": model.best_epoch, "hyperparameters": model.hyperparameters, "device": args.device,
             "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
-            "registration_mm": data.registration_table()}
+            "registration_mm": data.registration_table(), "dynamic": getattr(model, "dynamic", None)}
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
     print(f"trained {args.learner} on {train_samples} samples, validated on {validation_samples} "
           f"({', '.join(data.types)}) in {info['seconds']} s, best epoch {model.best_epoch} -> {out}")
@@ -257,4 +280,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "gcvae: per section of learn/gcvae/hyperparameters.py, e.g. {train: {lr: 5e-4}}")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--dynamic", action="store_true",
+                   help="gcvae: the dynamic variant on a motion dataset's frames (automatic when --data is a motion "
+                        "dataset; sizes in the config section dynamic: frames, frame_stride, channel_factor)")
     p.set_defaults(func=run)

@@ -106,6 +106,19 @@ class BodyMesh:
             return "dual"
         return "standard"
 
+    def consistent_mask(self, mask: np.ndarray) -> np.ndarray:
+        """Masks (..., N) bool with the vertices of no face of their topology cleared: a
+        skirt-like mask (:meth:`topology_of_mask` "dual") loses the inner-leg vertices inside
+        the holes, which no dual face uses, so no skirt can cover them. Standard masks are
+        returned unchanged."""
+        mask = np.asarray(mask, bool)
+        bridge = self.bridge_vertices()
+        inside = self.inner_leg & ~bridge
+        if not (bridge.any() and inside.any()):
+            return mask.copy()
+        dual = (mask[..., bridge].mean(-1) > 0.5) & (mask[..., inside].mean(-1) < 0.5)
+        return mask & ~(dual[..., None] & inside)
+
     def positions_for(self, garment_type: str, vertices: np.ndarray) -> np.ndarray:
         """Positions (N, 3) [m] of the topology ``garment_type`` registers on."""
         return self.dual_vertices(vertices) if garment_type in DUAL_TYPES else np.asarray(vertices, np.float64)
