@@ -227,7 +227,8 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
                         log=print) -> dict:
     """``drape evaluate`` of a run trained on a static set (gcvae): per-type surface error [mm],
     normal angle [rad], mask IoU and KL on the set's test and train splits, the set's
-    registration error beside them; writes ``evaluation.json`` into ``out`` (default
+    registration error beside them (a dynamic gcvae run: on the frames of the motion dataset
+    ``data``, beside the seed's Table 4); writes ``evaluation.json`` into ``out`` (default
     ``RUN/evaluation``) and returns the report."""
     from learn.gcvae.dynamic_set import DynamicSet, is_motion_source
     from learn.gcvae.evaluate import evaluate_set, format_dynamic_table, format_table
@@ -241,7 +242,8 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
     if not run_dir.is_dir():
         raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
     check_torch_device(device)
-    dynamic = load_checkpoint(run_dir / "gcvae_model.pt", map_location="cpu").get("dynamic")
+    saved = load_checkpoint(run_dir / "gcvae_model.pt", map_location="cpu") if (run_dir / "gcvae_model.pt").is_file() else {}
+    dynamic = saved.get("dynamic")
     if dynamic and not is_motion_source(data):
         raise UsageError(f"RUN {str(run_dir)!r} holds a dynamic gcvae; --data {data} must be a motion dataset "
                          f"(a drape generate-dataset directory with poses.source: motion)")
@@ -249,9 +251,8 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
         raise UsageError(f"RUN {str(run_dir)!r} holds a static gcvae; --data {data} is a motion dataset (evaluate a "
                          f"run of drape train gcvae --dynamic on it, or give a drape static-set directory)")
     if dynamic:
-        rep = (load_checkpoint(run_dir / "gcvae_model.pt", map_location="cpu").get("hyperparameters") or {})
         static_set = DynamicSet(data, frames=dynamic["frames"], frame_stride=dynamic["frame_stride"],
-                                representation=rep.get("representation"))
+                                representation=(saved.get("hyperparameters") or {}).get("representation"))
     else:
         static_set = StaticSet(data)
     out = check_output_dir(Path(out) if out else run_dir / "evaluation", "--out")

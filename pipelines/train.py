@@ -271,7 +271,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "baseline, uvimage, uvimage_pca (seed 001), collision_aware or collision-aware (seed 002), "
                                    "gcvae (seed 004)")
     p.add_argument("--data", required=True,
-                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set)")
+                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set, or a "
+                        "motion dataset for the dynamic variant)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     p.add_argument("--epochs", type=int, default=None, help="epochs for every stage (default: the paper's per stage)")
