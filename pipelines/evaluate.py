@@ -242,7 +242,8 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
     if not run_dir.is_dir():
         raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
     check_torch_device(device)
-    saved = load_checkpoint(run_dir / "gcvae_model.pt", map_location="cpu") if (run_dir / "gcvae_model.pt").is_file() else {}
+    model_file = run_dir / "gcvae_model.pt"
+    saved = load_checkpoint(model_file, map_location="cpu") if model_file.is_file() else {}
     dynamic = saved.get("dynamic")
     if dynamic and not is_motion_source(data):
         raise UsageError(f"RUN {str(run_dir)!r} holds a dynamic gcvae; --data {data} must be a motion dataset "

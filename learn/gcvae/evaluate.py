@@ -126,7 +126,8 @@ def format_dynamic_table(report: dict[str, Any], frames: int) -> str:
             lines.append(f"{name:<10}{m['surface_mm']:>11.2f}{m['normal_rad']:>11.3f}{m['mask_iou']:>10.4f}"
                          f"{m['kl']:>9.3f}{reg_s}{seed}")
     for s in report.get("skipped", []):
-        lines.append(f"skipped: {s['type']} {s['task_id']} (registration {s['registration_mm']:.1f} mm: not on the body)")
+        lines.append(f"skipped: {s['type']} {s['task_id']} (registration {s['registration_mm']:.1f} mm: "
+                     f"not on the body)")
     return "\n".join(lines)
 
 

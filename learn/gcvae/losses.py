@@ -85,5 +85,6 @@ def gcvae_loss(model, out: dict, batch: dict, faces: torch.Tensor, dual_faces: t
     total = (l_off + loss["normals_weight"] * l_norm + loss["mask_weight"] * l_mask
              + loss["mask_iou_weight"] * l_iou + beta * kl + loss["condition_weight"] * l_cond)
     return total, {"loss": float(total.detach()), "offsets": float(l_off.detach()), "normals": float(l_norm.detach()),
-                   "mask": float(l_mask.detach()), "mask_iou": float(l_iou.detach()), "kl": float(kl.detach()), "condition": float(l_cond.detach()),
+                   "mask": float(l_mask.detach()), "mask_iou": float(l_iou.detach()), "kl": float(kl.detach()),
+                   "condition": float(l_cond.detach()),
                    "beta": beta}

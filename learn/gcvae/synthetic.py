@@ -112,7 +112,8 @@ def write_synthetic_motion_dataset(root: str | os.PathLike, body, *, types: tupl
         out = root / garment_type
         task_ids = {split: [f"{split}-p{k:03d}-m00" for k in range(n)] for split, n in sequences.items()}
         manifest = Manifest.create(out, name=spec["name"], spec=spec, template_sha256=template_sha256(template),
-                                   precision="float32", provenance=collect_provenance(device="cpu", seeds={"spec": seed}),
+                                   precision="float32",
+                                   provenance=collect_provenance(device="cpu", seeds={"spec": seed}),
                                    splits=task_ids)
         for split, ids in task_ids.items():
             for task_id in ids:
