@@ -1,5 +1,5 @@
 """The dynamic GCVAE (seed 004's DVAE): motion frames as offsets and masks on the body mesh,
-conditioned on the poses of several frames; the skirt mask's topology consistency."""
+conditioned on the poses of several frames."""
 from __future__ import annotations
 
 import json
@@ -197,18 +197,3 @@ def test_cli_train_dynamic_evaluate_and_the_errors(motion, tmp_path: Path, anny_
     assert "dynamic gcvae" in capsys.readouterr().err
     assert main(["train", "tailornet", "--dynamic", "--data", str(root / "tshirt"), "--out", str(tmp_path / "r3")]) == 2
     assert "--dynamic applies to gcvae only, not tailornet" in capsys.readouterr().err
-
-
-def test_a_skirt_like_mask_holds_no_inner_leg_vertex(motion) -> None:
-    """consistent_mask clears the inner-leg vertices no dual face uses from a skirt-like mask,
-    and leaves a standard mask (trousers cover the inner legs) as it is."""
-    _, data = motion
-    mesh = data.mesh
-    inside = mesh.inner_leg & ~mesh.bridge_vertices()
-    skirt = data.mask[data.type == 1][0].copy()
-    noisy = skirt.copy()
-    noisy[np.flatnonzero(inside)[:20]] = True  # a few stray inner-leg vertices predicted on
-    fixed = mesh.consistent_mask(np.stack([noisy, skirt]))
-    assert (fixed[0] == skirt).all() and (fixed[1] == skirt).all()
-    trousers = inside | mesh.inner_leg  # covers the inner legs: the standard topology
-    assert (mesh.consistent_mask(trousers) == trousers).all()

@@ -96,31 +96,15 @@ class BodyMesh:
                 out[f] = True
         return out
 
-    def skirt_like(self, mask: np.ndarray) -> np.ndarray:
-        """(...) bool of masks (..., N): the mask covers the bridge between the legs at least
-        twice as densely as the inner-leg vertices inside the holes. A skirt covers part of the
-        bridge (its upper rows for a short skirt) and, registered on the dual topology, none of
-        the hole's vertices; trousers and shorts cover both alike."""
+    def topology_of_mask(self, mask: np.ndarray) -> str:
+        """"dual" when a mask covers the bridge but not the inner legs (skirt-like), else
+        "standard": what a sampled garment of unknown type is reconstructed with."""
         mask = np.asarray(mask, bool)
         bridge = self.bridge_vertices()
         inside = self.inner_leg & ~bridge
-        if not (bridge.any() and inside.any()):
-            return np.zeros(mask.shape[:-1], bool)
-        on_bridge = mask[..., bridge].mean(-1)
-        return (on_bridge > 0.0) & (on_bridge > 2.0 * mask[..., inside].mean(-1))
-
-    def topology_of_mask(self, mask: np.ndarray) -> str:
-        """"dual" for a skirt-like mask (:meth:`skirt_like`), else "standard": what a sampled
-        garment of unknown type is reconstructed with."""
-        return "dual" if bool(self.skirt_like(mask)) else "standard"
-
-    def consistent_mask(self, mask: np.ndarray) -> np.ndarray:
-        """Masks (..., N) bool with the vertices of no face of their topology cleared: a
-        skirt-like mask (:meth:`skirt_like`) loses the inner-leg vertices inside the holes, which
-        no dual face uses, so no skirt covers them. Other masks are returned unchanged."""
-        mask = np.asarray(mask, bool)
-        inside = self.inner_leg & ~self.bridge_vertices()
-        return mask & ~(self.skirt_like(mask)[..., None] & inside)
+        if bridge.any() and inside.any() and mask[bridge].mean() > 0.5 and mask[inside].mean() < 0.5:
+            return "dual"
+        return "standard"
 
     def positions_for(self, garment_type: str, vertices: np.ndarray) -> np.ndarray:
         """Positions (N, 3) [m] of the topology ``garment_type`` registers on."""

@@ -67,7 +67,7 @@ def sample_garments(model: GCVAE, out: str | Path, *, count: int = 4, shape: np.
     paths = [write_obj(out / "body.obj", body_v, mesh.faces)]
     meshes, titles = [], []
     for k in range(count):
-        mask = mesh.consistent_mask(probability[k] > 0.5)
+        mask = probability[k] > 0.5
         topology = mesh.topology_of_mask(mask)
         faces = mesh.dual_faces if topology == "dual" else mesh.faces
         base = mesh.dual_vertices(body_v) if topology == "dual" else body_v
