@@ -20,7 +20,8 @@ Each ``LearnerEntry`` gives:
   body mesh, learn/gcvae/static_set.py); ``fit(data, *, run_dir, hyperparameters, device, seed,
   progress)`` takes its ``StaticSet``, ``context`` is not called, ``load``'s fingerprint is the
   set's (learn.gcvae.train.set_fingerprint), and ``drape evaluate`` reports learn/gcvae/evaluate.py's
-  per-type reconstruction metrics (surface, normals, mask IoU, KL).
+  per-type reconstruction metrics (surface, normals, mask IoU, KL). gcvae's ``--data`` may also be
+  a motion dataset: its dynamic variant (learn/gcvae/dynamic_set.py, ``drape train --dynamic``).
 - ``streams``: whether ``fit`` takes a :class:`learn.streamed_split.StreamedSplit` for ``data``
   (``drape train --data-mode stream``, docs/streaming.md); ``context`` then gets ``dataset=None``.
 """

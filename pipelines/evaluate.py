@@ -234,11 +234,14 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
                         log=print) -> dict:
     """``drape evaluate`` of a run trained on a static set (gcvae): per-type surface error [mm],
     normal angle [rad], mask IoU and KL on the set's test and train splits, the set's
-    registration error beside them; writes ``evaluation.json`` into ``out`` (default
+    registration error beside them (a dynamic gcvae run: on the frames of the motion dataset
+    ``data``, beside the seed's Table 4); writes ``evaluation.json`` into ``out`` (default
     ``RUN/evaluation``) and returns the report."""
-    from learn.gcvae.evaluate import evaluate_set, format_table
+    from learn.gcvae.dynamic_set import DynamicSet, is_motion_source
+    from learn.gcvae.evaluate import evaluate_set, format_dynamic_table, format_table
     from learn.gcvae.static_set import StaticSet
     from learn.gcvae.train import set_fingerprint
+    from learn.tailornet.train import load_checkpoint
 
     from pipelines.errors import UsageError, check_output_dir, check_torch_device
 
@@ -246,7 +249,20 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
     if not run_dir.is_dir():
         raise UsageError(f"RUN {str(run_dir)!r} is not a directory (a run directory from drape train)")
     check_torch_device(device)
-    static_set = StaticSet(data)
+    model_file = run_dir / "gcvae_model.pt"
+    saved = load_checkpoint(model_file, map_location="cpu") if model_file.is_file() else {}
+    dynamic = saved.get("dynamic")
+    if dynamic and not is_motion_source(data):
+        raise UsageError(f"RUN {str(run_dir)!r} holds a dynamic gcvae; --data {data} must be a motion dataset "
+                         f"(a drape generate-dataset directory with poses.source: motion)")
+    if not dynamic and is_motion_source(data):
+        raise UsageError(f"RUN {str(run_dir)!r} holds a static gcvae; --data {data} is a motion dataset (evaluate a "
+                         f"run of drape train gcvae --dynamic on it, or give a drape static-set directory)")
+    if dynamic:
+        static_set = DynamicSet(data, frames=dynamic["frames"], frame_stride=dynamic["frame_stride"],
+                                representation=(saved.get("hyperparameters") or {}).get("representation"))
+    else:
+        static_set = StaticSet(data)
     out = check_output_dir(Path(out) if out else run_dir / "evaluation", "--out")
     name, model = next(iter(_load_models(run_dir, set_fingerprint(static_set), device, data="static_set").items()))
     trained_types = [str(t) for t in model.graph["types"]]
@@ -256,8 +272,11 @@ def evaluate_static_set(run_dir: str | Path, data: str | Path, *, device: str = 
     report = evaluate_set(model, static_set, splits=splits, device=device)
     report["learner"] = name
     report["best_epoch"] = getattr(model, "best_epoch", None)
+    if dynamic:
+        report["dynamic"] = dynamic
+        report["skipped"] = static_set.skipped
     (out / "evaluation.json").write_text(json.dumps(report, indent=2))
-    log(format_table(report))
+    log(format_dynamic_table(report, dynamic["frames"]) if dynamic else format_table(report))
     log(f"report: {out / 'evaluation.json'}")
     return report
 

@@ -32,6 +32,10 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--shape must be numbers separated by commas, got {args.shape!r}") from None
     out = check_output_dir(args.out, "--out")
     model = entry.load(path, device=args.device)
+    if getattr(model, "dynamic", None):
+        raise UsageError(f"RUN {str(run_dir)!r} holds a dynamic gcvae (trained on motion frames, conditioned on "
+                         f"poses); drape sample draws static garments: give a run trained on a drape static-set "
+                         f"directory")
     paths = sample_garments(model, out, count=args.count, shape=shape, tightness=args.tightness, seed=args.seed)
     print(f"wrote {len(paths) - 1} garments and the body to {args.out}")
     return 0

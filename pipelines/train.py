@@ -22,7 +22,9 @@ after the learner.
 ``gcvae`` (seed 004; docs/learners/gcvae.md) trains on a static set from ``drape static-set``
 instead of a dataset (its registry ``data`` is ``static_set``): one resumable stage ``train``
 (checkpoint ``RUN/gcvae.pt``, per-epoch loss terms and validation error in ``RUN/gcvae_terms.csv``),
-the best validation epoch in ``RUN/gcvae_model.pt``.
+the best validation epoch in ``RUN/gcvae_model.pt``. Given a motion dataset (``poses.source:
+motion``, or a directory with ``datasets.json``) it trains the dynamic variant (``--dynamic``
+says so explicitly; learn/gcvae/dynamic_set.py).
 
 ``--data-mode`` (memory, stream, auto: docs/streaming.md) says whether the training split is loaded
 whole or read shard by shard in DataLoader workers every epoch; ``auto`` streams when the split's
@@ -124,11 +126,11 @@ def _overrides(args: argparse.Namespace, stages: tuple[str, ...]) -> dict:
 
 def train(learner: str, data: str | Path, out: str | Path, *, device: str = "cpu", epochs: int | None = None,
           config: str | None = None, prototypes: int | None = None, seed: int = 0, progress: bool = True,
-          data_mode: str = "auto", regressor: str | None = None) -> Path:
+          data_mode: str = "auto", regressor: str | None = None, dynamic: bool = False) -> Path:
     """Library form of the command; returns the run directory."""
     args = argparse.Namespace(learner=learner, data=str(data), out=str(out), device=device, epochs=epochs, config=config,
                               prototypes=prototypes, seed=seed, no_progress=not progress, data_mode=data_mode,
-                              regressor=regressor)
+                              regressor=regressor, dynamic=dynamic)
     run(args)
     return Path(out)
 
@@ -174,6 +176,8 @@ def _run(args: argparse.Namespace, entry) -> int:
     hyper = _overrides(args, entry.stages)
     if Path(args.out).resolve() == Path(args.data).resolve():
         raise UsageError(f"--out {args.out!r} is the dataset directory; give the run its own directory")
+    if getattr(args, "dynamic", False) and entry.data != "static_set":
+        raise UsageError(f"--dynamic applies to gcvae only, not {args.learner}")
     out = check_output_dir(args.out, "--out")
     if entry.data == "static_set":
         return _train_on_static_set(entry, args, hyper, out)
@@ -269,10 +273,28 @@ def _data_mode(mode: str, reader, split: str, entry) -> str:
 
 def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path) -> int:
     """``drape train`` of a learner whose registry ``data`` is ``static_set`` (gcvae): fits it on
-    the ``drape static-set`` directory ``--data`` and writes ``run.json``."""
+    the ``drape static-set`` directory ``--data`` (or, the dynamic variant, on the frames of the
+    motion dataset ``--data``) and writes ``run.json``."""
+    from learn.gcvae.dynamic_set import DynamicSet, is_motion_source
+    from learn.gcvae.hyperparameters import merged
     from learn.gcvae.static_set import StaticSet
 
-    data = StaticSet(args.data)
+    if is_motion_source(args.data):
+        try:
+            settings = merged(hyper)
+        except ValueError as error:
+            raise UsageError(f"--config {args.config}: {error}") from None
+        data = DynamicSet(args.data, frames=settings["dynamic"]["frames"],
+                          frame_stride=settings["dynamic"]["frame_stride"], representation=settings["representation"])
+        for skipped in data.skipped:
+            print(f"note: skipped {skipped['type']} {skipped['task_id']}: its garment is not on the body "
+                  f"(registration {skipped['registration_mm']:.1f} mm)")
+    elif getattr(args, "dynamic", False):
+        raise UsageError(f"--dynamic needs a motion dataset (a drape generate-dataset directory with poses.source: "
+                         f"motion, or one with datasets.json); --data {args.data} is not one (a static set trains the "
+                         f"static gcvae: drop --dynamic)")
+    else:
+        data = StaticSet(args.data)
     t0 = time.perf_counter()
     model = entry.fit(data, run_dir=out, hyperparameters=hyper, device=args.device, seed=args.seed,
                       progress=not args.no_progress)
@@ -285,7 +307,7 @@ def _train_on_static_set(entry, args: argparse.Namespace, hyper: dict, out: Path
             "train_samples": train_samples, "validation_samples": validation_samples, "types": data.types,
             "best_epoch": model.best_epoch, "hyperparameters": model.hyperparameters, "device": args.device,
             "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
-            "registration_mm": data.registration_table()}
+            "registration_mm": data.registration_table(), "dynamic": getattr(model, "dynamic", None)}
     (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
     print(f"trained {args.learner} on {train_samples} samples, validated on {validation_samples} "
           f"({', '.join(data.types)}) in {info['seconds']} s, best epoch {model.best_epoch} -> {out}")
@@ -300,7 +322,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                                    "baseline, uvimage, uvimage_pca (seed 001), collision_aware or collision-aware (seed 002), "
                                    "gcvae (seed 004)")
     p.add_argument("--data", required=True,
-                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set)")
+                   help="dataset directory (from drape generate-dataset; for gcvae: from drape static-set, or a "
+                        "motion dataset for the dynamic variant)")
     p.add_argument("--out", required=True, help="run directory (checkpoints, logs, model)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, cuda:1)")
     p.add_argument("--epochs", type=int, default=None, help="epochs for every stage (default: the paper's per stage)")
@@ -316,4 +339,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "shard in DataLoader workers, for datasets larger than memory; docs/streaming.md) or auto "
                         "(default: stream when the split's per-vertex arrays exceed half the available memory)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--dynamic", action="store_true",
+                   help="gcvae: the dynamic variant on a motion dataset's frames (automatic when --data is a motion "
+                        "dataset; sizes in the config section dynamic: frames, frame_stride, channel_factor)")
     p.set_defaults(func=run)

@@ -34,6 +34,16 @@ SEED_TABLE_3B: dict[str, tuple[float, float, float, float]] = {
 }
 #: Seed 004, Table 3a (all types): surface mm, normal rad, mask IoU, KL.
 SEED_TABLE_3A_ALL = (14.7, 1.02, 0.9522, 0.9414)
+#: Seed 004, Table 4 (DVAE, dynamic set): {frames: {type: (surface mm, normal rad)}}.
+SEED_TABLE_4: dict[int, dict[str, tuple[float, float]]] = {
+    1: {"top": (22.3, 1.22), "tshirt": (29.5, 1.29), "pants": (21.0, 0.88), "skirt": (37.6, 0.91),
+        "jumpsuit": (29.6, 1.10), "dress": (35.5, 1.13), "average": (29.3, 1.09)},
+    4: {"top": (20.3, 1.22), "tshirt": (28.1, 1.28), "pants": (18.7, 0.87), "skirt": (33.2, 0.88),
+        "jumpsuit": (26.3, 1.09), "dress": (32.3, 1.11), "average": (26.4, 1.08)},
+}
+#: Our CLOTH3D type names -> the seed's (Table 4 rows).
+SEED_TYPE_NAMES = {"top": "Top", "tshirt": "T-shirt", "pants": "Trousers", "skirt": "Skirt", "jumpsuit": "Jumpsuit",
+                   "dress": "Dress", "average": "Avg."}
 
 
 @torch.no_grad()
@@ -94,6 +104,29 @@ def evaluate_set(model: GCVAE, data: StaticSet, *, splits: tuple[str, ...] = ("t
     report["timing"] = {"device": str(device), "ms_per_sample_batch": 1e3 * (time.perf_counter() - t0) / len(index),
                         "batch": int(len(index))}
     return report
+
+
+def format_dynamic_table(report: dict[str, Any], frames: int) -> str:
+    """Per-type table of a dynamic run (T = ``frames`` poses per condition) with the seed's
+    Table 4 (surface mm / normal rad for 1 and 4 frames) beside each type."""
+    lines = []
+    for split, r in report["splits"].items():
+        lines.append(f"{split} split ({r['samples']} frames), dynamic, {frames} frame(s) of poses per condition")
+        lines.append(f"{'type':<10}{'surface mm':>11}{'normal rad':>11}{'mask IoU':>10}{'KL':>9}{'reg. mm':>9}"
+                     f"   seed Table 4 (mm / rad): 1 frame, 4 frames")
+        rows = list(r["types"].items()) + [("average", r["average_over_types"])]
+        for name, m in rows:
+            reg = report["registration"].get(name, {}).get("garment_to_registered_mm", float("nan"))
+            seed = "   " + ", ".join(f"{SEED_TABLE_4[k][name][0]:.1f} / {SEED_TABLE_4[k][name][1]:.2f}"
+                                     if name in SEED_TABLE_4[k] else "-" for k in (1, 4))
+            seed += f" ({SEED_TYPE_NAMES[name]})" if name in SEED_TYPE_NAMES else ""
+            reg_s = f"{reg:>9.2f}" if name != "average" else " " * 9
+            lines.append(f"{name:<10}{m['surface_mm']:>11.2f}{m['normal_rad']:>11.3f}{m['mask_iou']:>10.4f}"
+                         f"{m['kl']:>9.3f}{reg_s}{seed}")
+    for s in report.get("skipped", []):
+        lines.append(f"skipped: {s['type']} {s['task_id']} (registration {s['registration_mm']:.1f} mm: "
+                     f"not on the body)")
+    return "\n".join(lines)
 
 
 def format_table(report: dict[str, Any]) -> str:

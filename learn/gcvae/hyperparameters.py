@@ -40,6 +40,9 @@ MODEL: dict = {
 LOSS: dict = {
     "normals_weight": 0.5,       # lambda_n: 1 - cos between face normals on garment faces
     "mask_weight": 1.0,          # lambda_m: binary cross-entropy of the mask
+    # soft IoU (1 - sum(p t) / sum(p + t - p t) per sample): the BCE, a mean over every body
+    # vertex, weighs a small garment's boundary (a skirt: ~650 of 3,840 vertices) little
+    "mask_iou_weight": 1.0,
     "condition_weight": 0.1,     # regression of the condition from the encoder (seed's MLP branch)
     "kl_start": 0.0,             # KL weight beta during the warm-up epochs
     "kl_warmup_epochs": 20,      # epochs at kl_start
@@ -56,7 +59,15 @@ TRAIN: dict = {
     "weight_decay": 0.0,
 }
 
-SECTIONS: dict[str, dict] = {"representation": REPRESENTATION, "model": MODEL, "loss": LOSS, "train": TRAIN}
+#: The dynamic variant (seed's DVAE; learn.gcvae.dynamic_set), trained on motion datasets.
+DYNAMIC: dict = {
+    "frames": 4,                 # T: poses of T frames condition each frame (seed Table 4: 1 or 4)
+    "frame_stride": 3,           # s: the frames t - (T-1) s, ..., t (seed: "every 3 frames", a 12-frame clip)
+    "channel_factor": 2,         # model.channels times this (seed: GCN features doubled in DVAE vs SVAE)
+}
+
+SECTIONS: dict[str, dict] = {"representation": REPRESENTATION, "model": MODEL, "loss": LOSS, "train": TRAIN,
+                             "dynamic": DYNAMIC}
 
 
 def merged(overrides: dict | None = None) -> dict[str, dict]:
@@ -75,6 +86,9 @@ def merged(overrides: dict | None = None) -> dict[str, dict]:
     if len(out["model"]["channels"]) != out["model"]["pool_levels"] + 1:
         raise ValueError(f"model.channels must have pool_levels + 1 = {out['model']['pool_levels'] + 1} entries, "
                          f"got {out['model']['channels']}")
+    for key in ("frames", "frame_stride", "channel_factor"):
+        if int(out["dynamic"][key]) < 1:
+            raise ValueError(f"dynamic.{key} must be an integer >= 1, got {out['dynamic'][key]}")
     if int(out["model"]["chebyshev_order"]) < 1:
         raise ValueError(f"model.chebyshev_order must be >= 1, got {out['model']['chebyshev_order']}")
     return out

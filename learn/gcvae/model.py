@@ -107,7 +107,10 @@ class GCVAE(torch.nn.Module):
         self.body_mean.copy_(torch.as_tensor(body.reshape(-1, 3).mean(0), dtype=torch.float32))
         self.body_scale.fill_(float(body.reshape(-1, 3).std()))
         self.condition_mean.copy_(torch.as_tensor(condition.mean(0), dtype=torch.float32))
-        self.condition_std.copy_(torch.as_tensor(np.maximum(condition.std(0), 1e-3), dtype=torch.float32))
+        # a value constant over the training set (anny's age; a joint no motion moves) is centred
+        # only: dividing by its ~0 spread would blow up any other value given when sampling
+        std = condition.std(0)
+        self.condition_std.copy_(torch.as_tensor(np.where(std < 1e-3, 1.0, std), dtype=torch.float32))
 
     def normalise_offsets(self, offsets: torch.Tensor) -> torch.Tensor:
         return (offsets - self.offset_mean) / self.offset_scale

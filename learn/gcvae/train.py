@@ -1,4 +1,7 @@
-"""Training of the static GCVAE on a static set (``drape train gcvae --data DIR --out RUN``).
+"""Training of the GCVAE on a static set (``drape train gcvae --data DIR --out RUN``) or, the
+dynamic variant, on the frames of motion datasets (:class:`learn.gcvae.dynamic_set.DynamicSet`,
+``drape train gcvae --dynamic``): the same network with the set's condition (shape, tightness
+and the poses of ``dynamic.frames`` frames) and ``model.channels`` times ``dynamic.channel_factor``.
 
 The train split is shuffled once (seeded) into training and validation
 (``train.validation_fraction``); the epoch loop is TailorNet's resumable one
@@ -34,15 +37,25 @@ BEST_FILE = "gcvae_best.pt"
 
 
 def set_fingerprint(data: StaticSet) -> DatasetFingerprint:
-    """sha256 of the static set file and of its body mesh graph (edges, faces, segments)."""
+    """sha256 of the static set file (a dynamic set: of its datasets' manifests) and of its body
+    mesh graph (edges, faces, segments)."""
     h = hashlib.sha256()
     for a in (data.mesh.edges, data.mesh.faces, data.mesh.dual_faces, data.mesh.segments):
         h.update(np.ascontiguousarray(a, np.int64).tobytes())
-    return DatasetFingerprint(file_sha256(data.path), h.hexdigest())
+    source = data.sha256 if is_dynamic(data) else file_sha256(data.path)
+    return DatasetFingerprint(source, h.hexdigest())
+
+
+def is_dynamic(data) -> bool:
+    """Whether ``data`` is a dynamic set (frames of motion sequences) rather than a static set."""
+    return hasattr(data, "layout")
 
 
 def condition_of(data: StaticSet, index: np.ndarray) -> np.ndarray:
-    """The conditioning (M, 7): anny shape (6) and tightness [m] (1)."""
+    """The conditioning: static set (M, 7): anny shape (6) and tightness [m] (1); dynamic set
+    (M, C): its ``condition`` (shape, tightness, poses of T frames)."""
+    if is_dynamic(data):
+        return data.condition[index].astype(np.float32)
     return np.concatenate([data.shape[index], data.tightness[index, None]], 1).astype(np.float32)
 
 
@@ -58,9 +71,10 @@ def tensors(data: StaticSet, index: np.ndarray, device: str = "cpu") -> dict[str
 
 
 def build_model(data: StaticSet, model_hyper: dict, train_index: np.ndarray) -> GCVAE:
-    """A GCVAE for the set's body mesh, normalised on the samples ``train_index``."""
+    """A GCVAE for the set's body mesh and condition, normalised on the samples ``train_index``."""
     positions = data.body_vertices[train_index].mean(0)
-    model = GCVAE(data.mesh.edges, positions, data.mesh.segments, 7, model_hyper)
+    model = GCVAE(data.mesh.edges, positions, data.mesh.segments, condition_of(data, train_index[:1]).shape[1],
+                  model_hyper)
     model.fit_normalisation(data.body_vertices[train_index], data.offsets[train_index], data.mask[train_index],
                             condition_of(data, train_index))
     model.graph = {**data.mesh.arrays(), "positions": positions, "types": np.array(data.types)}
@@ -75,12 +89,19 @@ def surface_error_m(model: GCVAE, out: dict, batch: dict) -> torch.Tensor:
 
 
 def _split(data: StaticSet, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Training and validation samples of the train split; a dynamic set is split by sequence
+    (whole sequences validate) when its train split has at least 2 of them."""
     train = data.indices("train")
     if len(train) < 2:
-        raise ValueError(f"the static set's train split has {len(train)} samples; need at least 2")
-    order = np.random.default_rng(seed).permutation(train)
-    n_val = min(len(train) - 1, max(1, int(round(fraction * len(train)))))
-    return np.sort(order[n_val:]), np.sort(order[:n_val])
+        raise ValueError(f"the set's train split has {len(train)} samples; need at least 2")
+    groups = data.sequence[train] if is_dynamic(data) else train
+    unique = np.unique(groups)
+    if len(unique) < 2:
+        groups, unique = train, train
+    order = np.random.default_rng(seed).permutation(unique)
+    n_val = min(len(unique) - 1, max(1, int(round(fraction * len(unique)))))
+    val = np.isin(groups, order[:n_val])
+    return np.sort(train[~val]), np.sort(train[val])
 
 
 def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: dict | None = None,
@@ -98,7 +119,11 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
     fingerprint = fingerprint if fingerprint is not None else set_fingerprint(data)
     train_index, val_index = _split(data, float(tr["validation_fraction"]), seed)
     torch.manual_seed(seed)
-    model = build_model(data, hyper["model"], train_index)
+    model_hyper = dict(hyper["model"])
+    if is_dynamic(data):
+        model_hyper["channels"] = [int(c) * int(hyper["dynamic"]["channel_factor"]) for c in model_hyper["channels"]]
+    model = build_model(data, model_hyper, train_index)
+    model.dynamic = dict(data.layout) if is_dynamic(data) else None
     model.register_buffer("epochs_done", torch.zeros((), dtype=torch.int64))
     train_batch = tensors(data, train_index, device)
     val_batch = tensors(data, val_index, device)
@@ -165,7 +190,7 @@ def fit_gcvae(data: StaticSet, *, run_dir: str | os.PathLike, hyperparameters: d
     model.hyperparameters = hyper
     save_gcvae(model, run_dir / MODEL_FILE, fingerprint=fingerprint,
                extra={"best_epoch": model.best_epoch, "validation_error_m": float(chosen["validation_error_m"]),
-                      "hyperparameters": hyper, "train_samples": int(len(train_index)),
+                      "hyperparameters": hyper, "train_samples": int(len(train_index)), "dynamic": model.dynamic,
                       "validation_samples": int(len(val_index))})
     return model.eval()
 
@@ -202,6 +227,7 @@ def load_gcvae(path: str | os.PathLike, *, fingerprint: DatasetFingerprint | Non
     model.load_state_dict(checkpoint["model_state"])
     model.graph = graph
     model.best_epoch = checkpoint.get("best_epoch")
+    model.dynamic = checkpoint.get("dynamic")
     model.saved = {k: checkpoint[k] for k in ("best_epoch", "validation_error_m", "hyperparameters") if k in checkpoint}
     return model.to(device).eval()
 
