@@ -35,7 +35,7 @@ CANONICAL_DRAPE_FRAMES = 300
 holds) must not leave the start drapes unrelaxed."""
 
 #: Frame drop reasons, in the order they are tested (a frame is counted once).
-DROP_REASONS = ("nan", "not_converged", "distortion", "penetration", "self_intersection")
+DROP_REASONS = ("nan", "not_converged", "off_body", "distortion", "penetration", "self_intersection")
 
 
 def resolve_device(device: str, option: str = "simulation.device") -> str:
@@ -72,6 +72,8 @@ def drop_reason(metrics: dict[str, float], status: int, filters: dict[str, Any])
     reason = status_drop_reason(bool(metrics["finite"]), status, filters)
     if reason is not None:
         return reason
+    if metrics["off_body_fraction"] > filters["max_off_body_fraction"]:
+        return "off_body"
     if metrics["distorted_fraction"] > filters["max_distorted_fraction"]:
         return "distortion"
     if metrics["penetration_fraction"] > filters["max_penetration_fraction"]:

@@ -93,6 +93,8 @@ records and hashes. Schema (every key optional unless marked required)::
                                         armpits of our body-derived garments briefly exceed the bounds)
       collision_depth [m]: 0.001
       max_penetration_fraction: 0.01    max_self_intersections: 0  require_converged: true
+      max_off_body_fraction: 0.0        share of garment vertices a kept frame may have 0.5 m or
+                                        more from their body (part): a garment that slid or fell off
     motion:                             only with poses.source motion (docs/motion.md); each style-shape
                                         pair is simulated through per_pair motions, each frame recorded
       source: procedural|file = procedural
@@ -150,7 +152,8 @@ DEFAULTS: dict[str, Any] = {
         "contact": {"self_contact": False, "primary_bodies": False},
     },
     "filters": {"max_area_shrink": 0.75, "max_area_growth": 1.0, "max_distorted_fraction": 0.002, "collision_depth": 0.001,
-                "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True},
+                "max_penetration_fraction": 0.01, "max_self_intersections": 0, "require_converged": True,
+                "max_off_body_fraction": 0.0},
     "output": {"precision": "float32", "compression": "gzip"},
     "audit": {"samples": 4, "max_iterations": 100},
 }
@@ -412,6 +415,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number("filters.collision_depth", 0.0)
     c.number("filters.max_penetration_fraction", 0.0, 1.0)
     c.integer("filters.max_self_intersections", 0)
+    c.number("filters.max_off_body_fraction", 0.0, 1.0)
     if not isinstance(spec["filters"]["require_converged"], bool):
         c.fail("filters.require_converged", "true or false")
     c.choice("output.precision", ("float32", "float16"))

@@ -506,7 +506,9 @@ class QualityMeter:
             one dict per frame, with ``finite`` (1/0), ``area_ratio_min``, ``area_ratio_max``,
             ``distorted_fraction`` (share of triangles whose area ratio is outside ``area_bounds``),
             ``penetration_fraction`` (share of vertices deeper than ``collision_depth``),
-            ``penetration_max_m`` (deepest vertex, >= 0), ``self_intersections`` (garment edges
+            ``penetration_max_m`` (deepest vertex, >= 0), ``off_body_fraction`` (share of vertices
+            at least ``max_distance`` from their body: a garment that slid or fell off),
+            ``self_intersections`` (garment edges
             crossing garment triangles they do not touch, -1 if skipped) and
             ``self_intersection_contours`` (the closed or boundary-to-boundary curves those
             crossings lie on, :func:`intersection_contours`; -1 if skipped). A frame with a non-finite coordinate gets ``finite`` 0 and NaN elsewhere;
@@ -527,7 +529,8 @@ class QualityMeter:
         finite = np.isfinite(x).all(axis=(1, 2))
         nan = float("nan")
         out = [{"finite": 0.0, "area_ratio_min": nan, "area_ratio_max": nan, "distorted_fraction": nan,
-                "penetration_fraction": nan, "penetration_max_m": nan, "self_intersections": -1.0,
+                "penetration_fraction": nan, "penetration_max_m": nan, "off_body_fraction": nan,
+                "self_intersections": -1.0,
                 "self_intersection_contours": -1.0} for _ in range(n)]
         good = np.nonzero(finite)[0]
         if len(good) == 0:
@@ -551,6 +554,7 @@ class QualityMeter:
         distorted = ((ratio < area_bounds[0]) | (ratio > area_bounds[1])).mean(axis=1)
         deep = (d < -collision_depth).mean(axis=1)
         deepest = np.maximum(0.0, -d.min(axis=1).astype(np.float64))
+        off_body = (d >= self.max_distance).mean(axis=1)
         for j, i in enumerate(good):
             out[i] = {
                 "finite": 1.0,
@@ -559,6 +563,7 @@ class QualityMeter:
                 "distorted_fraction": float(distorted[j]),
                 "penetration_fraction": float(deep[j]),
                 "penetration_max_m": float(deepest[j]),
+                "off_body_fraction": float(off_body[j]),
                 "self_intersections": float(hits[j]),
                 "self_intersection_contours": float(contours[j]),
             }

@@ -99,3 +99,23 @@ def test_a_batch_of_frames_measures_each_frame_as_if_it_were_alone(device):
         meter.measure_batch(frames, bodies[:3])
     with pytest.raises(ValueError, match=r"rest_areas must have shape"):
         meter.measure_batch(frames, bodies, rest_areas=rest_rows[:2])
+
+
+def test_a_garment_that_fell_off_the_body_is_dropped_as_off_body() -> None:
+    """A sheet lying on a sphere has no vertex 0.5 m or more from it; the same sheet 1 m below
+    (a garment that slid off) has all of them, and the dataset's default filters drop that frame
+    for ``off_body`` before any other geometric reason."""
+    from pipelines.generate_dataset import drop_reason
+    from pipelines.spec import DEFAULTS
+    from simulate.quasi_static import WorldStatus
+    from simulate.scenes import grid_cloth, icosphere
+
+    sphere_v, sphere_f = icosphere(0.2, subdivisions=2)
+    sheet_v, sheet_f = grid_cloth(6, 6, 0.2, 0.2, plane="xz", origin=(-0.1, 0.21, -0.1))
+    meter = QualityMeter(sheet_f, sheet_v, sphere_f, len(sphere_v))
+    on, off = meter.measure_batch(np.stack([sheet_v, sheet_v - np.array([0.0, 1.0, 0.0], np.float32)]),
+                                  np.stack([sphere_v, sphere_v]))
+    assert on["off_body_fraction"] == 0.0 and off["off_body_fraction"] == 1.0
+    filters = DEFAULTS["filters"]
+    assert drop_reason(on, WorldStatus.CONVERGED, filters) is None
+    assert drop_reason(off, WorldStatus.CONVERGED, filters) == "off_body"

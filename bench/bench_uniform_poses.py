@@ -1,0 +1,87 @@
+"""Poses drawn across the joint limits, each reached from the canonical drape: the share that comes
+to rest with no garment edge through the garment, per solver / self-contact setting, in one run on
+one device.
+
+    python bench/bench_uniform_poses.py [--poses 40] [--resolution 1800] [--device cpu]
+                                        [--runs xpbd-sc,xpbd-sc-untangle,vbd-sc]
+
+Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the upper-body joints, limb joints
+uniform within ``JOINT_LIMITS``, spine and neck half-normal about the centre line) with the
+dataset's pruning of poses whose body intersects itself, seeded. Each pose is one task of
+``run_sequences`` from the t-shirt's canonical drape on the neutral anny body (greedy slerp from
+the canonical pose, ``interpolation_threshold`` 0.05 rad per frame, then held to rest), all tasks
+as worlds of one simulator. Runs are ``bench_self_contact.run_settings``'s: ``<solver>[-sc|-scb]
+[-untangle]`` (``-untangle``: the library's untangling, every 5th substep).
+
+Prints one JSON line per run: crossings of the canonical drape, poses, at rest (status CONVERGED), at rest with 0 crossings (the
+target share), frames with crossings and the largest count, distorted and penetrating frames by the
+dataset's thresholds (more than 1 % of triangles outside area ratios [0.25, 2]; vertices deeper
+than 1 mm), and the wall time of the sequences.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import numpy as np
+
+from bench_self_contact import arms_lowered_scene, canonical_drape, run_settings
+from simulate.poses import PoseSampler, sample_poses
+from simulate.quasi_static import WorldStatus
+from simulate.sequence import SequenceTask, run_sequences
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--poses", type=int, default=40)
+    parser.add_argument("--resolution", type=int, default=1800)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-frames", type=int, default=60, help="hold budget per pose [frames]")
+    parser.add_argument("--runs", default="xpbd-sc,xpbd-sc-untangle")
+    args = parser.parse_args()
+    if args.poses < 1:
+        parser.error(f"--poses must be >= 1 (got {args.poses})")
+    for run in args.runs.split(","):
+        try:
+            run_settings(run, max_frames=1, min_hold_frames=1, step=0.05, friction=None)
+        except ValueError as exc:
+            parser.error(f"--runs: {exc}")
+
+    scene = arms_lowered_scene(args.resolution, 0.0)
+    body, template = scene.body, scene.template
+    shape = np.asarray(body.shape_default, np.float32)
+    sampler = PoseSampler(base_pose=scene.canonical)
+    poses, _ = sample_poses(body, shape, args.poses, sampler, np.random.default_rng(args.seed))
+    meter = scene.meter(args.device)
+    for run in args.runs.split(","):
+        settings = run_settings(run, max_frames=args.max_frames, min_hold_frames=1, step=0.05, friction=None)
+        start, _ = canonical_drape(scene, settings, args.device)
+        start_crossings = int(meter.self_intersections(start))
+        tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=shape, poses=p[None])
+                 for p in poses]
+        frames = []
+        t0 = time.perf_counter()
+        run_sequences(body, template.faces, tasks, settings=settings, on_frame=frames.append,
+                      material_uv=template.face_uv, worlds=len(tasks), **scene.sim_arguments(args.device))
+        seconds = time.perf_counter() - t0
+        frames.sort(key=lambda f: f.task)
+        quality = meter.measure_batch(np.stack([f.positions for f in frames]),
+                                      np.stack([f.body_vertices for f in frames]), area_bounds=(0.25, 2.0))
+        crossings = np.array([q["self_intersections"] for q in quality])
+        rest = np.array([f.status == WorldStatus.CONVERGED for f in frames])
+        print(json.dumps({
+            "run": run, "poses": len(frames), "resolution": args.resolution, "vertices": len(template.vertices),
+            "device": args.device, "seed": args.seed, "drape_self_intersections": start_crossings,
+            "at_rest": int(rest.sum()),
+            "at_rest_without_crossings": int((rest & (crossings == 0)).sum()),
+            "share_at_rest_without_crossings": round(float((rest & (crossings == 0)).mean()), 3),
+            "frames_with_crossings": int((crossings > 0).sum()), "most_crossings": int(crossings.max()),
+            "distorted_frames": int(sum(q["distorted_fraction"] > 0.01 for q in quality)),
+            "penetrating_frames": int(sum(q["penetration_fraction"] > 0.0 for q in quality)),
+            "sequences_s": round(seconds, 2)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()
