@@ -119,7 +119,8 @@ def _final_frames(ctx, probes: list[Probe], which: str, settings) -> list:
     with torch.no_grad():
         run_sequences(ctx.body, ctx.template.faces, tasks, body_faces=ctx.body_faces,
                       body_face_groups=ctx.body_face_groups, body_part=ctx.body_part, settings=settings,
-                      device=ctx.device, on_frame=on_frame, material_uv=ctx.template.face_uv)
+                      device=ctx.device, on_frame=on_frame, material_uv=ctx.template.face_uv,
+                      attached=ctx.template.attachment)
     return [last[i] for i in range(len(tasks))]
 
 

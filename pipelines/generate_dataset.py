@@ -174,7 +174,7 @@ def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: 
                                            body_face_groups=face_groups, body_part=garment_part,
                                            settings=seq, device=device, fabric=fabrics,
                                            max_frames=max(seq.sim.max_frames, CANONICAL_DRAPE_FRAMES),
-                                           material_uv=template.face_uv)
+                                           material_uv=template.face_uv, attached=template.attachment)
         cache.parent.mkdir(parents=True, exist_ok=True)
         tmp = cache.with_suffix(".tmp.npz")
         try:
@@ -394,7 +394,8 @@ def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard
             run_sequences(ctx.body, tmpl.faces, seq_tasks, body_faces=ctx.body_faces, body_face_groups=ctx.body_face_groups,
                           body_part=ctx.body_part, settings=settings,
                           device=ctx.device, on_frames=record_frames, on_progress=on_progress, stats=ctx.phases,
-                          worlds=int(spec["simulation"]["worlds"]), material_uv=tmpl.face_uv)
+                          worlds=int(spec["simulation"]["worlds"]), material_uv=tmpl.face_uv,
+                          attached=tmpl.attachment)
         list_finished(background.close())
         ctx.phases["writer_busy_s"] = ctx.phases.get("writer_busy_s", 0.0) + background.busy_s
     except BaseException:

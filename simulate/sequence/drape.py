@@ -26,6 +26,7 @@ def drape_static(
     start_vertices: np.ndarray | None = None,
     max_frames: int | None = None,
     material_uv: np.ndarray | None = None,
+    attached: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Relaxes W garments on W static bodies (one world each) until they come to rest, with the
     sequence's settings (``simulate.garment.drape.drape_simulator`` sets the batch up).
@@ -39,6 +40,9 @@ def drape_static(
         material_uv: pattern UVs per face corner, (F, 3, 2) (a template's ``face_uv``; see
             ``ClothBuilder.add_garment``); None: the builder's grain axis (+y).
         body_face_groups, body_part: primary collision bodies, as for ``run_sequences``.
+        attached: vertex indices held by soft springs at their rest positions (a template's
+            ``attachment``: the waistband of pants, shorts and skirts), as ``run_sequences``
+            holds them to the moving body; None or empty: none.
     Returns:
         (positions (W, V, 3) [m], status (W,) WorldStatus values).
     """
@@ -55,8 +59,9 @@ def drape_static(
     from simulate.garment.drape import drape_simulator  # (the garment package is heavy to import)
 
     budget = settings.sim.max_frames if max_frames is None else int(max_frames)
+    held = None if attached is None or len(attached) == 0 else np.asarray(attached, np.int64)
     sim = drape_simulator([{"vertices": rest_vertices[w], "faces": faces, "fabric": fabrics[w], "material_uv": material_uv,
-                            "body_part": body_part} for w in range(w_count)], body_vertices, body_faces, device=device,
+                            "body_part": body_part, "attached": held} for w in range(w_count)], body_vertices, body_faces, device=device,
                           settings=SimSettings(**{**settings.sim.__dict__, "max_frames": budget}),
                           thickness=settings.contact_thickness, solver=settings.solver,
                           features=Features(self_contact=settings.self_contact, friction=settings.friction != 0.0),

@@ -36,6 +36,7 @@ def run_sequences(
     stats: dict[str, float] | None = None,
     worlds: int | None = None,
     material_uv: np.ndarray | None = None,
+    attached: np.ndarray | None = None,
 ) -> dict[str, float]:
     """Simulates every task's sequence in the worlds of one batched simulator.
 
@@ -85,6 +86,10 @@ def run_sequences(
         material_uv: pattern UVs per face corner shared by all tasks, (F, 3, 2) (a template's
             ``face_uv``): the cloth's warp runs up each panel (``ClothBuilder.add_garment``);
             None: the builder's grain axis (+y).
+        attached: vertex indices shared by all tasks held to the body by soft springs (a template's
+            ``attachment``: the waistband of pants, shorts and skirts; ``attachment_targets``),
+            so a garment that only the waist holds up does not slide off a moving body; None or
+            empty: none.
     Returns:
         statistics (``stats`` itself when given): the fields of ``SequenceStats`` (frames, world
         frames by entry kind, wall seconds by phase, recoveries and restarts, body-model calls,
@@ -117,10 +122,11 @@ def run_sequences(
         with torch.no_grad():
             return poser.pose_torch(np.asarray(shapes, np.float32), np.asarray(poses, np.float32))
 
+    held = None if attached is None or len(attached) == 0 else np.asarray(attached, np.int64)
     builder = ClothBuilder()
     for t in assignment.first:
         builder.add_garment(tasks[t].rest_vertices, faces, fabric=tasks[t].fabric, material_uv=material_uv,
-                            body_part=body_part)
+                            body_part=body_part, attached=held)
     model = builder.finalize(device, features=Features(self_contact=settings.self_contact,
                                                        friction=settings.friction != 0.0))
     t_model = time.perf_counter()
@@ -139,6 +145,7 @@ def run_sequences(
     body_now = {"vertices": start.vertices.clone(), "skin": start.skinning_transforms.clone(),
                 "rest": start.rest_vertices.clone()}
     ahead = PosedAhead(pose_bodies, start, w_count, settings.body_lookahead)
+    anchors = None if held is None else attachment_anchors(tasks, held, start_bodies, neutral)
     streams = FrameStreams(device, enabled=settings.concurrent_streams)
 
     def deliver(frames: list[RecordedFrame]) -> list[bool]:
@@ -188,6 +195,8 @@ def run_sequences(
             body_now[name][idx_t] = posed[name]
         b0 = time.perf_counter()
         collider.set_target(body_now["vertices"])
+        if anchors is not None:
+            set_attachment_targets(sim.control, anchors, body_now["vertices"], ws.cur)
         run.body_target_s += time.perf_counter() - b0
         sim.restart(ws.changed & ~ws.done)
         ws.changed[:] = False
@@ -289,6 +298,36 @@ def run_sequences(
                 stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
     run.publish(stats, base)
     return stats
+
+
+def attachment_anchors(tasks: list[SequenceTask], attached: np.ndarray, start_bodies: dict[bytes, tuple],
+                       neutral: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Where each task's attached vertices hang on the body: the nearest body vertex to each
+    attached rest vertex on the task's start body (its start shape in the canonical pose, the
+    body the garment is sized for) and the offset from it [m]. Returns (anchor (T, A) int64,
+    offset (T, A, 3) float32) on the start bodies' device."""
+    anchor, offset = [], []
+    for t in tasks:
+        shape = neutral if t.start_shape is None else np.asarray(t.start_shape, np.float32)
+        body = start_bodies[shape.tobytes()][0]
+        points = torch.as_tensor(np.asarray(t.rest_vertices, np.float32)[attached], device=body.device)
+        k = torch.cdist(points, body.to(points.dtype)).argmin(dim=1)
+        anchor.append(k)
+        offset.append(points - body[k].to(points.dtype))
+    return torch.stack(anchor), torch.stack(offset)
+
+
+def set_attachment_targets(control, anchors: tuple[torch.Tensor, torch.Tensor], bodies: torch.Tensor,
+                           current: np.ndarray) -> None:
+    """Every world's attachment targets [m]: its current task's anchor vertices on its body
+    ``bodies`` (W, Vb, 3) plus their offsets (``attachment_anchors``); ``current``: each world's
+    task (W,). The targets move with the body each time the driver moves it, so the garment is
+    held where it was sized to sit."""
+    anchor, offset = anchors
+    cur = torch.as_tensor(np.asarray(current, np.int64), device=anchor.device)
+    idx = anchor[cur]  # (W, A)
+    targets = torch.gather(bodies, 1, idx[..., None].expand(-1, -1, 3)).float() + offset[cur]
+    control.set_attachment_targets(targets.reshape(-1, 3).cpu().numpy())
 
 
 def starting_bodies(tasks: list[SequenceTask], start: PosedBody, start_shapes: np.ndarray, neutral: np.ndarray,
