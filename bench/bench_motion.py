@@ -47,7 +47,7 @@ def main() -> None:
     from pipelines.generate_dataset import generate
     from pipelines.spec import load_spec, type_specs, validate_spec
 
-    full = load_spec(args.spec if Path(args.spec).is_file() else Path(__file__).parents[1] / "pipelines" / "configs" / f"{args.spec}.yaml")
+    full = load_spec(args.spec)  # a path, or a shipped spec's name
     types = dict(type_specs(full))
     gtype = args.type or next(iter(types))
     if gtype not in types:

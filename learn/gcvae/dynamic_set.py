@@ -48,6 +48,7 @@ import numpy as np
 
 from learn.gcvae.body_mesh import BodyMesh, build_body_mesh, canonical_body_vertices
 from learn.gcvae.registration import MAX_OFFSET_M, register, registration_error
+from learn.gcvae.static_set import split_indices
 from simulate.garment import mesh_ops
 
 DATASETS_FILE = "datasets.json"
@@ -230,11 +231,7 @@ class DynamicSet:
         return int(len(self.type))
 
     def indices(self, split: str) -> np.ndarray:
-        if split not in ("train", "test", "all"):
-            raise ValueError(f"split must be train, test or all, got {split!r}")
-        if split == "all":
-            return np.arange(len(self))
-        return np.flatnonzero(self.split == (1 if split == "test" else 0))
+        return split_indices(self.split, split)
 
     def registration_table(self) -> dict[str, dict[str, float]]:
         """Mean registration error [mm] per type over its sequences."""

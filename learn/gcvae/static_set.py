@@ -132,11 +132,7 @@ class StaticSet:
         return int(len(self.type))
 
     def indices(self, split: str) -> np.ndarray:
-        if split not in ("train", "test", "all"):
-            raise ValueError(f"split must be train, test or all, got {split!r}")
-        if split == "all":
-            return np.arange(len(self))
-        return np.flatnonzero(self.split == (1 if split == "test" else 0))
+        return split_indices(self.split, split)
 
     def registration_table(self) -> dict[str, dict[str, float]]:
         """Mean registration errors [mm] per type."""
@@ -144,3 +140,13 @@ class StaticSet:
                     "registered_to_garment_mm": float(self.registration_mm[self.type == i, 1].mean()),
                     "samples": int((self.type == i).sum())}
                 for i, t in enumerate(self.types)}
+
+
+def split_indices(codes: np.ndarray, split: str) -> np.ndarray:
+    """Sample indices of ``split`` ("train", "test" or "all") given each sample's split code
+    (0 train, 1 test), shape (N,)."""
+    if split not in ("train", "test", "all"):
+        raise ValueError(f"split must be train, test or all, got {split!r}")
+    if split == "all":
+        return np.arange(len(codes))
+    return np.flatnonzero(codes == (1 if split == "test" else 0))
