@@ -2,17 +2,17 @@
 executor on one GPU against Ray on N GPUs, same spec, in the same run; (b) epoch time of a
 learner at world size 1 against N (``torchrun``). Prints one JSON object.
 
-    python bench/bench_scale_out.py --spec tailornet-tshirt --gpus 4 --out /scratch/scale
+    python bench/bench_scale_out.py --spec tailornet-tshirt --gpus 2,4 --out /scratch/scale
     python bench/bench_scale_out.py --spec tiny.yaml --gpus 2 --device cpu --epochs 2   # CPU smoke
 
-(a) writes OUT/local and OUT/ray (the Ray run reuses the local run's garment cache, so both
+(a) writes OUT/local and OUT/rayN (the Ray runs reuse the local run's garment cache, so both
 time the simulation of the same tasks); the rate is kept frames / the simulation seconds each
 run records (manifest ``audit.simulation``; for Ray this includes starting the workers and
-building their contexts), and ``identical_shards`` compares the two datasets' shard hashes.
+building their contexts), and ``identical_shards`` compares each Ray dataset's shard hashes with the local one's.
 (b) trains ``--learner`` on ``--data`` (default: OUT/local) for ``--epochs`` epochs into
 OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the epoch time is
 the mean of the logged epoch seconds after the first (rank 0's clock: it includes the gradient
-exchange), and ``speedup`` is the epoch rate at N over the rate at 1.
+exchange), and ``speedup`` is the epoch rate at each N over the rate at 1.
 """
 from __future__ import annotations
 
@@ -67,19 +67,29 @@ def bench_generate(args: argparse.Namespace) -> dict:
 
     spec = load_spec(args.spec)
     spec["audit"]["samples"] = 0  # the audit is not part of the simulation rate
-    local_out, ray_out = args.out / "local", args.out / "ray"
-    for d in (local_out, ray_out):
+    # one batch per GPU of the largest run at least (the same plan, so the same shards, on every run)
+    spec["simulation"]["batches"] = max(int(spec["simulation"]["batches"]), max(args.gpus))
+    if args.train_count is not None:
+        spec["poses"]["train_count"] = args.train_count
+    local_out = args.out / "local"
+    outs = [local_out] + [args.out / f"ray{n}" for n in args.gpus]
+    for d in outs:
         if d.exists() and not args.keep:
             shutil.rmtree(d)
     local = _generate(spec, local_out, executor="local", device=args.sim_device(0), gpus=1, cpus=None)
-    # the local run's figures first, on stderr: a run stopped during the Ray half keeps them
+    # each run's figures as soon as they exist, on stderr: a run stopped later keeps them
     print(json.dumps({"local": local}), file=sys.stderr, flush=True)
-    if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
-        shutil.copytree(local_out / "cache", ray_out / "cache")
-    ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=args.gpus, cpus=args.cpus)
-    rate = (ray_run["kept_frames_per_s"] or 0) / (local["kept_frames_per_s"] or float("nan"))
-    return {"spec": str(args.spec), "local": local, "ray": ray_run, "speedup": round(rate, 3),
-            "identical_shards": _shard_hashes(local_out) == _shard_hashes(ray_out)}
+    result = {"spec": str(args.spec), "batches": int(spec["simulation"]["batches"]),
+              "train_count": int(spec["poses"]["train_count"]), "local": local, "ray": {}}
+    for n, ray_out in zip(args.gpus, outs[1:]):
+        if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
+            shutil.copytree(local_out / "cache", ray_out / "cache")
+        ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=n, cpus=args.cpus)
+        rate = (ray_run["kept_frames_per_s"] or 0) / (local["kept_frames_per_s"] or float("nan"))
+        ray_run.update(speedup=round(rate, 3), identical_shards=_shard_hashes(local_out) == _shard_hashes(ray_out))
+        result["ray"][n] = ray_run
+        print(json.dumps({f"ray{n}": ray_run}), file=sys.stderr, flush=True)
+    return result
 
 
 def _epoch_seconds(run: Path, stage: str) -> list[float]:
@@ -90,7 +100,7 @@ def _epoch_seconds(run: Path, stage: str) -> list[float]:
 def bench_train(args: argparse.Namespace, data: Path) -> dict:
     stage = TIMED_STAGE[args.learner.replace("-", "_")]
     results = {}
-    for world in sorted({1, args.gpus}):
+    for world in sorted({1, *args.gpus}):
         run = args.out / f"train-w{world}"
         if run.exists():
             shutil.rmtree(run)
@@ -110,15 +120,18 @@ def bench_train(args: argparse.Namespace, data: Path) -> dict:
         timed = seconds[1:] or seconds
         results[world] = {"epoch_s": round(sum(timed) / len(timed), 4), "epochs": len(seconds),
                           "wall_s": round(time.perf_counter() - started, 2)}
-    one, many = results[1]["epoch_s"], results[max(results)]["epoch_s"]
+        print(json.dumps({f"train{world}": results[world]}), file=sys.stderr, flush=True)
+    one = results[1]["epoch_s"]
     return {"learner": args.learner, "stage": stage, "data": str(data), "world_sizes": results,
-            "speedup": round(one / many, 3) if many > 0 else None}
+            "speedup": {w: round(one / r["epoch_s"], 3) if r["epoch_s"] > 0 else None for w, r in results.items()}}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spec", default="tailornet-tshirt", help="dataset spec (shipped name or YAML path)")
-    parser.add_argument("--gpus", type=int, default=None, help="N: Ray workers and torchrun processes (default: the GPUs)")
+    parser.add_argument("--gpus", default=None, help="N or N,M,...: GPU counts of the Ray runs and torchrun processes "
+                        "(default: all the GPUs)")
+    parser.add_argument("--train-count", type=int, default=None, help="poses.train_count of (a)'s spec (default: the spec's)")
     parser.add_argument("--out", type=Path, default=Path("scale-out-bench"), help="scratch directory")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cuda or cpu")
     parser.add_argument("--cpus", type=int, default=None, help="CPUs of the Ray started for (a) (default: all)")
@@ -135,15 +148,19 @@ def main(argv: list[str] | None = None) -> int:
     cuda = torch.cuda.is_available() if args.device == "auto" else args.device.startswith("cuda")
     if cuda and not torch.cuda.is_available():
         parser.error("--device cuda but torch sees no CUDA device")
-    args.gpus = args.gpus or (torch.cuda.device_count() if cuda else 2)
-    if args.gpus < 1 or (cuda and args.gpus > torch.cuda.device_count()):
-        parser.error(f"--gpus must be 1..{torch.cuda.device_count() if cuda else 'N'} (got {args.gpus})")
+    available = torch.cuda.device_count() if cuda else None
+    try:
+        args.gpus = sorted({int(n) for n in args.gpus.split(",")}) if args.gpus else [available or 2]
+    except ValueError:
+        parser.error(f"--gpus must be N or N,M,... (got {args.gpus!r})")
+    if min(args.gpus) < 1 or (cuda and max(args.gpus) > available):
+        parser.error(f"--gpus must be counts in 1..{available or 'N'} (got {args.gpus})")
     args.sim_device = lambda k: f"cuda:{k}" if cuda else "cpu"
     args.train_device = "cuda" if cuda else "cpu"
     args.out.mkdir(parents=True, exist_ok=True)
     report = {"machine": {"host": platform.node(), "cpus": os.cpu_count(),
                           "gpus": [torch.cuda.get_device_name(k) for k in range(torch.cuda.device_count())] if cuda else []},
-              "date": time.strftime("%Y-%m-%d"), "n": args.gpus}
+              "date": time.strftime("%Y-%m-%d"), "gpus": args.gpus}
     if not args.skip_generate:
         report["generate"] = bench_generate(args)
     if not args.skip_train:

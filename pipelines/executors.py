@@ -111,7 +111,7 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
             device: str | None, on_shard: Callable, on_progress: Callable[[int], None],
             on_batch: Callable[[], None] | None = None, on_phases: Callable[[dict], None] | None = None,
             address: str | None = None, num_cpus: int | None = None, skip: set[str] = frozenset(),
-            max_retries: int = 3, progress_interval_s: float = 1.0) -> dict:
+            max_retries: int = 3, progress_interval_s: float = 1.0, log: Callable[[str], None] | None = None) -> dict:
     """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA) that builds its
     context with ``build_context`` and runs ``simulate_batch`` (generate-dataset's).
 
@@ -120,7 +120,8 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
     with it. ``on_progress(count)`` gets target poses finished (negative after a batch is re-run),
     ``on_shard(record)`` each shard record of a finished batch, ``on_phases(stats)`` the batch's
     ``run_sequences`` statistics, then ``on_batch()``. Returns a summary: worker processes, nodes,
-    GPUs used and batches re-run after a worker died."""
+    GPUs used and batches re-run after a worker died. ``log`` gets a warning when the cluster has
+    more GPUs than the plan has batches (``simulation.batches``)."""
     try:
         import ray
     except ImportError as exc:
@@ -135,6 +136,10 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
         if gpu and not ray.cluster_resources().get("GPU"):
             raise ValueError(f"the device is {device} but the Ray cluster has no GPU "
                              f"(resources {ray.cluster_resources()}); start its nodes on GPU hosts or use --device cpu")
+        cluster_gpus = int(ray.cluster_resources().get("GPU", 0))
+        if gpu and log is not None and len(batches) < cluster_gpus:
+            log(f"{len(batches)} batch(es) for {cluster_gpus} GPUs: {cluster_gpus - len(batches)} GPU(s) stay idle; "
+                f"set simulation.batches to {cluster_gpus} (or a multiple) to use them all")
         # Ray shows each task only the GPU it holds, as cuda:0
         worker_device = "cuda:0" if gpu else device
         board = ray.remote(num_cpus=0)(_ProgressBoard).remote()

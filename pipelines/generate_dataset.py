@@ -235,11 +235,14 @@ class Unskinner:
         return inverse_lbs_torch(x, self.weights, t).cpu().numpy()
 
 
-def plan_batches(tasks: list, worlds: int) -> list[list[str]]:
-    """Task ids of each batch: whole style-shape pairs, at most ``worlds`` pairs per batch, tasks
-    longest first. A batch's worlds are shared out among its pairs in proportion to their target
-    poses, and a world that finishes a task takes its pair's next one (``run_sequences``), so the
-    worlds of a batch stay busy until its end instead of waiting for its longest task.
+def plan_batches(tasks: list, worlds: int, batches: int = 1) -> list[list[str]]:
+    """Task ids of each batch: whole style-shape pairs, at most ``worlds`` pairs per batch, at least
+    ``batches`` batches (``simulation.batches``: one per GPU of a Ray run), tasks longest first. A
+    batch's worlds are shared out among its pairs in proportion to their target poses, and a world
+    that finishes a task takes its pair's next one (``run_sequences``), so the worlds of a batch stay
+    busy until its end instead of waiting for its longest task. With ``batches`` > 1, pairs are dealt
+    out largest first, each to the batch with the fewest target poses so far
+    (ties: the lowest batch), so the batches run about equally long on GPUs of one kind.
 
     Batches are a function of the spec alone: a resumed or distributed run simulates every task in
     the same company as an uninterrupted one, so its frames are bitwise identical. A batch with any
@@ -249,7 +252,19 @@ def plan_batches(tasks: list, worlds: int) -> list[list[str]]:
     for t in ordered:  # a pair: one garment on one shape (the tasks that can share a world)
         pairs.setdefault((int(t.garment_index), np.asarray(t.shape, np.float32).tobytes()), []).append(t)
     groups = list(pairs.values())
-    return [[t.task_id for g in groups[i:i + worlds] for t in g] for i in range(0, len(groups), worlds)]
+    if not groups:
+        return []
+    least = -(-len(groups) // int(worlds))
+    count = min(len(groups), max(int(batches), least))
+    if int(batches) <= 1:  # the batches the worlds need: consecutive runs of pairs
+        return [[t.task_id for g in groups[i:i + worlds] for t in g] for i in range(0, len(groups), worlds)]
+    sizes = [sum(len(t.poses) for t in g) for g in groups]
+    load, members = [0] * count, [[] for _ in range(count)]
+    for i in sorted(range(len(groups)), key=lambda i: (-sizes[i], i)):
+        b = min((b for b in range(count) if len(members[b]) < worlds), key=lambda b: (load[b], b))
+        load[b] += sizes[i]
+        members[b].append(i)
+    return [[t.task_id for i in sorted(m) for t in groups[i]] for m in members]
 
 
 def simulate_batch(ctx: Context, out_dir: Path, task_ids: list[str], *, on_shard: Callable[[Any], None] | None = None,
@@ -624,7 +639,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
                                        precision=spec["output"]["precision"], provenance=provenance, splits=splits)
     remove_orphan_temporaries(out_dir)
     worlds = int(spec["simulation"]["worlds"])
-    all_batches = plan_batches(ctx.plan.tasks, worlds)
+    all_batches = plan_batches(ctx.plan.tasks, worlds, int(spec["simulation"]["batches"]))
     done = {t.task_id for t in ctx.plan.tasks if manifest.is_complete(t.task_id)}
     batches = [b for b in all_batches if not set(b) <= done]
     pending = [ctx.tasks[t] for b in batches for t in b if t not in done]
@@ -736,7 +751,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
     else:
         cluster = run_ray(spec, out_dir, batches, build_context=build_context, simulate_batch=simulate_batch,
                           device=ctx.device, on_shard=on_shard, on_progress=on_progress, on_batch=after_batch,
-                          on_phases=add_phases, address=ray_address, num_cpus=ray_cpus, skip=done)
+                          on_phases=add_phases, address=ray_address, num_cpus=ray_cpus, skip=done, log=log)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     audit = dict(manifest.audit or {})

@@ -69,6 +69,10 @@ records and hashes. Schema (every key optional unless marked required)::
                                         (converged stiffness); xpbd: faster, stretches stiff cloth
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
+      batches: int = 1                  the plan's batches at least (style-shape pairs dealt out evenly,
+                                        each batch with `worlds` worlds): a Ray run simulates one batch
+                                        per GPU at once, so set it to the GPU count or a multiple;
+                                        the same spec gives the same shards on any executor
       frame_dt: float [s] = 1/45        the body moves from one pose to the next in one frame
       substeps: int = 15, iterations: int = 5   per frame, per substep
       tolerance: float [m/s] = 0.05     a pose is held until every vertex (but SimSettings.outlier_fraction
@@ -147,7 +151,7 @@ DEFAULTS: dict[str, Any] = {
     "poses": {"source": "sampled", "path": None, "joints": None, "range_scale": 1.0, "min_clearance": None, "train_count": 8, "test_count": 4},
     "splits": {"train_train": "all", "train_test": "all", "test_train": 2, "test_test": 2},
     "simulation": {
-        "solver": "xpbd", "device": "auto", "worlds": 64, "frame_dt": 1.0 / 45.0, "substeps": 15, "iterations": 5,
+        "solver": "xpbd", "device": "auto", "worlds": 64, "batches": 1, "frame_dt": 1.0 / 45.0, "substeps": 15, "iterations": 5,
         "tolerance": 0.05, "max_relax_frames": 60, "interpolation_threshold": 0.1, "poses_per_task": None,
         "contact": {"self_contact": False, "primary_bodies": False},
     },
@@ -398,6 +402,7 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     if not (isinstance(device, str) and (device in ("auto", "cpu", "cuda") or device.startswith("cuda:"))):
         c.fail(f"{sim}.device", "auto, cpu, cuda or cuda:N")
     c.integer(f"{sim}.worlds", 1)
+    c.integer(f"{sim}.batches", 1)
     c.number(f"{sim}.frame_dt", 0.0, 1.0, lo_open=True)
     c.integer(f"{sim}.substeps", 1)
     c.integer(f"{sim}.iterations", 1)

@@ -36,14 +36,14 @@ def test_unknown_keys_at_every_level_name_the_path_and_the_nearest_name(patch, e
 
 
 @pytest.mark.parametrize("patch, expected", [
-    ({"simulation": 3}, "spec.simulation must be a mapping of fields such as contact, device, "
-                        "frame_dt (got 3)"),
+    ({"simulation": 3}, "spec.simulation must be a mapping of fields such as batches, contact, device (got 3)"),
     ({"simulation": {"contact": [1]}}, "spec.simulation.contact must be a mapping of fields such as"),
     ({"filters": "strict"}, "spec.filters must be a mapping of fields such as collision_depth"),
     ({"garment": "tshirt"}, "spec.garment must be a mapping of fields such as fabric, resolution, type (got 'tshirt')"),
     ({"simulation": {"tolerance": float("inf")}}, "spec.simulation.tolerance must be a number > 0.0 (got inf)"),
     ({"simulation": {"frame_dt": float("nan")}}, "spec.simulation.frame_dt must be a number > 0.0 and <= 1.0 (got nan)"),
     ({"simulation": {"worlds": float("inf")}}, "spec.simulation.worlds must be an integer >= 1 (got inf)"),
+    ({"simulation": {"batches": 0}}, "spec.simulation.batches must be an integer >= 1 (got 0)"),
     ({"filters": {"max_area_growth": float("-inf")}}, "spec.filters.max_area_growth must be a number > 0.0 (got -inf)"),
     ({"garment": {"resolution": 55}}, "spec.garment.resolution must be an integer >= 64 and <= 200000 (got 55)"),
     ({"garment": {"resolution": 10**9}}, "spec.garment.resolution must be an integer >= 64 and <= 200000"),

@@ -403,3 +403,40 @@ def test_the_manifest_is_saved_after_each_batch_not_after_each_shard(tmp_path, m
     # one save per batch, then the finished manifest
     assert listed == [2, 4, 4], listed
     assert len(manifest.shards) == 4 and validate_dataset(tmp_path).ok
+
+
+def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
+    """``simulation.batches``: pairs stay whole, every task is in exactly one batch, no batch has
+    more pairs than worlds, the batches' target poses differ by at most the largest pair's, and the
+    default (1) keeps the consecutive batches the worlds need."""
+    from types import SimpleNamespace
+
+    from pipelines.generate_dataset import plan_batches
+
+    rng = np.random.default_rng(3)
+    tasks = []
+    for pair in range(11):
+        for k in range(int(rng.integers(1, 4))):
+            tasks.append(SimpleNamespace(task_id=f"p{pair}-t{k}", garment_index=pair % 3, shape=np.full(2, pair // 3, np.float32),
+                                         poses=[0] * int(rng.integers(1, 30))))
+    pair_of = {t.task_id: (t.garment_index, float(t.shape[0])) for t in tasks}
+    size_of = {t.task_id: len(t.poses) for t in tasks}
+    pair_sizes: dict = {}
+    for t in tasks:
+        pair_sizes[pair_of[t.task_id]] = pair_sizes.get(pair_of[t.task_id], 0) + len(t.poses)
+    for worlds, batches in ((64, 4), (3, 4), (64, 11), (64, 50)):
+        plan = plan_batches(tasks, worlds, batches)
+        assert len(plan) == min(11, max(batches, -(-11 // worlds)))
+        ids = [i for b in plan for i in b]
+        assert sorted(ids) == sorted(t.task_id for t in tasks)
+        owners = {}
+        for n, b in enumerate(plan):
+            pairs = {pair_of[i] for i in b}
+            assert len(pairs) <= worlds
+            for p in pairs:
+                assert owners.setdefault(p, n) == n, "a pair is split over batches"
+        loads = [sum(size_of[i] for i in b) for b in plan]
+        assert max(loads) - min(loads) <= max(pair_sizes.values())
+        assert plan == plan_batches(list(reversed(tasks)), worlds, batches), "the plan depends on the task order"
+    one = plan_batches(tasks, 4, 1)
+    assert len(one) == 3 and [len({pair_of[i] for i in b}) for b in one] == [4, 4, 3]
