@@ -187,6 +187,27 @@ def test_attachments_follow_targets_and_release() -> None:
     assert sim.positions()[:, 1].mean() < y_before - 0.02, "released cloth did not fall"
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda:0", marks=pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device"))])
+def test_attachment_targets_from_torch_tensors(device: str) -> None:
+    """Targets given as a torch tensor on the model's device (the sequence driver's bodies) land
+    as the same numbers as from numpy; a wrong shape or a NaN is refused either way."""
+    torch = pytest.importorskip("torch")
+    verts, faces = grid_cloth(4, 4, 0.3, 0.3, plane="xz")
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton", attached=np.array([0, 3, 12]))
+    model = builder.finalize(device, features=Features(body_contact=False))
+    sim = QuasiStaticSimulator(model, None, settings=unit_settings())
+    targets = np.random.default_rng(0).normal(size=(3, 3)).astype(np.float64)
+    sim.control.set_attachment_targets(torch.as_tensor(targets, device=device))
+    np.testing.assert_array_equal(sim.control.attachment_target.numpy(), targets.astype(np.float32))
+    with pytest.raises(ValueError, match=r"shape \(3, 3\)"):
+        sim.control.set_attachment_targets(torch.zeros(2, 3, device=device))
+    bad = torch.as_tensor(targets, device=device)
+    bad[1, 2] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        sim.control.set_attachment_targets(bad)
+
+
 @pytest.mark.skipif(not HAS_CUDA, reason="needs a CUDA device")
 @pytest.mark.parametrize("mode", ["gauss_seidel", "jacobi"])
 def test_cpu_and_cuda_agree(mode: str) -> None:

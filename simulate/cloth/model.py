@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from simulate.cloth.device_copy import copy_cuda_tensor
 from simulate.cloth.fabric import Fabric
 
 __all__ = ["Features", "ClothModel", "ClothState", "ClothControl", "world_colour_offsets"]
@@ -79,8 +80,22 @@ class ClothControl:
         self._self_contact_host = np.ones(model.world_count, dtype=np.int32)
         self._model = model
 
-    def set_attachment_targets(self, targets: np.ndarray) -> None:
-        """Set attachment target positions [m], shape (attachment_count, 3)."""
+    def set_attachment_targets(self, targets) -> None:
+        """Set attachment target positions [m], shape (attachment_count, 3): a numpy array, or a
+        torch tensor (a CUDA one on a CUDA model is copied without leaving the device)."""
+        if type(targets).__module__.startswith("torch") and targets.is_cuda and self.attachment_target.device.is_cuda:
+            import torch
+
+            expected = (self._model.attachment_count, 3)
+            if tuple(targets.shape) != expected:
+                raise ValueError(f"attachment targets must have shape {expected} (got {tuple(targets.shape)})")
+            if not bool(torch.isfinite(targets).all()):
+                raise ValueError("attachment targets must be finite (got NaN or inf)")
+            if self._model.attachment_count:
+                copy_cuda_tensor(self.attachment_target, targets)
+            return
+        if type(targets).__module__.startswith("torch"):
+            targets = targets.detach().cpu().numpy()
         targets = np.asarray(targets, dtype=np.float32)
         expected = (self._model.attachment_count, 3)
         if targets.shape != expected:

@@ -13,6 +13,7 @@ import math
 import numpy as np
 import warp as wp
 
+from simulate.cloth.device_copy import copy_cuda_tensor
 from simulate.contact import kernels
 
 __all__ = ["BVH_OPTIONS", "BodyCollider", "world_cell_offsets"]
@@ -246,13 +247,7 @@ class BodyCollider:
             if getattr(self, "_vertex_map_torch", None) is None or self._vertex_map_torch.device != t.device:
                 self._vertex_map_torch = torch.as_tensor(self.vertex_map, device=t.device)
             t = t[:, self._vertex_map_torch]
-        src = t.reshape(-1, 3).to(torch.float32).contiguous()
-        # Warp's current stream need not synchronize with torch's (the sequence driver steps on a
-        # non-blocking one): torch's work on the tensor is finished first, and the copy before
-        # ``src`` goes back to torch's allocator
-        torch.cuda.current_stream(src.device).synchronize()
-        wp.copy(self.pose_end, wp.from_torch(src, dtype=wp.vec3))
-        wp.synchronize_stream(wp.get_stream(self.device))
+        copy_cuda_tensor(self.pose_end, t.reshape(-1, 3))
 
     def set_pose(self, vertices: np.ndarray) -> None:
         """Place the body at ``vertices`` [m] now (no interpolation), shape as in ``set_target``."""
