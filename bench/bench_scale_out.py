@@ -49,7 +49,9 @@ def _generate(spec: dict, out: Path, *, executor: str, device: str, gpus: int, c
         ray.init(num_gpus=gpus if device.startswith("cuda") else 0, num_cpus=cpus or max(gpus, os.cpu_count() or 1),
                  include_dashboard=False, log_to_driver=False)
     try:
-        manifest = generate(spec, out, executor=executor, device=device, progress=False, log=lambda m: None)
+        # the run's log and heartbeat lines on stderr: a run stopped by a time limit still says how far it got
+        manifest = generate(spec, out, executor=executor, device=device, progress=False, heartbeat_s=30.0,
+                            log=lambda m: print(f"[{executor} {gpus}] {m}", file=sys.stderr, flush=True))
     finally:
         if executor == "ray":
             ray.shutdown()
