@@ -306,3 +306,28 @@ def test_the_library_untangles_models_with_self_contact_only(self_contact: bool)
         assert sim.solver.untangler is not None and sim.solver.untangler.every == 5
     else:
         assert sim.solver.untangler is None
+
+
+def test_shared_cloth_bvh_gives_the_same_steps() -> None:
+    """An untangler on a SelfContact's cloth BVH (``share_mesh_of``) steps as one with a BVH of its
+    own, bit for bit, also with the self-contact's searches in between; another model's
+    SelfContact is refused."""
+    from simulate.contact.self_contact import SelfContact
+
+    crossed, faces = _crossed_layers()
+    results = []
+    for share in (False, True):
+        model = _model(crossed, faces, "cpu", worlds=2)
+        contact = SelfContact(model)
+        untangler = Untangler(model, share_mesh_of=contact if share else None)
+        assert (untangler.mesh is contact.mesh) == share
+        x = wp.array(np.concatenate([crossed, crossed + 0.001]), dtype=wp.vec3, device="cpu")
+        control = model.control()
+        for _ in range(6):
+            contact.detect(x, control.world_active)
+            untangler.apply(x, control.world_active)
+        results.append(x.numpy())
+    np.testing.assert_array_equal(results[0], results[1])
+    other = _model(crossed, faces, "cpu")
+    with pytest.raises(ValueError, match="same model"):
+        Untangler(_model(crossed, faces, "cpu"), share_mesh_of=SelfContact(other))

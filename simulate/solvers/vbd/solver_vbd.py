@@ -134,7 +134,8 @@ class SolverVBD(SolverBase):
         if untangle:
             from simulate.contact.untangle import Untangler
 
-            self.untangler = Untangler(model, **({} if untangle is True else untangle))
+            self.untangler = Untangler(model, **({} if untangle is True else untangle),
+                                       share_mesh_of=self.self_contact)
         self.iterations = int(iterations)
         self.block_dim = int(block_dim)
         dev = self.device

@@ -235,7 +235,8 @@ class SolverXPBD(SolverBase):
         if untangle:
             from simulate.contact.untangle import Untangler
 
-            self.untangler = Untangler(model, **({} if untangle is True else untangle))
+            self.untangler = Untangler(model, **({} if untangle is True else untangle),
+                                       share_mesh_of=self.self_contact)
         self._no_candidates = wp.full(1, -1, dtype=wp.int32, device=dev)  # the tiled kernel's arguments
         self._no_side = wp.ones(1, dtype=float, device=dev)  # without self-contact
         self._particle_kernel = ck.make_particle_constraints_kernel(
