@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|peers64|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|profile-tshirt|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|spec|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|profile-tshirt|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -34,6 +34,18 @@ case $stage in
       T=150 run python bench/bench_sim_throughput.py --device cuda:0 --scene tshirt --resolution 7700 --worlds 256 \
         --garments 40 --contact-detect-every 5 --frames 20 --profile $share --out "$jl"
     done ;;
+  spec)
+    # one shipped spec whole (SPEC=tailornet-pants, ...), audit off (its Newton solves are CPU work):
+    # the heartbeat lines and the closing summary go to the log; rerun the same stage to resume
+    python - "${SPEC:?SPEC=name of a shipped spec}" "$out/$SPEC.yaml" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec(sys.argv[1])
+spec["audit"]["samples"] = 0
+yaml.safe_dump(spec, open(sys.argv[2], "w"))
+PY
+    T=${T:-540} run python -m pipelines.cli generate-dataset "$out/$SPEC.yaml" --out "/tmp/ds-$SPEC" --no-progress
+    du -sh "/tmp/ds-$SPEC/shards" >>"$log" 2>&1 ;;
   dataset)
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
