@@ -174,7 +174,7 @@ def test_tiny_overfit() -> None:
     model.fit_normalisation(batch["body"].numpy(), batch["offsets"].numpy(), batch["mask"].numpy(), condition)
     faces = torch.as_tensor(f)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(200):
+    for _ in range(300):
         out = model(batch["body"], batch["offsets"], batch["mask"], batch["condition"])
         loss, _ = gcvae_loss(model, out, batch, faces, faces, hyper["loss"], 0.0)
         optimizer.zero_grad()
