@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--types", default=",".join(TAILORNET_TYPES), help="comma-separated garment types")
     p.add_argument("--count", type=int, default=160,
-                   help="samples per type (160: the size measured to reach mask IoU 0.95 over types, docs/learners/gcvae.md)")
+                   help="samples per type (160: the size measured to reach mask IoU 0.95 over types, "
+                   "docs/learners/gcvae.md)")
     p.add_argument("--test-fraction", type=float, default=0.2, help="share of each type's samples in the test split")
     p.add_argument("--subdivisions", type=int, default=None,
                    help="midpoint subdivisions of the body mesh (default: learn/gcvae/hyperparameters.py)")
