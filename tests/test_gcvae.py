@@ -174,7 +174,7 @@ def test_tiny_overfit() -> None:
     model.fit_normalisation(batch["body"].numpy(), batch["offsets"].numpy(), batch["mask"].numpy(), condition)
     faces = torch.as_tensor(f)
     optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(200):
+    for _ in range(300):
         out = model(batch["body"], batch["offsets"], batch["mask"], batch["condition"])
         loss, _ = gcvae_loss(model, out, batch, faces, faces, hyper["loss"], 0.0)
         optimizer.zero_grad()
@@ -236,3 +236,17 @@ def test_cli_train_evaluate_sample(tmp_path: Path, anny_body, capsys) -> None:
     assert "static-set" in capsys.readouterr().err
     assert main(["train", "gcvae", "--data", str(data), "--out", str(tmp_path / "r4"), "--prototypes", "3"]) == 2
     assert "--prototypes applies to tailornet only, not gcvae" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option, value", [("--count", "1"), ("--count", "0"), ("--test-fraction", "1.0"),
+                                           ("--test-fraction", "0"), ("--test-fraction", "nan")])
+def test_cli_static_set_refuses_sizes_before_creating_out(tmp_path: Path, capsys, option: str, value: str) -> None:
+    """A set size or test share that leaves a type without a train or a test sample stops with
+    exit 2 naming the option and the value, before --out exists."""
+    from pipelines.cli import main
+
+    out = tmp_path / "set"
+    assert main(["static-set", "--out", str(out), option, value]) == 2
+    err = capsys.readouterr().err
+    assert option in err and value.lower() in err.lower(), err
+    assert not out.exists(), "a refused command leaves no --out directory"

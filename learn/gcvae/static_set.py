@@ -45,7 +45,7 @@ def sample_shapes(count: int, rng: np.random.Generator, size: int = 6) -> np.nda
     return shapes
 
 
-def build_static_set(out: str | os.PathLike, *, types: tuple[str, ...] = TAILORNET_TYPES, count: int = 100,
+def build_static_set(out: str | os.PathLike, *, types: tuple[str, ...] = TAILORNET_TYPES, count: int = 160,
                      test_fraction: float = 0.2, seed: int = 0, representation: dict | None = None,
                      body=None, log=print) -> Path:
     """Builds ``count`` samples per type into ``out/static_set.npz`` and returns its path."""
