@@ -254,10 +254,9 @@ def plan_batches(tasks: list, worlds: int, batches: int = 1) -> list[list[str]]:
     groups = list(pairs.values())
     if not groups:
         return []
-    least = -(-len(groups) // int(worlds))
-    count = min(len(groups), max(int(batches), least))
     if int(batches) <= 1:  # the batches the worlds need: consecutive runs of pairs
         return [[t.task_id for g in groups[i:i + worlds] for t in g] for i in range(0, len(groups), worlds)]
+    count = min(len(groups), max(int(batches), -(-len(groups) // int(worlds))))
     sizes = [sum(len(t.poses) for t in g) for g in groups]
     load, members = [0] * count, [[] for _ in range(count)]
     for i in sorted(range(len(groups)), key=lambda i: (-sizes[i], i)):
