@@ -86,7 +86,7 @@ def test_the_library_defaults_are_the_production_settings():
     assert full.sim == sim and full.self_contact and full.solver == "xpbd", full
 
 
-SIMULATION_LEAVES = ("solver", "device", "worlds", "frame_dt", "substeps", "iterations", "tolerance", "max_relax_frames",
+SIMULATION_LEAVES = ("solver", "device", "worlds", "batches", "frame_dt", "substeps", "iterations", "tolerance", "max_relax_frames",
                      "interpolation_threshold", "poses_per_task", "contact.self_contact", "contact.primary_bodies")
 """The spec's simulation fields, as its docstring lists them."""
 
