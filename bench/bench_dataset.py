@@ -59,6 +59,15 @@ def override_library_settings(items: list[str]) -> None:
     gd.sequence_settings = sequence_settings
 
 
+def override_run_options(spec: dict, args: argparse.Namespace) -> None:
+    """``--worlds``, ``--resolution`` and ``--device`` into ``spec`` where given (the dataset
+    benches' shared options)."""
+    for option, section, key in (("worlds", "simulation", "worlds"), ("resolution", "garment", "resolution"),
+                                 ("device", "simulation", "device")):
+        if getattr(args, option) is not None:
+            spec[section][key] = getattr(args, option)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--spec", default="tailornet-tshirt")
@@ -150,12 +159,7 @@ def main() -> None:
         spec["pairs"]["train"] = args.pairs
     if args.test_pairs is not None:
         spec["pairs"]["test"] = args.test_pairs
-    if args.worlds is not None:
-        spec["simulation"]["worlds"] = args.worlds
-    if args.resolution is not None:
-        spec["garment"]["resolution"] = args.resolution
-    if args.device is not None:
-        spec["simulation"]["device"] = args.device
+    override_run_options(spec, args)
     if args.tolerance is not None:
         spec["simulation"]["tolerance"] = args.tolerance
     for flag, section, items in (("--sim", "simulation", args.sim), ("--filter", "filters", args.filter)):

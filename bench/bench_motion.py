@@ -60,19 +60,14 @@ def main() -> None:
                 spec[section][key] = value
     if args.frames is not None:
         spec["motion"]["frames"] = args.frames
-    if args.worlds is not None:
-        spec["simulation"]["worlds"] = args.worlds
-    if args.resolution is not None:
-        spec["garment"]["resolution"] = args.resolution
-    if args.device is not None:
-        spec["simulation"]["device"] = args.device
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_dataset import StackSampler, override_run_options
+
+    override_run_options(spec, args)
     spec["audit"]["samples"] = args.audit_samples
     spec = validate_spec(spec)
     sampler = None
     if args.sample_stacks:
-        sys.path.insert(0, str(Path(__file__).parent))
-        from bench_dataset import StackSampler
-
         sampler = StackSampler(args.sample_stacks, args.sample_interval)
         sampler.start()
     out = Path(args.out)

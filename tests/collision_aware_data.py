@@ -115,3 +115,19 @@ def write_band_dataset(root: str | Path, body, *, splits: dict[str, int], frames
     manifest.finish()
     manifest.save()
     return manifest
+
+
+def write_tiny_config(path: Path, **regressor) -> str:
+    """A ``drape train collision-aware --config`` of small networks and few samples (seconds per
+    stage on a CPU) at ``path``; ``regressor`` adds regressor options. Returns the path."""
+    import yaml
+
+    small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
+    Path(path).write_text(yaml.safe_dump({
+        "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
+        "sdf": {**small, "points": 1000},
+        "projection": {"steps": 3},
+        "vae": {"hidden_size": 16, "batch_size": 4},
+        "regressor": {"hidden_size": 16, "batch_size": 4, **regressor},
+    }))
+    return str(path)

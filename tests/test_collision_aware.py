@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-import yaml
 
 from learn.collision_aware.canonicalize import ProjectionSettings, project_frames
 from learn.collision_aware.diffusion import closest_surface_points, diffusion_operator, interpolation_matrix
@@ -188,20 +187,12 @@ def test_vae_collision_gradient_points_out_of_the_body() -> None:
 
 
 def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, capsys) -> None:
-    from collision_aware_data import write_band_dataset
+    from collision_aware_data import write_band_dataset, write_tiny_config
     from pipelines.cli import main
 
     data = tmp_path / "data"
     write_band_dataset(data, anny_body, splits={"train": 2, "test_test": 1}, frames_per_task=2)
-    config = tmp_path / "tiny.yaml"
-    small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
-    config.write_text(yaml.safe_dump({
-        "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
-        "sdf": {**small, "points": 1000},
-        "projection": {"steps": 3},
-        "vae": {"hidden_size": 16, "batch_size": 4},
-        "regressor": {"hidden_size": 16, "batch_size": 4},
-    }))
+    config = write_tiny_config(tmp_path / "tiny.yaml")
     run = tmp_path / "run"
     assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
                  "--epochs", "2", "--no-progress"]) == 0

@@ -11,7 +11,6 @@ import json
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from learn.collision_aware.motion_descriptor import motion_descriptor, sequence_rows
 from learn.collision_aware.recurrent_regressor import RecurrentLatentRegressor, sequence_windows
@@ -163,20 +162,8 @@ def test_sequences_run_in_frame_order_whatever_order_their_frames_come_in() -> N
     np.testing.assert_allclose(first, no_root, atol=1e-6)
 
 
-def _tiny_config(path) -> str:
-    small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
-    path.write_text(yaml.safe_dump({
-        "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
-        "sdf": {**small, "points": 1000},
-        "projection": {"steps": 3},
-        "vae": {"hidden_size": 16, "batch_size": 4},
-        "regressor": {"hidden_size": 16, "layers": 1, "batch_size": 4, "window": 4, "stride": 2},
-    }))
-    return str(path)
-
-
 def test_cli_trains_the_gru_on_a_motion_dataset_then_evaluates_and_predicts(tmp_path, anny_body, capsys) -> None:
-    from collision_aware_data import write_band_dataset
+    from collision_aware_data import write_band_dataset, write_tiny_config
 
     from learn.collision_aware.train import load_collision_aware
     from pipelines.cli import main
@@ -184,8 +171,9 @@ def test_cli_trains_the_gru_on_a_motion_dataset_then_evaluates_and_predicts(tmp_
     data = tmp_path / "motion"
     write_band_dataset(data, anny_body, splits={"train_train": 2, "test_test": 1}, frames_per_task=6, motion_fps=FPS)
     run = tmp_path / "run"
-    assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config",
-                 _tiny_config(tmp_path / "tiny.yaml"), "--epochs", "2", "--no-progress"]) == 0
+    config = write_tiny_config(tmp_path / "tiny.yaml", layers=1, window=4, stride=2)
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", config,
+                 "--epochs", "2", "--no-progress"]) == 0
     model = load_collision_aware(run / "collision_aware_model.pt", body=anny_body)
     assert model.recurrent and model.config["regressor_kind"] == "gru" and model.regressor.config["fps"] == FPS
     assert main(["evaluate", str(run), "--data", str(data), "--postprocess-frames", "1", "--renders", "1"]) == 0

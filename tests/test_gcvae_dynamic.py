@@ -106,10 +106,9 @@ def test_tiny_motion_set_overfits() -> None:
     from learn.common.mesh import mesh_edges
     from learn.gcvae.dynamic_set import context_frames
     from learn.gcvae.hyperparameters import merged
-    from learn.gcvae.losses import gcvae_loss
     from learn.gcvae.model import GCVAE
 
-    from tests.test_gcvae import _tube
+    from tests.test_gcvae import _overfit, _tube
 
     v, f = _tube(12, 16)
     edges = mesh_edges(f)
@@ -136,15 +135,7 @@ def test_tiny_motion_set_overfits() -> None:
     torch.manual_seed(0)
     model = GCVAE(edges, v, segments, condition.shape[1], hyper["model"])
     model.fit_normalisation(batch["body"].numpy(), batch["offsets"].numpy(), batch["mask"].numpy(), condition)
-    faces = torch.as_tensor(f)
-    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    for _ in range(200):
-        out = model(batch["body"], batch["offsets"], batch["mask"], batch["condition"])
-        loss, _ = gcvae_loss(model, out, batch, faces, faces, hyper["loss"], 0.0)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-    model.eval()
+    _overfit(model, batch, torch.as_tensor(f), hyper["loss"], 200)
     m = batch["mask"]
     with torch.no_grad():
         out = model(batch["body"], batch["offsets"], batch["mask"], batch["condition"], sample=False)
