@@ -345,10 +345,12 @@ class ShardWriter:
         self._start = time.perf_counter()
         # track_times=False everywhere and fixed attribute order keep the bytes (and the
         # sha256) identical for identical content, so a resumed run equals a fresh one.
-        handle = h5py.File(self.tmp_path, "w", track_order=False)
-        self._file = handle
-        self._state = "open"
         try:
+            # inside the try: an interruption while h5py creates the file (it exists on disk
+            # before the handle is returned) still removes it
+            handle = h5py.File(self.tmp_path, "w", track_order=False)
+            self._file = handle
+            self._state = "open"
             attrs = handle.attrs
             attrs["format"] = SHARD_FORMAT
             attrs["schema_version"] = SCHEMA_VERSION

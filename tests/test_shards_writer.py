@@ -144,6 +144,25 @@ def test_exception_inside_writer_leaves_nothing(tmp_path):
     assert list(path.parent.iterdir()) == [], f"left files: {list(path.parent.iterdir())}"
 
 
+def test_interruption_while_the_file_is_created_leaves_nothing(tmp_path, monkeypatch):
+    """A Ctrl-C (or SIGTERM raised as one) that lands while h5py creates the temporary file, after
+    the file exists on disk but before its handle is returned, leaves no file behind."""
+    import data_manifest.shard as shard_module
+
+    real_file = h5py.File
+
+    def created_then_interrupted(name, *args, **kwargs):
+        real_file(name, *args, **kwargs).close()
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shard_module.h5py, "File", created_then_interrupted)
+    path = shard_path(tmp_path, "task-0")
+    with pytest.raises(KeyboardInterrupt):
+        with ShardWriter(path, template=tube_template(), task=make_task()):
+            pass
+    assert list(path.parent.iterdir()) == [], f"left files: {list(path.parent.iterdir())}"
+
+
 def test_identical_content_gives_identical_bytes(tmp_path):
     frames = frames_for(3)
     first = write_frames(tmp_path / "a" / "s.h5", frames).record
