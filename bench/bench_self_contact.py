@@ -2,7 +2,7 @@
 both arms lowered from the canonical pose to ``--angle`` rad (slerp'ed, ``--step`` rad per frame)
 and held to rest, for each solver / self-contact setting in one run on one device.
 
-    python bench/bench_self_contact.py [--resolution 1800] [--device cpu] [--runs vbd-sc,xpbd-sc,vbd,xpbd]
+    python bench/bench_self_contact.py [--resolution 1800] [--device cpu] [--runs vbd-sc,xpbd-sc,vbd,xpbd] [--stepping 10x3]
 
 Prints one JSON line per run: crossing garment edges (``self_intersections``) and intersection
 contours after the canonical drape and after the hold, the penetration and distorted-triangle
@@ -80,15 +80,16 @@ def arms_lowered_scene(resolution: int, angle: float) -> ArmsLoweredScene:
 
 
 def run_settings(run: str, *, max_frames: int, min_hold_frames: int, step: float,
-                 friction: float | None) -> SequenceSettings:
+                 friction: float | None, stepping: tuple[int, int] | None = None) -> SequenceSettings:
     """Sequence settings of run ``<solver>[-sc|-scb][-untangle]`` (scb: XPBD with the displacement
     bounds; untangle: intersection contour minimization after every substep): the solver's
     shipped stepping, frames of 1/45 s, damping 20/s, holds of at least ``min_hold_frames`` and
-    at most ``max_frames`` frames, joints turning ``step`` [rad] per frame."""
+    at most ``max_frames`` frames, joints turning ``step`` [rad] per frame; ``stepping``
+    (substeps, iterations) replaces the solver's shipped stepping."""
     solver, *flags = run.split("-")
     if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle"} or {"sc", "scb"} <= set(flags):
         raise ValueError(f"run must be <solver>[-sc|-scb][-untangle] with solver in {sorted(STEPPING)} (got {run!r})")
-    substeps, iterations = STEPPING[solver]
+    substeps, iterations = stepping or STEPPING[solver]
     sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
                       outlier_fraction=0.02, max_frames=max_frames, limit_cycle_window=8,
                       self_contact_bounds="scb" in flags, untangle="untangle" in flags)
@@ -116,12 +117,23 @@ def main() -> None:
     parser.add_argument("--friction", type=float, default=None,
                         help="0: body friction off (default: each fabric's coefficient)")
     parser.add_argument("--runs", default="vbd-sc,xpbd-sc")
+    parser.add_argument("--stepping", default=None, metavar="SUBSTEPSxITERATIONS",
+                        help="every run's stepping, e.g. 10x3 (default: each solver's shipped stepping)")
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each run's held garment and body (RUN.npz: garment, body, faces, area ratios)")
     args = parser.parse_args()
+    stepping = None
+    if args.stepping is not None:
+        try:
+            stepping = tuple(int(v) for v in args.stepping.lower().split("x"))
+            if len(stepping) != 2 or min(stepping) < 1:
+                raise ValueError
+        except ValueError:
+            parser.error(f"--stepping: expected SUBSTEPSxITERATIONS with both >= 1, e.g. 10x3 (got {args.stepping!r})")
     for run in args.runs.split(","):
         try:
-            run_settings(run, max_frames=1, min_hold_frames=1, step=args.step, friction=args.friction)
+            run_settings(run, max_frames=1, min_hold_frames=1, step=args.step, friction=args.friction,
+                         stepping=stepping)
         except ValueError as exc:
             parser.error(f"--runs: {exc}")
 
@@ -130,7 +142,7 @@ def main() -> None:
     meter = scene.meter(args.device)
     for run in args.runs.split(","):
         settings = run_settings(run, max_frames=args.hold_frames, min_hold_frames=args.hold_frames, step=args.step,
-                                friction=args.friction)
+                                friction=args.friction, stepping=stepping)
         start, drape_s = canonical_drape(scene, settings, args.device)
         task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
                             shape=np.asarray(body.shape_default, np.float32), poses=scene.lowered[None])
@@ -153,7 +165,8 @@ def main() -> None:
                      faces=template.faces, body_faces=scene.body_faces, area_ratio=ratio,
                      garment_part=scene.garment_part)
         print(json.dumps({
-            "run": run, "friction": args.friction, "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
+            "run": run, "friction": args.friction, "stepping": [settings.sim.substeps, settings.sim.iterations],
+            "resolution": args.resolution, "vertices": len(template.vertices), "device": args.device,
             "angle_rad": args.angle, "drape_self_intersections": start_q["self_intersections"],
             "drape_contours": start_q["self_intersection_contours"], "self_intersections": held["self_intersections"],
             "contours": held["self_intersection_contours"], "penetration_fraction": held["penetration_fraction"],

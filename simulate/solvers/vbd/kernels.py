@@ -24,7 +24,7 @@ import warp as wp
 
 from simulate.contact.closest import closest_point_barycentric
 from simulate.contact.self_contact import segment_closest
-from simulate.solvers.common_kernels import bending_angle_grad, friction_cancel, tile_writer, triangle_coefficients
+from simulate.solvers.common_kernels import bending_angle_grad, tile_writer, triangle_coefficients
 from simulate.solvers.xpbd.kernels import block_sync
 
 wp.set_module_options({"enable_backward": False})
@@ -199,8 +199,28 @@ def within_bound(p: wp.vec3d, searched: wp.vec3, d_min: float, fraction: float, 
     return p
 
 
+@wp.func
+def friction_terms(slip: wp.vec3, n: wp.vec3, limit: float, slip_scale: float):
+    """Coulomb friction of a vertex on its body contact plane (normal ``n``) as a force [N] and its
+    Hessian [N/m] in the vertex's Newton step: ``slip`` [m] is the vertex's displacement relative
+    to the body this substep, ``limit`` = mu N [N] (N from the same step: what presses the vertex
+    into the plane).  The force opposes the tangential slip with magnitude ``limit`` once the slip
+    exceeds ``slip_scale`` [m]; below it, IPC's C1 ramp f1(y) = 2y/e - y^2/e^2 (Li et al. 2020)
+    makes static friction a stiff spring, so a vertex whose tangential load stays under mu N
+    creeps less than ``slip_scale`` per substep and one above it slides against mu N.  The
+    Hessian is f1(|u|)/|u| times mu N on the tangent plane (the PSD part)."""
+    u = slip - n * wp.dot(n, slip)
+    length = wp.length(u)
+    if length >= slip_scale:
+        scale = limit / length
+    else:
+        scale = limit * (2.0 / slip_scale - length / (slip_scale * slip_scale))
+    tangent = wp.identity(n=3, dtype=float) - wp.outer(n, n)
+    return -u * scale, tangent * scale
+
+
 def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool, body_contact: bool,
-                          self_contact: bool = False):
+                          self_contact: bool = False, friction: bool = False):
     """Kernel running ``iterations`` VBD sweeps of every colour of a world, one thread block per world.
 
     ``vertex_world_offsets[c, w]`` .. ``[c, w + 1]`` index ``vertex_order``, the particles of colour
@@ -322,6 +342,9 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         contact_active: wp.array(dtype=wp.int32),
         contact_normal: wp.array(dtype=wp.vec3),
         contact_offset: wp.array(dtype=float),
+        contact_motion: wp.array(dtype=wp.vec3),
+        world_friction: wp.array(dtype=float),
+        friction_slip: float,
         # Substep start:
         x64_prev: wp.array(dtype=wp.vec3d),
         target: wp.array(dtype=wp.vec3),
@@ -343,8 +366,6 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         sc_fraction: float,
         sc_min_separation: float,
         world_self_contact: wp.array(dtype=wp.int32),
-        # Out:
-        contact_depth: wp.array(dtype=float),
         # In/out:
         x64: wp.array(dtype=wp.vec3d),
     ):
@@ -415,12 +436,19 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                             n = contact_normal[i]
                             gap = wp.dot(n, wp.vec3(p)) - contact_offset[i]
                             if gap < 0.0:
-                                p = p - wp.vec3d(n * gap)
-                                # Friction budget [m]: the normal force the plane carries, as the
-                                # displacement it would give the free particle in one substep.
-                                contact_depth[i] = wp.max(-wp.dot(force, n), 0.0) * im / inv_dt2
-                            else:
-                                contact_depth[i] = 0.0
+                                if wp.static(friction):
+                                    # mu N, N the normal force the plane carries [N]: what pushes the
+                                    # vertex into it (inertia, gravity, elastic and layer forces)
+                                    limit = world_friction[w] * wp.max(-wp.dot(force, n), 0.0)
+                                    if limit > 0.0:
+                                        f_t, h_t = friction_terms(wp.vec3(xi - x64_prev[i]) - contact_motion[i], n,
+                                                                  limit, friction_slip)
+                                        hf = hess + h_t
+                                        if wp.abs(wp.determinant(hf)) > 1.0e-30:
+                                            p = xi + wp.vec3d(wp.inverse(hf) * (force + f_t))
+                                        gap = wp.dot(n, wp.vec3(p)) - contact_offset[i]
+                                if gap < 0.0:
+                                    p = p - wp.vec3d(n * gap)
                     # cloth-cloth bounds win over the body plane: where an arm presses a sleeve against
                     # the torso layer, the skin (soft in reality) gives, not the layers
                     if wp.static(self_contact):
@@ -438,76 +466,48 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
     return solve_vertices_vbd
 
 
-def make_finalize_kernel(friction: bool, self_contact: bool = False):
-    """Friction on the substep's displacement, then velocities (x - x_prev) / dt with damping, on the
-    float64 positions; the state's float32 positions are their rounding.  Same rules as
-    ``common_kernels.make_finalize_kernel``.  Also the share of gravity (0..1) the substep
-    accelerated each particle by, for the next substep's start (``predict_particles``).  With
-    ``self_contact``, a particle that friction carries along with the body stays within its
-    self-contact displacement bound (the sweep's rule)."""
-
-    @wp.kernel(module="unique", enable_backward=False)
-    def finalize_particles_vbd(
-        # Model:
-        inv_mass: wp.array(dtype=float),
-        particle_world: wp.array(dtype=wp.int32),
-        world_active: wp.array(dtype=wp.int32),
-        world_damping: wp.array(dtype=float),
-        world_friction: wp.array(dtype=float),
-        extra_damping: float,
-        gravity: wp.vec3,
-        dt: float,
-        # Contacts:
-        contact_active: wp.array(dtype=wp.int32),
-        contact_normal: wp.array(dtype=wp.vec3),
-        contact_motion: wp.array(dtype=wp.vec3),
-        contact_depth: wp.array(dtype=float),
-        # Substep start:
-        x64_prev: wp.array(dtype=wp.vec3d),
-        v_prev: wp.array(dtype=wp.vec3),
-        # Self-contact bounds:
-        sc_x_searched: wp.array(dtype=wp.vec3),
-        sc_d_min: wp.array(dtype=float),
-        sc_fraction: float,
-        sc_min_separation: float,
-        world_self_contact: wp.array(dtype=wp.int32),
-        # In/out:
-        x64: wp.array(dtype=wp.vec3d),
-        # Out:
-        x_out: wp.array(dtype=wp.vec3),
-        v_out: wp.array(dtype=wp.vec3),
-        gravity_share_out: wp.array(dtype=float),
-    ):
-        i = wp.tid()
-        w = particle_world[i]
-        if world_active[w] == 0:
-            v_out[i] = v_prev[i]
-            return
-        p = x64[i]
-        if inv_mass[i] == 0.0:
-            x_out[i] = wp.vec3(p)
-            v_out[i] = wp.vec3(0.0)
-            return
-        disp = wp.vec3(p - x64_prev[i])
-        if wp.static(friction):
-            depth = contact_depth[i]
-            if contact_active[i] != 0 and depth > 0.0:
-                cancel = friction_cancel(disp - contact_motion[i], contact_normal[i], world_friction[w] * depth)
-                p = p - wp.vec3d(cancel)
-                if wp.static(self_contact):
-                    if world_self_contact[w] != 0:
-                        p = within_bound(p, sc_x_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
-                disp = wp.vec3(p - x64_prev[i])
-                x64[i] = p
+@wp.kernel(enable_backward=False)
+def finalize_particles_vbd(
+    # Model:
+    inv_mass: wp.array(dtype=float),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_damping: wp.array(dtype=float),
+    extra_damping: float,
+    gravity: wp.vec3,
+    dt: float,
+    # Substep start:
+    x64_prev: wp.array(dtype=wp.vec3d),
+    v_prev: wp.array(dtype=wp.vec3),
+    # In:
+    x64: wp.array(dtype=wp.vec3d),
+    # Out:
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    gravity_share_out: wp.array(dtype=float),
+):
+    """Velocities (x - x_prev) / dt with damping, on the float64 positions (friction acted inside
+    the sweep); the state's float32 positions are their rounding.  Also the share of gravity
+    (0..1) the substep accelerated each particle by, for the next substep's start
+    (``predict_particles``)."""
+    i = wp.tid()
+    w = particle_world[i]
+    if world_active[w] == 0:
+        v_out[i] = v_prev[i]
+        return
+    p = x64[i]
+    if inv_mass[i] == 0.0:
         x_out[i] = wp.vec3(p)
-        decay = wp.max(1.0 - (world_damping[w] + extra_damping) * dt, 0.0)
-        vel = disp / dt * decay
-        v_out[i] = vel
-        g2 = wp.dot(gravity, gravity)
-        if g2 > 0.0:
-            accel = (vel - v_prev[i]) / dt
-            # dead zone: below half of g counts as supported (0), so a resting or swinging particle
-            # starts at its own position and the rest state is not biased by noise in its acceleration
-            gravity_share_out[i] = wp.clamp(2.0 * wp.dot(accel, gravity) / g2 - 1.0, 0.0, 1.0)
-
-    return finalize_particles_vbd
+        v_out[i] = wp.vec3(0.0)
+        return
+    disp = wp.vec3(p - x64_prev[i])
+    x_out[i] = wp.vec3(p)
+    decay = wp.max(1.0 - (world_damping[w] + extra_damping) * dt, 0.0)
+    vel = disp / dt * decay
+    v_out[i] = vel
+    g2 = wp.dot(gravity, gravity)
+    if g2 > 0.0:
+        accel = (vel - v_prev[i]) / dt
+        # dead zone: below half of g counts as supported (0), so a resting or swinging particle
+        # starts at its own position and the rest state is not biased by noise in its acceleration
+        gravity_share_out[i] = wp.clamp(2.0 * wp.dot(accel, gravity) / g2 - 1.0, 0.0, 1.0)

@@ -19,10 +19,12 @@ if TYPE_CHECKING:
 __all__ = ["SolverVBD", "colour_vertices"]
 
 SHARED_TILE_MAX_BYTES = 200 * 1024
+FRICTION_SLIP_SPEED = 1.0e-3
+"""Body friction's static-to-sliding scale [m/s]: a vertex whose tangential load stays below mu N
+creeps slower than this (``kernels.friction_terms``; the slip scale is this times the substep)."""
 """On CUDA a world's float64 positions sweep in a shared-memory tile when it fits (24 bytes per
 particle, rounded up to 64 particles: up to 8,500 particles per world; an H100/H200 SM has 228 KB)."""
 _sweep_kernel = functools.cache(kernels.make_vbd_sweep_kernel)
-_finalize_kernel = functools.cache(kernels.make_finalize_kernel)
 
 
 def colour_vertices(faces: np.ndarray, bend_indices: np.ndarray, vertex_count: int) -> np.ndarray:
@@ -60,8 +62,12 @@ class SolverVBD(SolverBase):
     Newton steps, colour by colour, starting from ``x + dt v`` plus the share of ``dt^2 g`` the
     particle fell by in its last substep (VBD's adaptive initialization; 0 below half of g).  Body contact is a hard plane per
     particle (found once per substep at the inertial target, as in XPBD) applied after each
-    vertex step; Coulomb friction acts on the substep's displacement with a budget from the
-    normal force the plane carries (``SolverBase.finalize_substep``).
+    vertex step.  Coulomb friction is a force in the same vertex step (``kernels.friction_terms``):
+    mu times the normal force the plane carries, against the tangential slip relative to the
+    body, so it competes with the elastic forces of that step and a cloth slips where its load
+    exceeds mu N (a budget on the substep's displacement instead would compare the slip a stiff
+    vertex achieves, a small fraction of a free particle's, with a free particle's normal push,
+    and hold cloth on any slope).
 
     Unlike XPBD's per-substep multipliers, nothing here is reset between substeps: a cloth at rest
     starts each substep where it is and moves only where its forces do not balance, so the rest
@@ -175,7 +181,7 @@ class SolverVBD(SolverBase):
         self.shared = bool(shared)
         """Whether the sweep keeps each world's positions in shared memory."""
         self._kernel = _sweep_kernel(tile if self.shared else 0, bending, self.attachments, self.body_contact,
-                                     self.self_contact is not None)
+                                     self.self_contact is not None, self.friction)
         if self.self_contact is None:  # placeholders for the kernel's self-contact arguments
             ids = wp.full((1, 1), -1, dtype=wp.int32, device=dev)
             radii = wp.zeros((1, 1), dtype=float, device=dev)
@@ -189,7 +195,6 @@ class SolverVBD(SolverBase):
                               sc.ee_radius, sc.edges,
                               sc.edge_adj_start, sc.edge_adj, self.self_contact_stiffness]
             self._sc_bounds = [sc.x_searched, sc.d_min, sc.bound_fraction if sc.bounds else 0.0, sc.min_separation]
-        self._finalize_vbd = _finalize_kernel(self.friction, self.self_contact is not None)
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
         """The solver's positions [m] in float64, shape (particle_count,); the state's float32
@@ -228,15 +233,14 @@ class SolverVBD(SolverBase):
                                 m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
                                 m.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
                                 control.world_attachment_enabled, self.contact_active, self.contact_normal,
-                                self.contact_offset, self._x64_prev, self._target, *self._sc_pairs, *self._sc_bounds,
-                                control.world_self_contact,
-                                self.contact_depth, self.x64],
+                                self.contact_offset, self.contact_motion, m.world_friction,
+                                FRICTION_SLIP_SPEED * float(dt), self._x64_prev, self._target, *self._sc_pairs,
+                                *self._sc_bounds, control.world_self_contact, self.x64],
                         block_dim=self.block_dim, device=dev)
-        wp.launch(self._finalize_vbd, dim=m.particle_count,
+        wp.launch(kernels.finalize_particles_vbd, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
-                          m.world_friction, self.extra_damping, self.gravity, float(dt), self.contact_active,
-                          self.contact_normal, self.contact_motion, self.contact_depth, self._x64_prev,
-                          state_in.particle_qd, *self._sc_bounds, control.world_self_contact, self.x64],
+                          self.extra_damping, self.gravity, float(dt), self._x64_prev, state_in.particle_qd,
+                          self.x64],
                   outputs=[state_out.particle_q, state_out.particle_qd, self.gravity_share], device=dev)
         if self.untangler is not None and substep % self.untangler.every == 0:
             self.untangler.apply(state_out.particle_q, control.world_active, control.world_self_contact, x64=self.x64,
