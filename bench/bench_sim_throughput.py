@@ -77,7 +77,7 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=100,
                         help="shawl: vertices per side (100 -> 10k); cape: along its length (135 -> 10k)")
     parser.add_argument("--body", default="default", choices=["default", "capsule"])
-    parser.add_argument("--solver", default="xpbd", choices=["xpbd", "mass_spring"])
+    parser.add_argument("--solver", default="xpbd", choices=["xpbd", "vbd", "mass_spring"])
     parser.add_argument("--mode", default="gauss_seidel", choices=["gauss_seidel", "jacobi"])
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--iterations", type=int, default=10)
@@ -143,7 +143,7 @@ def main() -> None:
             sim.step_frame()
         wp.synchronize_device(model.device)
         wall = time.perf_counter() - t0
-        iters = sim.substeps * (args.iterations if args.solver == "xpbd" else 1)
+        iters = sim.substeps * (args.iterations if args.solver in ("xpbd", "vbd") else 1)
         record = {
             "bench": "sim_throughput", "device": device, "solver": args.solver,
             "mode": args.mode if args.solver == "xpbd" else None, "worlds": worlds, "vertices_per_world": vertices,
