@@ -553,6 +553,7 @@ class QuasiStaticSimulator:
             src = self.device_positions(pos)
         wp.copy(self.state_0.particle_q, src, dest_offset=start, count=n)
         self.state_0.particle_qd[start:start + n].zero_()
+        self.solver.positions_set(start, n)
         if self._window:  # the old history is not this state's: forget it
             self._position_history[:, start:start + n].fill_(_FAR)
 

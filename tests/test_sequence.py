@@ -424,6 +424,35 @@ def test_a_world_out_of_tasks_takes_another_groups_task_as_a_world_of_that_group
         assert first < 2e-3, (t, first)
 
 
+def test_garments_held_by_their_waistband_take_other_groups_tasks(scene):
+    """Bottoms hold their waistband (``run_sequences(attached=)``): a world out of tasks still takes
+    another group's task (the garments attach the same vertices), and every target is handed over
+    once on its own task's body."""
+    body, template, start, canonical, small, _ = scene
+    bent, twist, neutral, heavy = _poses_and_shapes(scene)
+    centre = template.vertices.mean(axis=0)
+    loose = (centre + 1.03 * (template.vertices - centre)).astype(np.float32)
+    keys = [[bent, small], [twist, small], [small]]
+    tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=neutral, poses=np.stack(k))
+             for k in keys[:2]]
+    tasks.append(SequenceTask(rest_vertices=loose, start_vertices=start, shape=heavy, poses=np.stack(keys[2]),
+                              fabric="silk"))
+    held = np.argsort(template.vertices[:, 1])[-12:]  # the collar's top vertices stand in for a waistband
+    settings = SequenceSettings(
+        sim=unit_settings(iterations=10, substeps=10, tolerance=0.05, patience=2, max_frames=25, damping=20.0,
+                        explosion_stretch=50.0),
+        shape_transition_frames=1, interpolation_threshold=0.2)
+    frames = []
+    stats = run_sequences(body, template.faces, tasks, body_faces=body.part_faces(("torso", "arms")),
+                          settings=settings, device="cpu", on_frame=frames.append, worlds=2, attached=held)
+    assert stats["group_switches"] >= 1, stats
+    assert sorted((f.task, f.key) for f in frames) == [(t, k) for t in range(3) for k in range(len(keys[t]))]
+    shapes = [neutral, neutral, heavy]
+    for f in frames:
+        np.testing.assert_allclose(f.body_vertices, body.pose(shapes[f.task][None], keys[f.task][f.key][None]).vertices[0],
+                                   rtol=0, atol=1e-5, err_msg=f"task {f.task} key {f.key}")
+
+
 def _cuda_available() -> bool:
     import warp as wp
 

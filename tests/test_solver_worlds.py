@@ -591,3 +591,41 @@ def test_a_world_that_adopts_another_garment_steps_as_a_world_built_with_it(devi
     other = make([(v, "cotton"), (small_v, "silk", small_f)])
     with pytest.raises(ValueError, match="same triangles"):
         other.adopt_garment(1, 0)
+
+
+@pytest.mark.parametrize("solver", ["xpbd", "vbd"])
+def test_garments_held_by_the_same_particles_swap_and_step_as_built(solver: str) -> None:
+    """Bottoms are held by their waistband: world 1 takes world 0's garment where both attach the
+    same particles (each world keeps its attachment slots, whose targets the caller sets) and then
+    steps bit for bit as a batch built with that garment; garments attached at different particles
+    refuse the swap by name."""
+    v, f = grid_cloth(6, 6, 0.3, 0.3, plane="xy", origin=(-0.15, 0.0, 0.0))
+    loose = (1.05 * v).astype(np.float32)
+    top = np.nonzero(v[:, 1] > v[:, 1].max() - 1e-6)[0]
+
+    def make(garments, attached=(top, top)):
+        builder = ClothBuilder()
+        for (verts, fab), held in zip(garments, attached):
+            builder.add_garment(verts, f, fabric=fab, attached=held)
+        model = builder.finalize("cpu", features=Features(friction=False))
+        return QuasiStaticSimulator(model, None, solver=solver, settings=unit_settings(substeps=4, iterations=4))
+
+    swapped = make([(v, "cotton"), (loose, "silk")])
+    built = make([(v, "cotton"), (v, "cotton")])
+    targets = np.concatenate([v[top], v[top] + np.array([0.0, 0.02, 0.0], np.float32)])
+    for sim in (swapped, built):
+        sim.control.set_attachment_targets(targets)
+        sim.step_frame()
+    swapped.adopt_garment(1, 0)
+    assert swapped.model.fabrics[1].name == "cotton"
+    for sim in (swapped, built):
+        sim.revive(1, v)
+    for _ in range(6):
+        swapped.step_frame()
+        built.step_frame()
+    one = built.model.world_slice(1)
+    assert np.abs(built.positions()[one] - v).max() > 0.01, "the cloth did not move"
+    np.testing.assert_array_equal(swapped.positions(), built.positions())
+    other = make([(v, "cotton"), (v, "cotton")], attached=(top, top[:-1]))
+    with pytest.raises(ValueError, match="attach different particles"):
+        other.adopt_garment(1, 0)

@@ -255,17 +255,20 @@ class ClothModel:
         rest dihedral angles, rest positions), fabric (compliances, masses, thickness, damping,
         friction) and skinning weights, copied in place on the device (a captured frame graph
         keeps reading the same arrays). Both worlds must have the same triangles in the same
-        element order (``ValueError`` otherwise) and no attachments; positions, velocities and
-        contacts are the caller's (``QuasiStaticSimulator.adopt_garment``)."""
+        element order and attach the same particles (``ValueError`` otherwise); each world keeps
+        its own attachment slots, whose targets the caller sets (``ClothControl``; the sequence
+        driver sets them from the world's current task).  Positions, velocities and contacts are
+        the caller's (``QuasiStaticSimulator.adopt_garment``)."""
         if dst == src:
             return
         n = int(self.world_particle_count[src])
         if (int(self.world_particle_count[dst]) != n or not np.array_equal(self.world_faces[dst], self.world_faces[src])):
             raise ValueError(f"world {dst} can take world {src}'s garment only with the same triangles "
                              f"({int(self.world_particle_count[dst])} and {n} particles)")
-        att = self.particle_attachment.numpy() if self.attachment_count else None
-        if att is not None and ((att[self.world_slice(dst)] >= 0).any() or (att[self.world_slice(src)] >= 0).any()):
-            raise ValueError(f"worlds {dst} and {src}: garments with attachments cannot be swapped")
+        if self.attachment_count:
+            att = self.particle_attachment.numpy()
+            if not np.array_equal(att[self.world_slice(dst)] >= 0, att[self.world_slice(src)] >= 0):
+                raise ValueError(f"worlds {dst} and {src} attach different particles: no garment swap")
         tri_offsets, bend_offsets = self.world_element_offsets()
         d0, s0 = int(self.world_particle_start[dst]), int(self.world_particle_start[src])
         for offsets, indices, arrays in (

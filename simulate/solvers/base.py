@@ -81,6 +81,12 @@ class SolverBase(abc.ABC):
         chosen from the model's stable step stays stable: ``src``'s garment was in the model
         already."""
 
+    def positions_set(self, start: int, count: int) -> None:
+        """The caller set particles ``start`` .. ``start + count`` to new positions at rest
+        (``QuasiStaticSimulator.set_positions``): forget whatever the solver carried over from
+        their past substeps, so they step as in a solver built at those positions.  Nothing here:
+        the base solvers carry nothing between substeps beyond the state."""
+
     def _check(self, state_in: ClothState, state_out: ClothState, contacts: BodyCollider | None, dt: float) -> None:
         if not dt > 0.0:
             raise ValueError(f"dt must be > 0 [s] (got {dt!r})")

@@ -206,6 +206,11 @@ class SolverVBD(SolverBase):
         """Share of gravity (0..1) each particle's last substep accelerated it by, shape
         (particle_count,); the next substep starts at x + dt v + share dt^2 g."""
 
+    def positions_set(self, start: int, count: int) -> None:
+        """Set particles start a fresh history: the share of gravity of their first substep is 1,
+        as in a new solver (see ``SolverBase.positions_set``)."""
+        self.gravity_share[start:start + count].fill_(1.0)
+
     def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl,
              contacts: BodyCollider | None, dt: float, *,
              substep: int = 0) -> None:
