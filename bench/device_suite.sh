@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # GPU benchmark suite, one stage per device call (each stage fits in 10 minutes on one H100/H200).
-#   bash bench/device_suite.sh tests|sim|peers|peers64|spec|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|profile-tshirt|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
+#   bash bench/device_suite.sh tests|sim|peers|peers64|spec|slices|dataset|dataset-sweep|dataset-learnable|dataset-scale|dataset-full|scale-probe|profile-dataset|profile-tshirt|learn|reports|accuracy|self-contact|profile-self-contact  OUTDIR
 # Writes STAGE.log (everything printed) and STAGE.jsonl (the benches' JSON lines) to OUTDIR.
 set -uo pipefail
 stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
@@ -46,6 +46,22 @@ yaml.safe_dump(spec, open(sys.argv[2], "w"))
 PY
     T=${T:-540} run python -m pipelines.cli generate-dataset "$out/$SPEC.yaml" --out "/tmp/ds-$SPEC" --no-progress
     du -sh "/tmp/ds-$SPEC/shards" >>"$log" 2>&1 ;;
+  slices)
+    # kept share and cost of each spec in SPECS on a slice (POSES train / 2 test poses per pair, audit off):
+    # the spec's XPBD, then VBD 10 x 3 (the stepping that meets the hanging-strip bar)
+    for name in ${SPECS:-tailornet-pants tailornet-skirt tailornet-shirt}; do
+      python - "$name" "$out/$name.yaml" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec(sys.argv[1])
+spec["audit"]["samples"] = 0
+yaml.safe_dump(spec, open(sys.argv[2], "w"))
+PY
+      T=${T:-240} run python bench/bench_dataset.py --spec "$out/$name.yaml" --poses ${POSES:-4} --test-poses 2 \
+        --device cuda:0 --out "/tmp/slice-$name-xpbd"
+      T=${T:-240} run python bench/bench_dataset.py --spec "$out/$name.yaml" --poses ${POSES:-4} --test-poses 2 \
+        --device cuda:0 --out "/tmp/slice-$name-vbd" --sim solver=vbd --sim substeps=10 --sim iterations=3
+    done ;;
   dataset)
     T=540 run python bench/bench_dataset.py --spec tailornet-tshirt --poses ${POSES:-40} --test-poses 10 --device cuda:0 \
       --keep --out /tmp/tn ;;
