@@ -35,11 +35,13 @@ STEPPING = {"vbd": (20, 3), "xpbd": (15, 5)}
 
 @dataclass
 class ArmsLoweredScene:
-    """The t-shirt on the neutral anny body and the lowered pose its arms turn to.
+    """A garment (the t-shirt unless stated) on the neutral anny body and the lowered pose its arms
+    turn to.
 
     Attributes:
-        body: the anny body model; template: the t-shirt template (rest ``vertices`` (V, 3) [m],
-        ``faces`` (F, 3), ``face_uv``); body_faces: the body faces the t-shirt meets (Fb, 3);
+        body: the anny body model; template: the garment's template (rest ``vertices`` (V, 3) [m],
+        ``faces`` (F, 3), ``face_uv``, ``attachment``: a bottom's waistband vertices or None);
+        body_faces: the body faces the garment meets (Fb, 3);
         parts: its primary collision bodies; garment_part: each garment vertex's part (V,);
         canonical / lowered: the canonical pose and the pose with both shoulders turned to the
         torso (60,); rest_body: the body in the canonical pose [m] (Vb, 3).
@@ -62,15 +64,16 @@ class ArmsLoweredScene:
     def sim_arguments(self, device: str) -> dict:
         """The body and collision-part keywords ``drape_static`` and ``run_sequences`` take."""
         return dict(body_faces=self.body_faces, body_face_groups=self.parts.face_groups, body_part=self.garment_part,
-                    device=device)
+                    device=device, attached=getattr(self.template, "attachment", None))
 
 
-def arms_lowered_scene(resolution: int, angle: float) -> ArmsLoweredScene:
-    """The scene at ``resolution`` garment vertices (approximate), shoulders turned by ``angle`` [rad]."""
+def arms_lowered_scene(resolution: int, angle: float, garment: str = "tshirt") -> ArmsLoweredScene:
+    """The scene at ``resolution`` garment vertices (approximate), shoulders turned by ``angle`` [rad];
+    ``garment``: the template type."""
     body = load_body_model("anny")
-    template = make_template("tshirt", body, resolution=resolution)
-    body_faces = body.part_faces(COLLISION_PARTS["tshirt"])
-    parts = collision_parts(body, "tshirt", body_faces)
+    template = make_template(garment, body, resolution=resolution)
+    body_faces = body.part_faces(COLLISION_PARTS[garment])
+    parts = collision_parts(body, garment, body_faces)
     canonical = np.asarray(body.canonical_pose, np.float32)
     rest_body = np.asarray(body.pose(body.shape_default, canonical).vertices).reshape(-1, 3)
     garment_part = parts.garment_vertex_parts(template.vertices, rest_body)
@@ -98,6 +101,20 @@ def run_settings(run: str, *, max_frames: int, min_hold_frames: int, step: float
                             friction=friction)
 
 
+def parse_stepping(value: str | None, parser: argparse.ArgumentParser) -> tuple[int, int] | None:
+    """``--stepping SUBSTEPSxITERATIONS`` as (substeps, iterations); None stays None (each solver's
+    shipped stepping); anything else exits 2 naming the option."""
+    if value is None:
+        return None
+    try:
+        stepping = tuple(int(v) for v in value.lower().split("x"))
+        if len(stepping) != 2 or min(stepping) < 1:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--stepping: expected SUBSTEPSxITERATIONS with both >= 1, e.g. 10x3 (got {value!r})")
+    return stepping
+
+
 def canonical_drape(scene: ArmsLoweredScene, settings: SequenceSettings, device: str) -> tuple[np.ndarray, float]:
     """The t-shirt relaxed on the canonical body with ``settings`` (at most 80 frames): ((V, 3) [m], wall [s])."""
     t0 = time.perf_counter()
@@ -122,14 +139,7 @@ def main() -> None:
     parser.add_argument("--save", default=None, metavar="DIR",
                         help="write each run's held garment and body (RUN.npz: garment, body, faces, area ratios)")
     args = parser.parse_args()
-    stepping = None
-    if args.stepping is not None:
-        try:
-            stepping = tuple(int(v) for v in args.stepping.lower().split("x"))
-            if len(stepping) != 2 or min(stepping) < 1:
-                raise ValueError
-        except ValueError:
-            parser.error(f"--stepping: expected SUBSTEPSxITERATIONS with both >= 1, e.g. 10x3 (got {args.stepping!r})")
+    stepping = parse_stepping(args.stepping, parser)
     for run in args.runs.split(","):
         try:
             run_settings(run, max_frames=1, min_hold_frames=1, step=args.step, friction=args.friction,

@@ -3,12 +3,15 @@ to rest with no garment edge through the garment, per solver / self-contact sett
 one device.
 
     python bench/bench_uniform_poses.py [--poses 40] [--resolution 1800] [--device cpu]
-                                        [--runs xpbd-sc,xpbd-sc-untangle,vbd-sc]
+                                        [--runs xpbd-sc,xpbd-sc-untangle,vbd-sc] [--garment pants]
+                                        [--stepping 10x3]
 
-Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the upper-body joints, limb joints
+Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the garment type's joints (upper body
+for tops, lower for bottoms, ``pipelines.dataset_plan.default_pose_joints``), limb joints
 uniform within ``JOINT_LIMITS``, spine and neck half-normal about the centre line) with the
 dataset's pruning of poses whose body intersects itself, seeded. Each pose is one task of
-``run_sequences`` from the t-shirt's canonical drape on the neutral anny body (greedy slerp from
+``run_sequences`` from the garment's canonical drape on the neutral anny body (bottoms held at
+their waistband) (greedy slerp from
 the canonical pose, ``interpolation_threshold`` 0.05 rad per frame, then held to rest), all tasks
 as worlds of one simulator. Runs are ``bench_self_contact.run_settings``'s: ``<solver>[-sc|-scb]
 [-untangle]`` (``-untangle``: the library's untangling, every 5th substep).
@@ -26,8 +29,10 @@ import time
 
 import numpy as np
 
-from bench_self_contact import arms_lowered_scene, canonical_drape, run_settings
-from simulate.poses import PoseSampler, sample_poses
+from bench_self_contact import arms_lowered_scene, canonical_drape, parse_stepping, run_settings
+from simulate.garment.drape import COLLISION_PARTS
+from pipelines.dataset_plan import default_pose_joints
+from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, sample_poses
 from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceTask, run_sequences
 
@@ -40,23 +45,29 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-frames", type=int, default=60, help="hold budget per pose [frames]")
     parser.add_argument("--runs", default="xpbd-sc,xpbd-sc-untangle")
+    parser.add_argument("--garment", default="tshirt", choices=sorted(COLLISION_PARTS),
+                        help="the garment type (its poses move the type's joints)")
+    parser.add_argument("--stepping", default=None, metavar="SUBSTEPSxITERATIONS",
+                        help="every run's stepping, e.g. 10x3 (default: each solver's shipped stepping)")
     args = parser.parse_args()
     if args.poses < 1:
         parser.error(f"--poses must be >= 1 (got {args.poses})")
+    stepping = parse_stepping(args.stepping, parser)
     for run in args.runs.split(","):
         try:
-            run_settings(run, max_frames=1, min_hold_frames=1, step=0.05, friction=None)
+            run_settings(run, max_frames=1, min_hold_frames=1, step=0.05, friction=None, stepping=stepping)
         except ValueError as exc:
             parser.error(f"--runs: {exc}")
 
-    scene = arms_lowered_scene(args.resolution, 0.0)
+    scene = arms_lowered_scene(args.resolution, 0.0, args.garment)
     body, template = scene.body, scene.template
     shape = np.asarray(body.shape_default, np.float32)
-    sampler = PoseSampler(base_pose=scene.canonical)
+    sampler = PoseSampler(joints=GARMENT_POSE_JOINTS[default_pose_joints(args.garment)], base_pose=scene.canonical)
     poses, _ = sample_poses(body, shape, args.poses, sampler, np.random.default_rng(args.seed))
     meter = scene.meter(args.device)
     for run in args.runs.split(","):
-        settings = run_settings(run, max_frames=args.max_frames, min_hold_frames=1, step=0.05, friction=None)
+        settings = run_settings(run, max_frames=args.max_frames, min_hold_frames=1, step=0.05, friction=None,
+                                stepping=stepping)
         start, _ = canonical_drape(scene, settings, args.device)
         start_crossings = int(meter.self_intersections(start))
         tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=shape, poses=p[None])
@@ -72,7 +83,8 @@ def main() -> None:
         crossings = np.array([q["self_intersections"] for q in quality])
         rest = np.array([f.status == WorldStatus.CONVERGED for f in frames])
         print(json.dumps({
-            "run": run, "poses": len(frames), "resolution": args.resolution, "vertices": len(template.vertices),
+            "run": run, "garment": args.garment, "stepping": [settings.sim.substeps, settings.sim.iterations],
+            "poses": len(frames), "resolution": args.resolution, "vertices": len(template.vertices),
             "device": args.device, "seed": args.seed, "drape_self_intersections": start_crossings,
             "at_rest": int(rest.sum()),
             "at_rest_without_crossings": int((rest & (crossings == 0)).sum()),
