@@ -10,9 +10,9 @@ Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the garment type's
 for tops, lower for bottoms, ``pipelines.dataset_plan.default_pose_joints``), limb joints
 uniform within ``JOINT_LIMITS``, spine and neck half-normal about the centre line) with the
 dataset's pruning of poses whose body intersects itself, seeded. Each pose is one task of
-``run_sequences`` from the garment's canonical drape on the neutral anny body (bottoms held at
-their waistband) (greedy slerp from
-the canonical pose, ``interpolation_threshold`` 0.05 rad per frame, then held to rest), all tasks
+``run_sequences`` from the garment's canonical drape on the neutral anny body, bottoms held at
+their waistband (greedy slerp from the canonical pose, ``interpolation_threshold`` 0.05 rad per
+frame, then held to rest), all tasks
 as worlds of one simulator. Runs are ``bench_self_contact.run_settings``'s: ``<solver>[-sc|-scb]
 [-untangle]`` (``-untangle``: the library's untangling, every 5th substep).
 
@@ -30,8 +30,8 @@ import time
 import numpy as np
 
 from bench_self_contact import arms_lowered_scene, canonical_drape, parse_stepping, run_settings
-from simulate.garment.drape import COLLISION_PARTS
 from pipelines.dataset_plan import default_pose_joints
+from simulate.garment.drape import COLLISION_PARTS
 from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, sample_poses
 from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceTask, run_sequences

@@ -7,6 +7,16 @@ stage=$1; out=${2:-/tmp/suite}; mkdir -p "$out"
 export PYTHONUNBUFFERED=1 TQDM_DISABLE=1
 log="$out/$stage.log"; jl="$out/$stage.jsonl"
 run() { echo "+ $*" >>"$log"; timeout "${T:-400}" "$@" >>"$log" 2>&1; echo "rc=$?" >>"$log"; }
+# the shipped spec NAME written to FILE with the audit off (its Newton solves are CPU work)
+spec_without_audit() {
+  python - "$1" "$2" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec(sys.argv[1])
+spec["audit"]["samples"] = 0
+yaml.safe_dump(spec, open(sys.argv[2], "w"))
+PY
+}
 case $stage in
   tests)
     T=420 run python -m pytest -q -p no:cacheprovider tests/test_cloth_oracles.py tests/test_cloth_builder.py \
@@ -37,26 +47,14 @@ case $stage in
   spec)
     # one shipped spec whole (SPEC=tailornet-pants, ...), audit off (its Newton solves are CPU work):
     # the heartbeat lines and the closing summary go to the log; rerun the same stage to resume
-    python - "${SPEC:?SPEC=name of a shipped spec}" "$out/$SPEC.yaml" <<'PY'
-import sys, yaml
-from pipelines.spec import load_spec
-spec = load_spec(sys.argv[1])
-spec["audit"]["samples"] = 0
-yaml.safe_dump(spec, open(sys.argv[2], "w"))
-PY
+    spec_without_audit "${SPEC:?SPEC=name of a shipped spec}" "$out/$SPEC.yaml"
     T=${T:-540} run python -m pipelines.cli generate-dataset "$out/$SPEC.yaml" --out "/tmp/ds-$SPEC" --no-progress
     du -sh "/tmp/ds-$SPEC/shards" >>"$log" 2>&1 ;;
   slices)
     # kept share and cost of each spec in SPECS on a slice (POSES train / 2 test poses per pair, audit off):
     # the spec's XPBD, then VBD 10 x 3 (the stepping that meets the hanging-strip bar)
     for name in ${SPECS:-tailornet-pants tailornet-skirt tailornet-shirt}; do
-      python - "$name" "$out/$name.yaml" <<'PY'
-import sys, yaml
-from pipelines.spec import load_spec
-spec = load_spec(sys.argv[1])
-spec["audit"]["samples"] = 0
-yaml.safe_dump(spec, open(sys.argv[2], "w"))
-PY
+      spec_without_audit "$name" "$out/$name.yaml"
       T=${T:-240} run python bench/bench_dataset.py --spec "$out/$name.yaml" --poses ${POSES:-4} --test-poses 2 \
         --device cuda:0 --out "/tmp/slice-$name-xpbd"
       T=${T:-240} run python bench/bench_dataset.py --spec "$out/$name.yaml" --poses ${POSES:-4} --test-poses 2 \

@@ -7,8 +7,7 @@ is exact for a patch moving as one body at any stiffness.  VBD puts friction as 
 vertex's Newton step (``simulate.solvers.vbd.kernels.friction_terms``); its local steps carry a
 rigid motion of a stiff patch slowly (the elastic Hessian dwarfs m / dt^2), so the sliding
 distance is checked on a soft patch, where the local step is the whole step, and on cotton only
-that the slope is not held.  A slip budget in displacement units (what VBD used before) held
-cotton on a 40 degree slope with mu = 0.5 (0.2 mm in 0.6 s; Coulomb: 459 mm)."""
+that the slope is not held (a slip budget in a free particle's displacement units would hold it)."""
 
 from __future__ import annotations
 

@@ -19,11 +19,11 @@ if TYPE_CHECKING:
 __all__ = ["SolverVBD", "colour_vertices"]
 
 SHARED_TILE_MAX_BYTES = 200 * 1024
+"""On CUDA a world's float64 positions sweep in a shared-memory tile when it fits (24 bytes per
+particle, rounded up to 64 particles: up to 8,500 particles per world; an H100/H200 SM has 228 KB)."""
 FRICTION_SLIP_SPEED = 1.0e-3
 """Body friction's static-to-sliding scale [m/s]: a vertex whose tangential load stays below mu N
 creeps slower than this (``kernels.friction_terms``; the slip scale is this times the substep)."""
-"""On CUDA a world's float64 positions sweep in a shared-memory tile when it fits (24 bytes per
-particle, rounded up to 64 particles: up to 8,500 particles per world; an H100/H200 SM has 228 KB)."""
 _sweep_kernel = functools.cache(kernels.make_vbd_sweep_kernel)
 
 
@@ -65,9 +65,7 @@ class SolverVBD(SolverBase):
     vertex step.  Coulomb friction is a force in the same vertex step (``kernels.friction_terms``):
     mu times the normal force the plane carries, against the tangential slip relative to the
     body, so it competes with the elastic forces of that step and a cloth slips where its load
-    exceeds mu N (a budget on the substep's displacement instead would compare the slip a stiff
-    vertex achieves, a small fraction of a free particle's, with a free particle's normal push,
-    and hold cloth on any slope).
+    exceeds mu N (``tests/test_friction.py``: Coulomb's incline).
 
     Unlike XPBD's per-substep multipliers, nothing here is reset between substeps: a cloth at rest
     starts each substep where it is and moves only where its forces do not balance, so the rest
