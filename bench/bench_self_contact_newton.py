@@ -34,7 +34,7 @@ import time
 import numpy as np
 import warp as wp
 
-from bench_self_contact import arms_lowered_scene, canonical_drape, run_settings
+from bench_self_contact import arms_lowered_scene, canonical_drape, parse_stepping, run_settings
 from simulate.poses import interpolate_sequence
 from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceTask, run_sequences
@@ -239,7 +239,7 @@ def run_ours(scene, run: str, args) -> dict:
     """One of our runs through ``run_sequences`` (shape transition, settle, lowering, hold), timed
     from the end of the settle to the end of the hold (the frames' kinds from its statistics)."""
     settings = run_settings(run, max_frames=args.max_hold_frames, min_hold_frames=args.min_hold_frames,
-                            step=args.step, friction=args.friction)
+                            step=args.step, friction=args.friction, stepping=args.stepping)
     start, drape_s = canonical_drape(scene, settings, args.device)
     task = SequenceTask(rest_vertices=scene.template.vertices, start_vertices=start,
                         shape=np.asarray(scene.body.shape_default, np.float32), poses=scene.lowered[None])
@@ -267,7 +267,7 @@ def run_newton(newton, scene, run: str, args, start: np.ndarray) -> dict:
     """Newton's SolverVBD from ``start`` (our VBD canonical drape): settle on the canonical body
     (not timed), then the slerp'ed bodies one frame each and the hold, timed."""
     settings = run_settings("vbd-sc", max_frames=args.max_hold_frames, min_hold_frames=args.min_hold_frames,
-                            step=args.step, friction=args.friction)
+                            step=args.step, friction=args.friction, stepping=args.stepping)
     route, _ = interpolate_sequence(scene.lowered[None], scene.canonical, args.step)
     poses = np.concatenate([scene.canonical[None], route]).astype(np.float32)
     shapes = np.tile(np.asarray(scene.body.shape_default, np.float32), (len(poses), 1))
@@ -309,6 +309,9 @@ def main() -> None:
                         help="frames after which a hold still moving ends as MAX_STEPS")
     parser.add_argument("--friction", type=float, default=None,
                         help="0: body friction off (default: the fabric's coefficient)")
+    parser.add_argument("--stepping", default=None, metavar="SxI",
+                        help="substeps x iterations of every run, e.g. 10x3 (default: each solver's shipped stepping, "
+                             "Newton's VBD at ours)")
     parser.add_argument("--newton-contact-ke", type=float, default=1.0e4,
                         help="Newton's soft_contact_ke [N/m] (body and self-contact alike; ours: 1e4 for self-contact)")
     parser.add_argument("--newton-eager", action="store_true",
@@ -318,6 +321,7 @@ def main() -> None:
                              "newton-vbd (Newton without self-contact)")
     parser.add_argument("--out", default=None, help="also append the JSON lines to this file")
     args = parser.parse_args()
+    args.stepping = parse_stepping(args.stepping, parser)
     runs = args.runs.split(",")
     for run in runs:
         if run not in NEWTON_RUNS:
@@ -347,7 +351,8 @@ def main() -> None:
     scene = arms_lowered_scene(args.resolution, args.angle)
     meter = scene.meter(args.device)
     base = {"bench": "self_contact_newton", "resolution": args.resolution, "vertices": len(scene.template.vertices),
-            "device": args.device, "angle_rad": args.angle, "step_rad": args.step}
+            "device": args.device, "angle_rad": args.angle, "step_rad": args.step,
+            "stepping": list(args.stepping) if args.stepping else "shipped"}
     vbd_start = None
     for run in runs:
         if run in NEWTON_RUNS:
@@ -357,7 +362,8 @@ def main() -> None:
             if vbd_start is None:
                 vbd_start, _ = canonical_drape(scene, run_settings("vbd-sc", max_frames=args.max_hold_frames,
                                                                    min_hold_frames=args.min_hold_frames,
-                                                                   step=args.step, friction=args.friction), args.device)
+                                                                   step=args.step, friction=args.friction,
+                                                                   stepping=args.stepping), args.device)
             try:
                 out = run_newton(newton, scene, run, args, vbd_start)
             except Exception as exc:  # e.g. a kernel Newton does not build for this device
