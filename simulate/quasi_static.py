@@ -108,6 +108,12 @@ class SimSettings:
     Off: where the body presses two layers together the bounds pin them and triangles stretch
     (a 480-target t-shirt slice kept 21.5 % against 58.5 %, at 8x the cost per world-frame;
     docs/benchmarks.md, "XPBD with the displacement bounds")."""
+    self_contact_directional_bounds: bool = True
+    """Self-contact (VBD): each particle's displacement bound is a half-space along the direction
+    away from its nearest pair plus a ball (``SelfContact``'s module docstring), instead of a ball
+    of 0.45 its nearest pair distance: layers pressed together by the body may part and slide
+    along each other instead of being pinned, and still never cross (docs/benchmarks.md,
+    "Directional displacement bounds")."""
     self_contact_rest_exclusion: float | None = None
     """Self-contact: particle-triangle pairs closer than this in the rest geometry are never
     contacts [m] (None = SelfContact's default, twice the contact reach)."""
@@ -160,6 +166,7 @@ class SimSettings:
             "self_contact_rest_exclusion": self.self_contact_rest_exclusion is None
             or (np.isfinite(self.self_contact_rest_exclusion) and self.self_contact_rest_exclusion >= 0.0),
             "untangle": isinstance(self.untangle, bool),
+            "self_contact_directional_bounds": isinstance(self.self_contact_directional_bounds, bool),
             "untangle_every": int(self.untangle_every) == self.untangle_every and self.untangle_every >= 1,
             "body_contact_detect_every": int(self.body_contact_detect_every) == self.body_contact_detect_every
             and self.body_contact_detect_every >= 1,
@@ -224,7 +231,8 @@ class QuasiStaticSimulator:
         elif solver == "vbd":
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
-                                                     "rest_exclusion": s.self_contact_rest_exclusion})
+                                                     "rest_exclusion": s.self_contact_rest_exclusion,
+                                                     "directional_bounds": bool(s.self_contact_directional_bounds)})
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:
             self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10

@@ -164,3 +164,89 @@ def test_contact_pair_forces_are_the_energy_gradient_and_sum_to_zero(edge: bool)
                 grad[c] = (_pair_energy(xp, radius, stiffness, edge) - _pair_energy(xm, radius, stiffness, edge)) / (2 * h)
             np.testing.assert_allclose(forces[k], -grad, atol=0.05 * np.abs(forces).max() + 1e-4)
         tested += 1
+
+
+def _stacked_layers(gap: float):
+    """A 5 x 5 patch (8 cm) ``gap`` [m] above a pinned 60 x 20 cm sheet: (rest vertices, faces, sheet count)."""
+    lower_v, lower_f = grid_cloth(13, 5, 0.6, 0.2, plane="xz", origin=(-0.3, 0.0, -0.1))
+    upper_v, upper_f = grid_cloth(5, 5, 0.08, 0.08, plane="xz", origin=(-0.2, gap, -0.04))
+    return np.vstack([lower_v, upper_v]), np.vstack([lower_f, upper_f + len(lower_v)]), len(lower_v)
+
+
+def _launch_patch(device: str, gap: float, velocity: tuple[float, float, float], directional: bool,
+                  frames: int = 3) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """The patch thrown at ``velocity`` [m/s] over the sheet (no gravity, no damping, VBD 5 x 3 at
+    1/60 s) after a frame at rest (the first search has no pairs to take bound normals from):
+    (patch vertices before the throw, after ``frames`` frames, crossings per frame)."""
+    verts, faces, n = _stacked_layers(gap)
+    builder = ClothBuilder(gravity=(0.0, 0.0, 0.0))
+    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(n))
+    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
+    sim = QuasiStaticSimulator(model, None, solver="vbd",
+                               settings=unit_settings(substeps=5, iterations=3, damping=0.0, frame_dt=1.0 / 60.0),
+                               solver_options={"self_contact_options": {"directional_bounds": directional}})
+    sim.step_frame()
+    start = sim.positions()[n:]
+    v0 = np.zeros((len(verts), 3), np.float32)
+    v0[n:] = velocity
+    sim.state_0.particle_qd.assign(v0)
+    meter = QualityMeter(faces, verts, faces[:1], 3, device=device)
+    crossings = []
+    for _ in range(frames):
+        sim.step_frame()
+        crossings.append(meter.self_intersections(sim.positions()))
+    return start, sim.positions()[n:], crossings
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_directional_bounds_let_a_layer_slide_over_another(device: str) -> None:
+    """A patch sliding at 0.6 m/s over a pinned sheet 3 mm below it: a substep carries it 2 mm,
+    more than its ball bound (0.45 x the gap, 1.3 mm), so the ball holds it back; its half-space
+    bound (along the normal away from the sheet) does not limit sliding, and it keeps its speed.
+    Neither passes through the sheet."""
+    travel = {}
+    for directional in (False, True):
+        rest, x, crossings = _launch_patch(device, 0.003, (0.6, 0.0, 0.0), directional)
+        assert max(crossings) == 0, f"directional={directional}: crossings per frame {crossings}"
+        assert x[:, 1].min() > 0.0, f"directional={directional}: the patch went below the sheet"
+        travel[directional] = float(np.mean(x[:, 0] - rest[:, 0]))
+    free = 0.6 * 3.0 / 60.0
+    assert travel[False] < 0.75 * free, f"the ball should hold the patch back: {travel}, free {free}"
+    assert travel[True] > 0.9 * free, f"the directional bound should let it slide: {travel}, free {free}"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_directional_bounds_let_pressed_layers_part(device: str) -> None:
+    """A patch 0.2 mm above the sheet (pressed) leaving it at 0.3 m/s: its ball (0.45 x its gap
+    less 0.1 mm) keeps it within micrometres of the sheet, its half-space bound lets it go."""
+    rise = {}
+    for directional in (False, True):
+        rest, x, crossings = _launch_patch(device, 2.0e-4, (0.0, 0.3, 0.0), directional)
+        assert max(crossings) == 0
+        rise[directional] = float(np.mean(x[:, 1] - rest[:, 1]))
+    assert rise[False] < 1.0e-3, f"the ball should pin the pressed patch: {rise}"
+    assert rise[True] > 0.8 * 0.3 * 3.0 / 60.0, f"the directional bound should let it part: {rise}"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_directional_bounds_stop_a_fast_layer(device: str) -> None:
+    """The fast-layer scene of ``test_fast_layer_does_not_pass_through`` with directional bounds:
+    the patch thrown at the sheet lands on it and never crosses it."""
+    lower_v, verts, faces = _layers()
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
+    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
+    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=5, iterations=5, damping=2.0,
+                                                                               frame_dt=1.0 / 60.0),
+                               solver_options={"self_contact_options": {"directional_bounds": True}})
+    v0 = np.zeros((len(verts), 3), np.float32)
+    v0[len(lower_v):, 1] = -6.0
+    v0[len(lower_v):, 0] = 1.5
+    sim.state_0.particle_qd.assign(v0)
+    meter = QualityMeter(faces, verts, faces[:1], 3, device=device)
+    crossings = []
+    for _ in range(20):
+        sim.step_frame()
+        crossings.append(meter.self_intersections(sim.positions()))
+    assert max(crossings) == 0, f"crossings per frame: {crossings}"
+    assert sim.positions()[len(lower_v):, 1].min() > 0.0

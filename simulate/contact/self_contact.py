@@ -35,6 +35,25 @@ of ``d_min`` for a pair that starts closer). Two primitives then close by less t
 between them, and never below ``min_separation`` once that far apart: new intersections cannot
 form, whatever the penalty and the elastic forces do. The bounds also win over body contact: where a body part presses two layers together
 (an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
+
+**Directional bounds** (``directional_bounds``): a ball of 0.45 ``d_min`` pins two layers pressed
+together (the gap and so the ball go to ``min_separation``): they can neither slide nor part, and
+the cloth around them stretches. Instead each particle gets a *bound normal* ``n`` (the direction
+away from its nearest pair, from the last search's pairs at the new positions) and keeps to
+
+    n . u - c |u| >= -f d_side     and     |u| <= f d_ball      (u: its displacement, f < 1/2)
+
+where ``d_side`` is the smallest certificate distance of the pairs whose certificate direction is
+within atan(c) of ``n`` (``BOUND_CONE_SLOPE``) and ``d_ball`` that of all others (the reach where
+none). A pair's certificate is a unit direction m and s > 0 with m . (a - b) >= s for every point a
+of one primitive and b of the other (the mean of its particles' bound normals where that separates
+by at least half the distance, else the closest points' direction and s = the distance). A particle
+on the pair's a-side within the cone then approaches along m by at most f d_side cos(theta) <= f s
+(n . u >= -f d_side + c |u| and tan(theta) <= c), one in its ball by at most f s, and the b-side
+likewise along -m: the pair closes by less than 2 f s < s along m, and as m . (a - b) is linear in
+the corners it stays positive over both primitives: no crossing, as with the balls. A particle
+moving away from its nearest pair (u along n) is held only by its ball, and one sliding along it
+by f d_side / c.
 """
 
 from __future__ import annotations
@@ -56,6 +75,11 @@ MAX_SWEEP_M = 0.03
 BOUND_FRACTION = 0.45
 """Share of its smallest pair distance a particle may move between searches (< 1/2: two
 primitives moving toward each other then close by at most 90 % of their distance)."""
+
+BOUND_CONE_SLOPE = 0.25
+"""Directional bounds: a pair whose separating direction is within atan(this) (14 degrees) of a
+particle's bound normal is held by the particle's half-space bound, the rest by its ball bound
+(module docstring); a particle may move tangentially 1 / this times its half-space budget."""
 
 PAIRS_PER_PRIMITIVE = 8
 """Contact pairs listed per particle, triangle or edge (the nearest within the reach)."""
@@ -322,12 +346,16 @@ def vertex_triangle_pairs(
     x_rest: wp.array(dtype=wp.vec3),
     reach: float,
     thickness: float,
+    normal: wp.array(dtype=wp.vec3),
+    cone_cos: float,
     # Out:
     pair_tri: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
     pair_radius: wp.array2d(dtype=float),
     # In/out (filled with ``reach`` by the caller):
     d_min: wp.array(dtype=float),
+    d_side: wp.array(dtype=float),
+    d_ball: wp.array(dtype=float),
 ):
     """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
     -1 past the last; their contact radii in ``pair_radius``), and the bounds' smallest distances
@@ -364,6 +392,21 @@ def vertex_triangle_pairs(
         wp.atomic_min(d_min, b, d)
         wp.atomic_min(d_min, c, d)
         insert_nearest(pair_tri, pair_dist, i, face, d)
+        if cone_cos > 0.0:
+            # certificate: the particles' mean bound normal where it separates by >= d / 2
+            m = wp.vec3(0.0)
+            sep = float(0.0)
+            raw = normal[i] - normal[a] - normal[b] - normal[c]
+            if wp.length(raw) > 0.5:
+                m = wp.normalize(raw)
+                sep = wp.dot(m, p) - wp.max(wp.dot(m, x[a]), wp.max(wp.dot(m, x[b]), wp.dot(m, x[c])))
+            if sep < 0.5 * d:
+                m = (p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2])) / wp.max(d, 1.0e-12)
+                sep = d
+            classify_bound(i, m, sep, normal, cone_cos, d_side, d_ball)
+            classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
+            classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
+            classify_bound(c, -m, sep, normal, cone_cos, d_side, d_ball)
     wp.atomic_min(d_min, i, best)
     pr = x_rest[i]
     for k in range(pair_tri.shape[1]):
@@ -438,6 +481,89 @@ def place_edge_boxes(edges: wp.array(dtype=wp.vec2i), particle_world: wp.array(d
 
 
 @wp.kernel
+def bound_normals(
+    x: wp.array(dtype=wp.vec3),
+    tri_count: int,
+    tri_indices: wp.array2d(dtype=wp.int32),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_slot: wp.array(dtype=wp.int32),
+    vt_tri: wp.array2d(dtype=wp.int32),
+    tv_start: wp.array(dtype=wp.int32),
+    tv_count: wp.array(dtype=wp.int32),
+    tv_vertex: wp.array(dtype=wp.int32),
+    ee_edge: wp.array2d(dtype=wp.int32),
+    edges: wp.array(dtype=wp.vec2i),
+    edge_adj_start: wp.array(dtype=wp.int32),
+    edge_adj: wp.array(dtype=wp.int32),
+    # Out:
+    normal_out: wp.array(dtype=wp.vec3),
+):
+    """Each particle's bound normal: the unit direction away from its nearest listed pair (as the
+    point, a triangle's corner or an edge's end) at positions ``x``, zero without one. The lists
+    are read in a fixed order, the first of equal distances wins (deterministic)."""
+    i = wp.tid()
+    best = float(1.0e30)
+    n = wp.vec3(0.0)
+    p = x[i]
+    for k in range(vt_tri.shape[1]):
+        t = vt_tri[i, k]
+        if t < 0:
+            break
+        a = x[tri_indices[t, 0]]
+        b = x[tri_indices[t, 1]]
+        c = x[tri_indices[t, 2]]
+        bary = closest_point_barycentric(p, a, b, c)
+        diff = p - (a * bary[0] + b * bary[1] + c * bary[2])
+        d = wp.length(diff)
+        if d < best and d > 1.0e-12:
+            best = d
+            n = diff / d
+    for s in range(adj_start[i], adj_start[i + 1]):
+        slot = adj_slot[s]
+        if slot < 3 * tri_count:
+            t = slot // 3
+            a = x[tri_indices[t, 0]]
+            b = x[tri_indices[t, 1]]
+            c = x[tri_indices[t, 2]]
+            for k in range(tv_start[t], tv_start[t] + tv_count[t]):
+                q = x[tv_vertex[k]]
+                bary = closest_point_barycentric(q, a, b, c)
+                diff = (a * bary[0] + b * bary[1] + c * bary[2]) - q
+                d = wp.length(diff)
+                if d < best and d > 1.0e-12:
+                    best = d
+                    n = diff / d
+    for s in range(edge_adj_start[i], edge_adj_start[i + 1]):
+        e = edge_adj[s] // 2
+        p1 = x[edges[e][0]]
+        q1 = x[edges[e][1]]
+        for k in range(ee_edge.shape[1]):
+            g = ee_edge[e, k]
+            if g < 0:
+                break
+            p2 = x[edges[g][0]]
+            q2 = x[edges[g][1]]
+            cl = segment_closest(p1, q1, p2, q2)
+            diff = (p1 + (q1 - p1) * cl[0]) - (p2 + (q2 - p2) * cl[1])
+            d = wp.length(diff)
+            if d < best and d > 1.0e-12:
+                best = d
+                n = diff / d
+    normal_out[i] = n
+
+
+@wp.func
+def classify_bound(j: int, m: wp.vec3, s: float, normal: wp.array(dtype=wp.vec3), cone_cos: float,
+                   d_side: wp.array(dtype=float), d_ball: wp.array(dtype=float)):
+    """A pair's certificate (direction ``m`` from particle ``j``'s side, distance ``s`` [m]) into
+    ``j``'s half-space bound where ``m`` is within the cone around its bound normal, else its ball."""
+    if wp.dot(m, normal[j]) >= cone_cos:
+        wp.atomic_min(d_side, j, s)
+    else:
+        wp.atomic_min(d_ball, j, s)
+
+
+@wp.kernel
 def edge_edge_pairs(
     edge_bvh: wp.uint64,
     edges: wp.array(dtype=wp.vec2i),
@@ -449,12 +575,16 @@ def edge_edge_pairs(
     x_rest: wp.array(dtype=wp.vec3),
     reach: float,
     thickness: float,
+    normal: wp.array(dtype=wp.vec3),
+    cone_cos: float,
     # Out:
     pair_edge: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
     pair_radius: wp.array2d(dtype=float),
     # In/out:
     d_min: wp.array(dtype=float),
+    d_side: wp.array(dtype=float),
+    d_ball: wp.array(dtype=float),
 ):
     """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (a BVH over the
     edges' boxes), and the bounds' smallest distance at both its ends."""
@@ -486,6 +616,22 @@ def edge_edge_pairs(
         best = wp.min(best, d)
         if d < reach:
             insert_nearest(pair_edge, pair_dist, e, f, d)
+            if cone_cos > 0.0:
+                # certificate as in vertex_triangle_pairs; each pair is seen from both edges, alike
+                m = wp.vec3(0.0)
+                sep = float(0.0)
+                raw = normal[i0] + normal[i1] - normal[a] - normal[b]
+                if wp.length(raw) > 0.5:
+                    m = wp.normalize(raw)
+                    sep = wp.min(wp.dot(m, p), wp.dot(m, q)) - wp.max(wp.dot(m, x[a]), wp.dot(m, x[b]))
+                if sep < 0.5 * d:
+                    cl = segment_closest(p, q, x[a], x[b])
+                    m = ((p + (q - p) * cl[0]) - (x[a] + (x[b] - x[a]) * cl[1])) / wp.max(d, 1.0e-12)
+                    sep = d
+                classify_bound(i0, m, sep, normal, cone_cos, d_side, d_ball)
+                classify_bound(i1, m, sep, normal, cone_cos, d_side, d_ball)
+                classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
+                classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
     wp.atomic_min(d_min, i0, best)
     wp.atomic_min(d_min, i1, best)
     rp = x_rest[i0]
@@ -504,7 +650,7 @@ class SelfContact:
                  rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
                  bounds: bool = True, bound_fraction: float = BOUND_FRACTION,
                  min_separation: float = MIN_SEPARATION_M, pairs: bool = False,
-                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE) -> None:
+                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE, directional_bounds: bool = False) -> None:
         """
         Args:
             model: cloth model.
@@ -534,6 +680,9 @@ class SelfContact:
                 distances come from the same queries.
             pairs_per_primitive: the most pairs listed per particle, triangle or edge (the
                 nearest ones).
+            directional_bounds: with ``pairs``, each particle's bound is a half-space along its
+                bound normal and a ball (module docstring: ``bound_normal``, ``d_side``,
+                ``d_ball``) instead of the ball of ``d_min``: pressed layers may part and slide.
         """
         self.model = model
         dev = model.device
@@ -586,6 +735,15 @@ class SelfContact:
         (no bound) without ``bounds``."""
         self.x_searched = wp.zeros(count, dtype=wp.vec3, device=dev)
         """Positions at the last search [m]: the centres of the displacement bounds."""
+        self.directional_bounds = bool(directional_bounds) and self.pairs
+        self.bound_normal = wp.zeros(count, dtype=wp.vec3, device=dev)
+        """Directional bounds: each particle's unit direction away from its nearest pair (zero: none)."""
+        self.d_side = wp.full(count, 1.0e30, dtype=float, device=dev)
+        """Directional bounds: smallest certificate distance [m] of the pairs within each particle's cone."""
+        self.d_ball = wp.full(count, 1.0e30, dtype=float, device=dev)
+        """Directional bounds: smallest certificate distance [m] of the particle's other pairs (the reach where none)."""
+        self.cone_cos = float(np.cos(np.arctan(BOUND_CONE_SLOPE))) if self.directional_bounds else 0.0
+        """Cosine of the bound cone's half-angle (0: directional bounds off)."""
         if self.bounds or self.pairs:
             tris = np.asarray(model.tri_indices_np, np.int64).reshape(-1, 3)
             keys = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
@@ -645,12 +803,23 @@ class SelfContact:
         if self.bounds or self.pairs:
             reach = self.thickness + self.margin
             active_sc = world_active if world_self_contact is None else world_self_contact
+            if self.directional_bounds:
+                # bound normals from the last search's pairs at the new positions (empty lists at
+                # the first search: zero normals, every pair in the ball)
+                wp.launch(bound_normals, dim=m.particle_count,
+                          inputs=[x, int(m.tri_count), m.tri_indices, m.particle_adj_start, m.particle_adj_slot,
+                                  self.vt_tri, self.tv_start, self.tv_count, self.tv_vertex, self.ee_edge, self.edges,
+                                  self.edge_adj_start, self.edge_adj],
+                          outputs=[self.bound_normal], device=m.device)
+                self.d_side.fill_(reach)
+                self.d_ball.fill_(reach)
             self.d_min.fill_(reach)
             wp.copy(self.x_searched, x)
             wp.launch(vertex_triangle_pairs, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness],
-                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min], device=m.device)
+                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
+                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball],
+                      device=m.device)
             self.tv_count.zero_()
             self._tv_cursor.zero_()
             wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
@@ -667,8 +836,9 @@ class SelfContact:
             self.edge_bvh.refit()
             wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
                       inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness],
-                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min], device=m.device)
+                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
+                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball],
+                      device=m.device)
 
     def _detect_candidates(self, x, world_active, v, dt, world_self_contact) -> None:
         """One candidate triangle and side per particle (the pushes' search)."""

@@ -200,6 +200,29 @@ def within_bound(p: wp.vec3d, searched: wp.vec3, d_min: float, fraction: float, 
 
 
 @wp.func
+def within_directional_bound(p: wp.vec3d, searched: wp.vec3, normal: wp.vec3, d_side: float, d_ball: float,
+                             slope: float, fraction: float, min_separation: float) -> wp.vec3d:
+    """``p`` [m] scaled back toward where the particle was searched until its displacement u
+    keeps the directional bounds (``simulate.contact.self_contact``): n . u - slope |u| >= -f'
+    d_side and |u| <= f' d_ball, with f' d = ``fraction`` (d - ``min_separation``), a tenth of d
+    for a pair already closer. Both sets are convex and hold u = 0, so the scaled step keeps them."""
+    start = wp.vec3d(searched)
+    step = wp.vec3(p - start)
+    length = wp.length(step)
+    ball = fraction * wp.where(d_ball > min_separation, d_ball - min_separation, 0.1 * d_ball)
+    side = fraction * wp.where(d_side > min_separation, d_side - min_separation, 0.1 * d_side)
+    scale = float(1.0)
+    if length > ball:
+        scale = ball / length
+    lhs = wp.dot(normal, step) - slope * length
+    if scale * lhs < -side:
+        scale = side / (-lhs)
+    if scale < 1.0:
+        return start + wp.vec3d(step * scale)
+    return p
+
+
+@wp.func
 def friction_terms(slip: wp.vec3, n: wp.vec3, limit: float, slip_scale: float):
     """Coulomb friction of a vertex on its body contact plane (normal ``n``) as a force [N] and its
     Hessian [N/m] in the vertex's Newton step: ``slip`` [m] is the vertex's displacement relative
@@ -365,6 +388,10 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         sc_d_min: wp.array(dtype=float),
         sc_fraction: float,
         sc_min_separation: float,
+        sc_normal: wp.array(dtype=wp.vec3),
+        sc_d_side: wp.array(dtype=float),
+        sc_d_ball: wp.array(dtype=float),
+        sc_slope: float,
         world_self_contact: wp.array(dtype=wp.int32),
         # In/out:
         x64: wp.array(dtype=wp.vec3d),
@@ -453,7 +480,11 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                     # the torso layer, the skin (soft in reality) gives, not the layers
                     if wp.static(self_contact):
                         if sc_on != 0:
-                            p = within_bound(p, sc_x_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
+                            if sc_slope > 0.0 and sc_fraction > 0.0:
+                                p = within_directional_bound(p, sc_x_searched[i], sc_normal[i], sc_d_side[i],
+                                                             sc_d_ball[i], sc_slope, sc_fraction, sc_min_separation)
+                            else:
+                                p = within_bound(p, sc_x_searched[i], sc_d_min[i], sc_fraction, sc_min_separation)
                     if wp.static(shared):
                         tile_write(xs, i - base, p)
                     else:

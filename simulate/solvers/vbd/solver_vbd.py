@@ -186,13 +186,19 @@ class SolverVBD(SolverBase):
             ints = wp.zeros(1, dtype=wp.int32, device=dev)
             self._sc_pairs = [ids, radii, ints, ints, ints, wp.zeros(1, dtype=float, device=dev), ids, radii,
                               wp.zeros(1, dtype=wp.vec2i, device=dev), wp.zeros(2, dtype=wp.int32, device=dev), ints, 0.0]
-            self._sc_bounds = [wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0]
+            self._sc_bounds = [wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev), 0.0, 0.0,
+                               wp.zeros(1, dtype=wp.vec3, device=dev), wp.zeros(1, dtype=float, device=dev),
+                               wp.zeros(1, dtype=float, device=dev), 0.0]
         else:
             sc = self.self_contact
             self._sc_pairs = [sc.vt_tri, sc.vt_radius, sc.tv_start, sc.tv_count, sc.tv_vertex, sc.tv_radius, sc.ee_edge,
                               sc.ee_radius, sc.edges,
                               sc.edge_adj_start, sc.edge_adj, self.self_contact_stiffness]
-            self._sc_bounds = [sc.x_searched, sc.d_min, sc.bound_fraction if sc.bounds else 0.0, sc.min_separation]
+            from simulate.contact.self_contact import BOUND_CONE_SLOPE
+
+            self._sc_bounds = [sc.x_searched, sc.d_min, sc.bound_fraction if sc.bounds else 0.0, sc.min_separation,
+                               sc.bound_normal, sc.d_side, sc.d_ball,
+                               BOUND_CONE_SLOPE if sc.directional_bounds else 0.0]
         n = max(model.particle_count, 1)
         self.x64 = wp.array(model.particle_q_rest_np.astype(np.float64), dtype=wp.vec3d, device=dev)
         """The solver's positions [m] in float64, shape (particle_count,); the state's float32
