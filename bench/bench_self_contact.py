@@ -84,18 +84,21 @@ def arms_lowered_scene(resolution: int, angle: float, garment: str = "tshirt") -
 
 def run_settings(run: str, *, max_frames: int, min_hold_frames: int, step: float,
                  friction: float | None, stepping: tuple[int, int] | None = None) -> SequenceSettings:
-    """Sequence settings of run ``<solver>[-sc|-scb][-untangle]`` (scb: XPBD with the displacement
-    bounds; untangle: intersection contour minimization after every substep): the solver's
+    """Sequence settings of run ``<solver>[-sc|-scb][-untangle][-ball]`` (scb: XPBD with the
+    displacement bounds; untangle: intersection contour minimization after every substep; ball:
+    VBD's bounds as balls, not directional): the solver's
     shipped stepping, frames of 1/45 s, damping 20/s, holds of at least ``min_hold_frames`` and
     at most ``max_frames`` frames, joints turning ``step`` [rad] per frame; ``stepping``
     (substeps, iterations) replaces the solver's shipped stepping."""
     solver, *flags = run.split("-")
-    if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle"} or {"sc", "scb"} <= set(flags):
-        raise ValueError(f"run must be <solver>[-sc|-scb][-untangle] with solver in {sorted(STEPPING)} (got {run!r})")
+    if solver not in STEPPING or not set(flags) <= {"sc", "scb", "untangle", "ball"} or {"sc", "scb"} <= set(flags):
+        raise ValueError(f"run must be <solver>[-sc|-scb][-untangle][-ball] with solver in {sorted(STEPPING)} "
+                         f"(got {run!r})")
     substeps, iterations = stepping or STEPPING[solver]
     sim = SimSettings(frame_dt=1.0 / 45.0, substeps=substeps, iterations=iterations, damping=20.0, tolerance=0.05,
                       outlier_fraction=0.02, max_frames=max_frames, limit_cycle_window=8,
-                      self_contact_bounds="scb" in flags, untangle="untangle" in flags)
+                      self_contact_bounds="scb" in flags, untangle="untangle" in flags,
+                      self_contact_directional_bounds="ball" not in flags)
     return SequenceSettings(sim=sim, solver=solver, self_contact=bool({"sc", "scb"} & set(flags)),
                             shape_transition_frames=1, interpolation_threshold=step, min_hold_frames=min_hold_frames,
                             friction=friction)

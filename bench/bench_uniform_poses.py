@@ -3,14 +3,15 @@ to rest with no garment edge through the garment, per solver / self-contact sett
 one device.
 
     python bench/bench_uniform_poses.py [--poses 40] [--resolution 1800] [--device cpu]
-                                        [--runs xpbd-sc,xpbd-sc-untangle,vbd-sc] [--garment pants]
-                                        [--stepping 10x3]
+                                        [--runs xpbd-sc,xpbd-sc-untangle,vbd-sc,vbd-sc-ball]
+                                        [--garment pants] [--stepping 10x3] [--poses-per-task 8]
 
 Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the garment type's joints (upper body
 for tops, lower for bottoms, ``pipelines.dataset_plan.default_pose_joints``), limb joints
 uniform within ``JOINT_LIMITS``, spine and neck half-normal about the centre line) with the
 dataset's pruning of poses whose body intersects itself, seeded. Each pose is one task of
-``run_sequences`` from the garment's canonical drape on the neutral anny body, bottoms held at
+``run_sequences`` (``--poses-per-task N``: N consecutive poses a task, visited in order, as a
+dataset's worlds go from target to target) from the garment's canonical drape on the neutral anny body, bottoms held at
 their waistband (greedy slerp from the canonical pose, ``interpolation_threshold`` 0.05 rad per
 frame, then held to rest), all tasks
 as worlds of one simulator. Runs are ``bench_self_contact.run_settings``'s: ``<solver>[-sc|-scb]
@@ -47,11 +48,15 @@ def main() -> None:
     parser.add_argument("--runs", default="xpbd-sc,xpbd-sc-untangle")
     parser.add_argument("--garment", default="tshirt", choices=sorted(COLLISION_PARTS),
                         help="the garment type (its poses move the type's joints)")
+    parser.add_argument("--poses-per-task", type=int, default=1,
+                        help="poses a task visits in turn from the canonical drape (1: each pose on its own)")
     parser.add_argument("--stepping", default=None, metavar="SUBSTEPSxITERATIONS",
                         help="every run's stepping, e.g. 10x3 (default: each solver's shipped stepping)")
     args = parser.parse_args()
     if args.poses < 1:
         parser.error(f"--poses must be >= 1 (got {args.poses})")
+    if args.poses_per_task < 1:
+        parser.error(f"--poses-per-task must be >= 1 (got {args.poses_per_task})")
     stepping = parse_stepping(args.stepping, parser)
     for run in args.runs.split(","):
         try:
@@ -70,21 +75,22 @@ def main() -> None:
                                 stepping=stepping)
         start, _ = canonical_drape(scene, settings, args.device)
         start_crossings = int(meter.self_intersections(start))
-        tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=shape, poses=p[None])
-                 for p in poses]
+        k = args.poses_per_task
+        tasks = [SequenceTask(rest_vertices=template.vertices, start_vertices=start, shape=shape, poses=poses[i:i + k])
+                 for i in range(0, len(poses), k)]
         frames = []
         t0 = time.perf_counter()
         run_sequences(body, template.faces, tasks, settings=settings, on_frame=frames.append,
                       material_uv=template.face_uv, worlds=len(tasks), **scene.sim_arguments(args.device))
         seconds = time.perf_counter() - t0
-        frames.sort(key=lambda f: f.task)
+        frames.sort(key=lambda f: (f.task, f.key))
         quality = meter.measure_batch(np.stack([f.positions for f in frames]),
                                       np.stack([f.body_vertices for f in frames]), area_bounds=(0.25, 2.0))
         crossings = np.array([q["self_intersections"] for q in quality])
         rest = np.array([f.status == WorldStatus.CONVERGED for f in frames])
         print(json.dumps({
             "run": run, "garment": args.garment, "stepping": [settings.sim.substeps, settings.sim.iterations],
-            "poses": len(frames), "resolution": args.resolution, "vertices": len(template.vertices),
+            "poses": len(frames), "poses_per_task": args.poses_per_task, "resolution": args.resolution, "vertices": len(template.vertices),
             "device": args.device, "seed": args.seed, "drape_self_intersections": start_crossings,
             "at_rest": int(rest.sum()),
             "at_rest_without_crossings": int((rest & (crossings == 0)).sum()),
