@@ -210,6 +210,8 @@ def test_directional_bounds_let_a_layer_slide_over_another(device: str) -> None:
         assert max(crossings) == 0, f"directional={directional}: crossings per frame {crossings}"
         assert x[:, 1].min() > 0.0, f"directional={directional}: the patch went below the sheet"
         travel[directional] = float(np.mean(x[:, 0] - rest[:, 0]))
+    _, again, _ = _launch_patch(device, 0.003, (0.6, 0.0, 0.0), True)
+    np.testing.assert_array_equal(again, x, err_msg="the same run twice must give the same positions")
     free = 0.6 * 3.0 / 60.0
     assert travel[False] < 0.75 * free, f"the ball should hold the patch back: {travel}, free {free}"
     assert travel[True] > 0.9 * free, f"the directional bound should let it slide: {travel}, free {free}"

@@ -109,7 +109,9 @@ class SolverVBD(SolverBase):
                 start), and is kept within its displacement bound (vertex-triangle and edge-edge
                 distances at the search), so no new intersection forms.
             self_contact_options: keyword options of ``SelfContact`` (thickness, margin,
-                rest_exclusion, detect_every, bounds, bound_fraction).
+                rest_exclusion, detect_every, bounds, bound_fraction, directional_bounds: the bound
+                as a half-space along the direction away from the nearest pair plus a ball, so
+                pressed layers may part and slide; ``SimSettings.self_contact_directional_bounds``).
             self_contact_stiffness: penalty stiffness [N/m] holding a particle ``thickness`` off
                 its self-contact triangle (in each Newton step; 1e4 N/m: a vertex pressed by 1 mN
                 gives 0.1 um).
