@@ -51,9 +51,10 @@ by at least half the distance, else the closest points' direction and s = the di
 on the pair's a-side within the cone then approaches along m by at most f d_side cos(theta) <= f s
 (n . u >= -f d_side + c |u| and tan(theta) <= c), one in its ball by at most f s, and the b-side
 likewise along -m: the pair closes by less than 2 f s < s along m, and as m . (a - b) is linear in
-the corners it stays positive over both primitives: no crossing, as with the balls. A particle
-moving away from its nearest pair (u along n) is held only by its ball, and one sliding along it
-by f d_side / c.
+the corners it stays positive over both primitives: no crossing, as with the balls. Here f d is
+0.45 max(d - ``min_separation``, 0): a pair closer than that (float32 rounding can put one there)
+may part but not close. A particle moving away from its nearest pair (u along n) is held only by
+its ball, and one sliding along it by f d_side / c.
 """
 
 from __future__ import annotations

@@ -204,19 +204,21 @@ def within_directional_bound(p: wp.vec3d, searched: wp.vec3, normal: wp.vec3, d_
                              slope: float, fraction: float, min_separation: float) -> wp.vec3d:
     """``p`` [m] scaled back toward where the particle was searched until its displacement u
     keeps the directional bounds (``simulate.contact.self_contact``): n . u - slope |u| >= -f'
-    d_side and |u| <= f' d_ball, with f' d = ``fraction`` (d - ``min_separation``), a tenth of d
-    for a pair already closer. Both sets are convex and hold u = 0, so the scaled step keeps them."""
+    d_side and |u| <= f' d_ball, with f' d = ``fraction`` max(d - ``min_separation``, 0): a pair
+    closer than ``min_separation`` (float32 rounding puts one there) may part but not close, so
+    it never closes by a share of its distance search after search. Both sets are convex and
+    hold u = 0, so the scaled step keeps them."""
     start = wp.vec3d(searched)
     step = wp.vec3(p - start)
     length = wp.length(step)
-    ball = fraction * wp.where(d_ball > min_separation, d_ball - min_separation, 0.1 * d_ball)
-    side = fraction * wp.where(d_side > min_separation, d_side - min_separation, 0.1 * d_side)
+    ball = fraction * wp.max(d_ball - min_separation, 0.0)
+    side = fraction * wp.max(d_side - min_separation, 0.0)
     scale = float(1.0)
     if length > ball:
         scale = ball / length
     lhs = wp.dot(normal, step) - slope * length
     if scale * lhs < -side:
-        scale = side / (-lhs)
+        scale = side / (-lhs)  # lhs < -side <= 0
     if scale < 1.0:
         return start + wp.vec3d(step * scale)
     return p
