@@ -24,6 +24,27 @@ def _layers():
     return lower_v, np.vstack([lower_v, upper_v]), np.vstack([lower_f, upper_f + len(lower_v)])
 
 
+def _throw_layer(device: str, solver: str, self_contact_options: dict, velocity: tuple[float, float, float]):
+    """The upper layer of ``_layers`` thrown at ``velocity`` [m/s] onto the pinned lower one (5 x 5
+    at 1/60 s, damping 2/s) for 20 frames: (upper layer's vertices, crossings per frame)."""
+    lower_v, verts, faces = _layers()
+    builder = ClothBuilder()
+    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
+    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
+    sim = QuasiStaticSimulator(model, None, solver=solver, settings=unit_settings(substeps=5, iterations=5, damping=2.0,
+                                                                                frame_dt=1.0 / 60.0),
+                               solver_options={"self_contact_options": self_contact_options})
+    v0 = np.zeros((len(verts), 3), np.float32)
+    v0[len(lower_v):] = velocity
+    sim.state_0.particle_qd.assign(v0)
+    meter = QualityMeter(faces, verts, faces[:1], 3, device=device)
+    crossings = []
+    for _ in range(20):
+        sim.step_frame()
+        crossings.append(meter.self_intersections(sim.positions()))
+    return sim.positions()[len(lower_v):], crossings
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("bounds", [True, False], ids=["bounds", "no-bounds"])
 @pytest.mark.parametrize("solver", ["vbd", "xpbd"])
@@ -31,22 +52,7 @@ def test_fast_layer_does_not_pass_through(device: str, bounds: bool, solver: str
     """A layer thrown at 6 m/s onto a pinned one, 3 cm below: a substep carries it 2 cm, past the
     penalty's reach; the bounds hold it to a fraction of the distance it was searched at, so it
     lands and never crosses (crossings counted every frame); with the penalty alone it passes."""
-    lower_v, verts, faces = _layers()
-    builder = ClothBuilder()
-    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
-    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
-    sim = QuasiStaticSimulator(model, None, solver=solver, settings=unit_settings(substeps=5, iterations=5, damping=2.0,
-                                                                                frame_dt=1.0 / 60.0),
-                               solver_options={"self_contact_options": {"bounds": bounds}})
-    v0 = np.zeros((len(verts), 3), np.float32)
-    v0[len(lower_v):, 1] = -6.0
-    sim.state_0.particle_qd.assign(v0)
-    meter = QualityMeter(faces, verts, faces[:1], 3, device=device)
-    crossings = []
-    for _ in range(20):
-        sim.step_frame()
-        crossings.append(meter.self_intersections(sim.positions()))
-    upper = sim.positions()[len(lower_v):]
+    upper, crossings = _throw_layer(device, solver, {"bounds": bounds}, (0.0, -6.0, 0.0))
     if bounds:
         assert max(crossings) == 0, f"crossings per frame: {crossings}"
         assert upper[:, 1].min() > 0.0 and upper[:, 1].max() < 0.02, upper[:, 1].min()
@@ -236,24 +242,9 @@ def test_directional_bounds_let_pressed_layers_part(device: str) -> None:
 def test_directional_bounds_stop_a_fast_layer(device: str) -> None:
     """The fast-layer scene of ``test_fast_layer_does_not_pass_through`` with directional bounds:
     the patch thrown at the sheet lands on it and never crosses it."""
-    lower_v, verts, faces = _layers()
-    builder = ClothBuilder()
-    builder.add_garment(verts, faces, fabric="cotton", pinned=np.arange(len(lower_v)))
-    model = builder.finalize(device, features=Features(self_contact=True, body_contact=False))
-    sim = QuasiStaticSimulator(model, None, solver="vbd", settings=unit_settings(substeps=5, iterations=5, damping=2.0,
-                                                                               frame_dt=1.0 / 60.0),
-                               solver_options={"self_contact_options": {"directional_bounds": True}})
-    v0 = np.zeros((len(verts), 3), np.float32)
-    v0[len(lower_v):, 1] = -6.0
-    v0[len(lower_v):, 0] = 1.5
-    sim.state_0.particle_qd.assign(v0)
-    meter = QualityMeter(faces, verts, faces[:1], 3, device=device)
-    crossings = []
-    for _ in range(20):
-        sim.step_frame()
-        crossings.append(meter.self_intersections(sim.positions()))
+    upper, crossings = _throw_layer(device, "vbd", {"directional_bounds": True}, (1.5, -6.0, 0.0))
     assert max(crossings) == 0, f"crossings per frame: {crossings}"
-    assert sim.positions()[len(lower_v):, 1].min() > 0.0
+    assert upper[:, 1].min() > 0.0
 
 
 def _layer_gap(x: np.ndarray, faces: np.ndarray, lower_faces: int, lower_count: int) -> float:

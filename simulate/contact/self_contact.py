@@ -385,7 +385,8 @@ def vertex_triangle_pairs(
         if a == i or b == i or c == i:
             continue
         bary = closest_point_barycentric(p, x[a], x[b], x[c])
-        d = wp.length(p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2]))
+        diff = p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2])
+        d = wp.length(diff)
         if d >= reach:
             continue
         best = wp.min(best, d)
@@ -402,7 +403,7 @@ def vertex_triangle_pairs(
                 m = wp.normalize(raw)
                 sep = wp.dot(m, p) - wp.max(wp.dot(m, x[a]), wp.max(wp.dot(m, x[b]), wp.dot(m, x[c])))
             if sep < 0.5 * d:
-                m = (p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2])) / wp.max(d, 1.0e-12)
+                m = diff / wp.max(d, 1.0e-12)
                 sep = d
             classify_bound(i, m, sep, normal, cone_cos, d_side, d_ball)
             classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
@@ -613,7 +614,8 @@ def edge_edge_pairs(
         b = edges[f][1]
         if a == i0 or a == i1 or b == i0 or b == i1 or particle_world[a] != w:
             continue
-        d = segment_distance(p, q, x[a], x[b])
+        cl = segment_closest(p, q, x[a], x[b])
+        d = cl[2]
         best = wp.min(best, d)
         if d < reach:
             insert_nearest(pair_edge, pair_dist, e, f, d)
@@ -626,7 +628,6 @@ def edge_edge_pairs(
                     m = wp.normalize(raw)
                     sep = wp.min(wp.dot(m, p), wp.dot(m, q)) - wp.max(wp.dot(m, x[a]), wp.dot(m, x[b]))
                 if sep < 0.5 * d:
-                    cl = segment_closest(p, q, x[a], x[b])
                     m = ((p + (q - p) * cl[0]) - (x[a] + (x[b] - x[a]) * cl[1])) / wp.max(d, 1.0e-12)
                     sep = d
                 classify_bound(i0, m, sep, normal, cone_cos, d_side, d_ball)
