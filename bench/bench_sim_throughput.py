@@ -84,9 +84,16 @@ def main() -> None:
     parser.add_argument("--gs-sweep", default="world_blocks", choices=["world_blocks", "colour_launches"],
                         help="XPBD Gauss-Seidel launches: a block per world, or a launch per colour")
     parser.add_argument("--gs-block-dim", type=int, default=256, help="threads per world block (world_blocks)")
+    parser.add_argument("--vbd-block-dim", type=int, default=None,
+                        help="VBD: threads per world block (SolverVBD's block_dim; default its own)")
+    parser.add_argument("--vbd-shared", default="auto", choices=["auto", "on", "off"],
+                        help="VBD: each world's positions in a shared-memory tile (SolverVBD's shared)")
     parser.add_argument("--bending-mode", default=None, choices=["gauss_seidel", "jacobi"],
                         help="XPBD bending sweep (default: same as --mode)")
     parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (Features.self_contact)")
+    parser.add_argument("--ball-bounds", action="store_true",
+                        help="VBD self-contact: ball displacement bounds instead of the directional ones "
+                             "(SimSettings.self_contact_directional_bounds=False)")
     parser.add_argument("--contact-detect-every", type=int, default=1,
                         help="query the body every N substeps (SimSettings.body_contact_detect_every)")
     parser.add_argument("--frames", type=int, default=20, help="timed frames for raw throughput")
@@ -126,12 +133,17 @@ def main() -> None:
                                         features=Features(self_contact=args.self_contact), garments=args.garments)
         build_s = time.perf_counter() - t_build
         solver_options = {"share_element_data": False} if args.no_share_element_data and args.solver == "xpbd" else None
+        if args.solver == "vbd":
+            solver_options = {"shared": {"auto": None, "on": True, "off": False}[args.vbd_shared]}
+            if args.vbd_block_dim is not None:
+                solver_options["block_dim"] = args.vbd_block_dim
         substeps = None if args.solver == "mass_spring" else args.substeps
         # Raw throughput: a tolerance no world reaches, so every world is stepped every frame.
         raw = SimSettings(substeps=substeps, iterations=args.iterations, xpbd_mode=args.mode, tolerance=1e-12,
                           xpbd_bending_mode=args.bending_mode,
                           gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                           body_contact_detect_every=args.contact_detect_every,
+                          self_contact_directional_bounds=not args.ball_bounds,
                           max_frames=10 ** 9, **BENCH_SETTINGS)
         sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw,
                                    solver_options=solver_options)
@@ -151,7 +163,9 @@ def main() -> None:
             "bending_mode": args.bending_mode or args.mode,
             "gs_sweep": args.gs_sweep, "gs_block_dim": args.gs_block_dim,
             "contact_detect_every": args.contact_detect_every,
-            "self_contact": args.self_contact, "garments": args.garments,
+            "self_contact": args.self_contact, "ball_bounds": args.ball_bounds,
+            "vbd_block_dim": getattr(sim.solver, "block_dim", None) if args.solver == "vbd" else None,
+            "vbd_shared": getattr(sim.solver, "shared", None), "garments": args.garments,
             "element_data_copies": getattr(sim.solver, "element_data_copies", None),
             "build_s": round(build_s, 3), "frames": args.frames, "wall_s": round(wall, 4),
             "ms_per_frame": round(1e3 * wall / args.frames, 4),
@@ -166,6 +180,7 @@ def main() -> None:
                                    xpbd_bending_mode=args.bending_mode,
                                    gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    body_contact_detect_every=args.contact_detect_every, tolerance=args.tolerance,
+                                   self_contact_directional_bounds=not args.ball_bounds,
                                    max_frames=args.max_frames, **BENCH_SETTINGS)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings,
                                        solver_options=solver_options)
@@ -190,7 +205,8 @@ def main() -> None:
                                        solver_options=solver_options)
             records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
                             "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
-                            "mode": args.mode, "self_contact": args.self_contact, "graph_ms_per_frame": record["ms_per_frame"],
+                            "mode": args.mode, "self_contact": args.self_contact, "ball_bounds": args.ball_bounds,
+                            "graph_ms_per_frame": record["ms_per_frame"],
                             **kernel_profile(sim, args.profile_frames)})
         for rec in records:
             line = json.dumps(rec)
