@@ -359,8 +359,10 @@ def vertex_triangle_pairs(
     d_ball: wp.array(dtype=float),
 ):
     """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
-    -1 past the last; their contact radii in ``pair_radius``), and the bounds' smallest distances
-    of these pairs to the particle and the triangle's corners (float atomic min)."""
+    -1 past the last; their contact radii in ``pair_radius``), and the bounds: with ``cone_cos`` 0
+    the smallest distance of these pairs to the particle and the triangle's corners (``d_min``),
+    else each pair's certificate into its four particles' ``d_side`` / ``d_ball`` (float atomic
+    min)."""
     i = wp.tid()
     for k in range(pair_tri.shape[1]):
         pair_tri[i, k] = -1
@@ -390,11 +392,12 @@ def vertex_triangle_pairs(
         if d >= reach:
             continue
         best = wp.min(best, d)
-        wp.atomic_min(d_min, a, d)
-        wp.atomic_min(d_min, b, d)
-        wp.atomic_min(d_min, c, d)
         insert_nearest(pair_tri, pair_dist, i, face, d)
-        if cone_cos > 0.0:
+        if cone_cos == 0.0:
+            wp.atomic_min(d_min, a, d)
+            wp.atomic_min(d_min, b, d)
+            wp.atomic_min(d_min, c, d)
+        else:
             # certificate: the particles' mean bound normal where it separates by >= d / 2
             m = wp.vec3(0.0)
             sep = float(0.0)
@@ -409,7 +412,8 @@ def vertex_triangle_pairs(
             classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
             classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
             classify_bound(c, -m, sep, normal, cone_cos, d_side, d_ball)
-    wp.atomic_min(d_min, i, best)
+    if cone_cos == 0.0:
+        wp.atomic_min(d_min, i, best)
     pr = x_rest[i]
     for k in range(pair_tri.shape[1]):
         t = pair_tri[i, k]
@@ -589,7 +593,9 @@ def edge_edge_pairs(
     d_ball: wp.array(dtype=float),
 ):
     """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (a BVH over the
-    edges' boxes), and the bounds' smallest distance at both its ends."""
+    edges' boxes), and the bounds: with ``cone_cos`` 0 the smallest distance at both its ends
+    (``d_min``), else each pair's certificate, from its lower edge, into its four particles'
+    ``d_side`` / ``d_ball``."""
     e = wp.tid()
     for k in range(pair_edge.shape[1]):
         pair_edge[e, k] = -1
@@ -619,8 +625,9 @@ def edge_edge_pairs(
         best = wp.min(best, d)
         if d < reach:
             insert_nearest(pair_edge, pair_dist, e, f, d)
-            if cone_cos > 0.0:
-                # certificate as in vertex_triangle_pairs; each pair is seen from both edges, alike
+            if cone_cos > 0.0 and e < f:
+                # certificate as in vertex_triangle_pairs, from the pair's lower edge only: one
+                # certificate per pair, so its four particles keep to the same m and s
                 m = wp.vec3(0.0)
                 sep = float(0.0)
                 raw = normal[i0] + normal[i1] - normal[a] - normal[b]
@@ -634,8 +641,9 @@ def edge_edge_pairs(
                 classify_bound(i1, m, sep, normal, cone_cos, d_side, d_ball)
                 classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
                 classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
-    wp.atomic_min(d_min, i0, best)
-    wp.atomic_min(d_min, i1, best)
+    if cone_cos == 0.0:
+        wp.atomic_min(d_min, i0, best)
+        wp.atomic_min(d_min, i1, best)
     rp = x_rest[i0]
     rq = x_rest[i1]
     for k in range(pair_edge.shape[1]):
@@ -734,7 +742,8 @@ class SelfContact:
         """Per-particle self-contact correction of the current iteration [m]."""
         self.d_min = wp.full(count, 1.0e30, dtype=float, device=dev)
         """Smallest pair distance of each particle at the last search [m] (module docstring); 1e30
-        (no bound) without ``bounds``."""
+        (no bound) without ``bounds``; the reach with ``directional_bounds`` (their bounds are
+        ``d_side`` and ``d_ball``)."""
         self.x_searched = wp.zeros(count, dtype=wp.vec3, device=dev)
         """Positions at the last search [m]: the centres of the displacement bounds."""
         self.directional_bounds = bool(directional_bounds) and self.pairs
