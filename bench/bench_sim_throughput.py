@@ -91,6 +91,8 @@ def main() -> None:
     parser.add_argument("--bending-mode", default=None, choices=["gauss_seidel", "jacobi"],
                         help="XPBD bending sweep (default: same as --mode)")
     parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (Features.self_contact)")
+    parser.add_argument("--self-contact-detect-every", type=int, default=1,
+                        help="search cloth-cloth pairs every N substeps (SimSettings.self_contact_detect_every)")
     parser.add_argument("--ball-bounds", action="store_true",
                         help="VBD self-contact: ball displacement bounds instead of the directional ones "
                              "(SimSettings.self_contact_directional_bounds=False)")
@@ -144,6 +146,7 @@ def main() -> None:
                           gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                           body_contact_detect_every=args.contact_detect_every,
                           self_contact_directional_bounds=not args.ball_bounds,
+                          self_contact_detect_every=args.self_contact_detect_every,
                           max_frames=10 ** 9, **BENCH_SETTINGS)
         sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw,
                                    solver_options=solver_options)
@@ -164,6 +167,7 @@ def main() -> None:
             "gs_sweep": args.gs_sweep, "gs_block_dim": args.gs_block_dim,
             "contact_detect_every": args.contact_detect_every,
             "self_contact": args.self_contact, "ball_bounds": args.ball_bounds,
+            "self_contact_detect_every": args.self_contact_detect_every,
             "vbd_block_dim": getattr(sim.solver, "block_dim", None) if args.solver == "vbd" else None,
             "vbd_shared": getattr(sim.solver, "shared", None), "garments": args.garments,
             "element_data_copies": getattr(sim.solver, "element_data_copies", None),
@@ -181,6 +185,7 @@ def main() -> None:
                                    gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    body_contact_detect_every=args.contact_detect_every, tolerance=args.tolerance,
                                    self_contact_directional_bounds=not args.ball_bounds,
+                          self_contact_detect_every=args.self_contact_detect_every,
                                    max_frames=args.max_frames, **BENCH_SETTINGS)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings,
                                        solver_options=solver_options)
