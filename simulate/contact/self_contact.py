@@ -361,8 +361,8 @@ def vertex_triangle_pairs(
     """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
     -1 past the last; their contact radii in ``pair_radius``), and the bounds: with ``cone_cos`` 0
     the smallest distance of these pairs to the particle and the triangle's corners (``d_min``),
-    else each pair's certificate into its four particles' ``d_side`` / ``d_ball`` (float atomic
-    min)."""
+    else each pair's certificate into its four particles' ``d_side`` / ``d_ball`` (the particle's
+    own gathered in registers; float atomic min)."""
     i = wp.tid()
     for k in range(pair_tri.shape[1]):
         pair_tri[i, k] = -1
@@ -378,6 +378,11 @@ def vertex_triangle_pairs(
     query = wp.mesh_query_aabb(mesh, q - r, q + r)
     face = int(0)
     best = reach
+    # the particle's own bounds gather in registers (one atomic each), its pairs' triangle corners
+    # take theirs by atomics
+    n_i = normal[i]
+    side_i = reach
+    ball_i = reach
     while wp.mesh_query_aabb_next(query, face):
         if tri_world[face] != w:
             continue
@@ -401,19 +406,25 @@ def vertex_triangle_pairs(
             # certificate: the particles' mean bound normal where it separates by >= d / 2
             m = wp.vec3(0.0)
             sep = float(0.0)
-            raw = normal[i] - normal[a] - normal[b] - normal[c]
+            raw = n_i - normal[a] - normal[b] - normal[c]
             if wp.length(raw) > 0.5:
                 m = wp.normalize(raw)
                 sep = wp.dot(m, p) - wp.max(wp.dot(m, x[a]), wp.max(wp.dot(m, x[b]), wp.dot(m, x[c])))
             if sep < 0.5 * d:
                 m = diff / wp.max(d, 1.0e-12)
                 sep = d
-            classify_bound(i, m, sep, normal, cone_cos, d_side, d_ball)
+            if wp.dot(m, n_i) >= cone_cos:
+                side_i = wp.min(side_i, sep)
+            else:
+                ball_i = wp.min(ball_i, sep)
             classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
             classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
             classify_bound(c, -m, sep, normal, cone_cos, d_side, d_ball)
     if cone_cos == 0.0:
         wp.atomic_min(d_min, i, best)
+    else:
+        wp.atomic_min(d_side, i, side_i)
+        wp.atomic_min(d_ball, i, ball_i)
     pr = x_rest[i]
     for k in range(pair_tri.shape[1]):
         t = pair_tri[i, k]
@@ -569,6 +580,24 @@ def classify_bound(j: int, m: wp.vec3, s: float, normal: wp.array(dtype=wp.vec3)
         wp.atomic_min(d_ball, j, s)
 
 
+@wp.func
+def edge_certificate(cl: wp.vec3, p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.vec3, raw: wp.vec3):
+    """Certificate (m from the first edge's side, s [m]) of the edge pair p1q1, p2q2 with closest
+    points ``cl`` (``segment_closest``) and ``raw`` the first edge's ends' bound normals less the
+    second's: the mean normal where it separates them by at least half their distance, else the
+    closest points' direction and their distance."""
+    d = cl[2]
+    m = wp.vec3(0.0)
+    sep = float(0.0)
+    if wp.length(raw) > 0.5:
+        m = wp.normalize(raw)
+        sep = wp.min(wp.dot(m, p1), wp.dot(m, q1)) - wp.max(wp.dot(m, p2), wp.dot(m, q2))
+    if sep < 0.5 * d:
+        m = ((p1 + (q1 - p1) * cl[0]) - (p2 + (q2 - p2) * cl[1])) / wp.max(d, 1.0e-12)
+        sep = d
+    return m, sep
+
+
 @wp.kernel
 def edge_edge_pairs(
     edge_bvh: wp.uint64,
@@ -594,8 +623,8 @@ def edge_edge_pairs(
 ):
     """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (a BVH over the
     edges' boxes), and the bounds: with ``cone_cos`` 0 the smallest distance at both its ends
-    (``d_min``), else each pair's certificate, from its lower edge, into its four particles'
-    ``d_side`` / ``d_ball``."""
+    (``d_min``), else its pairs' certificates (``d_side`` / ``d_ball``), each computed lower
+    edge first."""
     e = wp.tid()
     for k in range(pair_edge.shape[1]):
         pair_edge[e, k] = -1
@@ -615,6 +644,12 @@ def edge_edge_pairs(
     query = wp.bvh_query_aabb(edge_bvh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
     f = int(0)
     best = reach
+    n0 = normal[i0]
+    n1 = normal[i1]
+    side0 = reach
+    ball0 = reach
+    side1 = reach
+    ball1 = reach
     while wp.bvh_query_next(query, f):
         a = edges[f][0]
         b = edges[f][1]
@@ -625,25 +660,34 @@ def edge_edge_pairs(
         best = wp.min(best, d)
         if d < reach:
             insert_nearest(pair_edge, pair_dist, e, f, d)
-            if cone_cos > 0.0 and e < f:
-                # certificate as in vertex_triangle_pairs, from the pair's lower edge only: one
-                # certificate per pair, so its four particles keep to the same m and s
-                m = wp.vec3(0.0)
-                sep = float(0.0)
-                raw = normal[i0] + normal[i1] - normal[a] - normal[b]
-                if wp.length(raw) > 0.5:
-                    m = wp.normalize(raw)
-                    sep = wp.min(wp.dot(m, p), wp.dot(m, q)) - wp.max(wp.dot(m, x[a]), wp.dot(m, x[b]))
-                if sep < 0.5 * d:
-                    m = ((p + (q - p) * cl[0]) - (x[a] + (x[b] - x[a]) * cl[1])) / wp.max(d, 1.0e-12)
-                    sep = d
-                classify_bound(i0, m, sep, normal, cone_cos, d_side, d_ball)
-                classify_bound(i1, m, sep, normal, cone_cos, d_side, d_ball)
-                classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
-                classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
+            if cone_cos > 0.0:
+                # each pair is seen from both edges, and each edge bounds its own ends by it; the
+                # certificate is computed lower edge first on both, so its four particles keep to
+                # the same m and s (bit for bit)
+                xa = x[a]
+                xb = x[b]
+                if e < f:
+                    m, sep = edge_certificate(cl, p, q, xa, xb, n0 + n1 - normal[a] - normal[b])
+                else:
+                    m, sep = edge_certificate(segment_closest(xa, xb, p, q), xa, xb, p, q,
+                                              normal[a] + normal[b] - n0 - n1)
+                    m = -m
+                if wp.dot(m, n0) >= cone_cos:
+                    side0 = wp.min(side0, sep)
+                else:
+                    ball0 = wp.min(ball0, sep)
+                if wp.dot(m, n1) >= cone_cos:
+                    side1 = wp.min(side1, sep)
+                else:
+                    ball1 = wp.min(ball1, sep)
     if cone_cos == 0.0:
         wp.atomic_min(d_min, i0, best)
         wp.atomic_min(d_min, i1, best)
+    else:
+        wp.atomic_min(d_side, i0, side0)
+        wp.atomic_min(d_ball, i0, ball0)
+        wp.atomic_min(d_side, i1, side1)
+        wp.atomic_min(d_ball, i1, ball1)
     rp = x_rest[i0]
     rq = x_rest[i1]
     for k in range(pair_edge.shape[1]):
