@@ -22,9 +22,7 @@ the energy stiffness / 2 (r - d)^2 while the pair's distance d is below its radi
 thickness, or the pair's distance in the rest geometry where that is less) and every particle of
 the pair its share of the push: as the point, as a triangle's corner, as an edge's end
 (``simulate.solvers.vbd.kernels``). Neighbours are pairs too (only primitives sharing a vertex
-are not): a fold pushes back wherever it closes below its rest distance. Only pairs closer than
-``energy_reach`` at the search carry the energy (``ENERGY_MARGIN_M``); the farther ones are
-listed for the bounds.
+are not): a fold pushes back wherever it closes below its rest distance.
 
 **Displacement bounds** (conservative, as in VBD's and Offset Geometric Contact's cloth contact):
 at each search, every particle also gets ``d_min``, the smallest distance from it to any
@@ -83,14 +81,6 @@ BOUND_CONE_SLOPE = 0.25
 """Directional bounds: a pair whose separating direction is within atan(this) (14 degrees) of a
 particle's bound normal is held by the particle's half-space bound, the rest by its ball bound
 (module docstring); a particle may move tangentially 1 / this times its half-space budget."""
-
-ENERGY_MARGIN_M = 2.0e-3
-"""Pairs: a listed pair farther than ``thickness`` + this [m] (times ``detect_every``) at the search
-gets no contact energy until the next search (its radius is listed as -1); it still counts for
-the bounds, which keep it from crossing. Closing that gap within one substep takes 1.2 m/s at
-10 substeps of 1/60 s. Most listed pairs are a layer's own neighbours a few millimetres away,
-and each costs the sweep a closest-point solve per particle and iteration (``docs/benchmarks.md``,
-"Where VBD's time goes")."""
 
 PAIRS_PER_PRIMITIVE = 8
 """Contact pairs listed per particle, triangle or edge (the nearest within the reach)."""
@@ -359,7 +349,6 @@ def vertex_triangle_pairs(
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
-    energy_reach: float,
     # Out:
     pair_tri: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
@@ -370,8 +359,7 @@ def vertex_triangle_pairs(
     d_ball: wp.array(dtype=float),
 ):
     """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
-    -1 past the last; their contact radii in ``pair_radius``, -1 from ``energy_reach`` on), and the
-    bounds: with ``cone_cos`` 0
+    -1 past the last; their contact radii in ``pair_radius``), and the bounds: with ``cone_cos`` 0
     the smallest distance of these pairs to the particle and the triangle's corners (``d_min``),
     else each pair's certificate into its four particles' ``d_side`` / ``d_ball`` (the particle's
     own gathered in registers; float atomic min)."""
@@ -446,9 +434,7 @@ def vertex_triangle_pairs(
         rb = x_rest[tri_indices[t, 1]]
         rc = x_rest[tri_indices[t, 2]]
         bary = closest_point_barycentric(pr, ra, rb, rc)
-        pair_radius[i, k] = wp.where(pair_dist[i, k] < energy_reach,
-                                     contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])),
-                                                    thickness), -1.0)
+        pair_radius[i, k] = contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])), thickness)
 
 
 @wp.kernel
@@ -626,7 +612,6 @@ def edge_edge_pairs(
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
-    energy_reach: float,
     # Out:
     pair_edge: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
@@ -709,9 +694,7 @@ def edge_edge_pairs(
         g = pair_edge[e, k]
         if g < 0:
             break
-        pair_radius[e, k] = wp.where(pair_dist[e, k] < energy_reach,
-                                     contact_radius(segment_distance(rp, rq, x_rest[edges[g][0]], x_rest[edges[g][1]]),
-                                                    thickness), -1.0)
+        pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[g][0]], x_rest[edges[g][1]]), thickness)
 
 
 class SelfContact:
@@ -721,8 +704,7 @@ class SelfContact:
                  rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
                  bounds: bool = True, bound_fraction: float = BOUND_FRACTION,
                  min_separation: float = MIN_SEPARATION_M, pairs: bool = False,
-                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE, directional_bounds: bool = False,
-                 energy_margin: float = ENERGY_MARGIN_M) -> None:
+                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE, directional_bounds: bool = False) -> None:
         """
         Args:
             model: cloth model.
@@ -752,9 +734,6 @@ class SelfContact:
                 distances come from the same queries.
             pairs_per_primitive: the most pairs listed per particle, triangle or edge (the
                 nearest ones).
-            energy_margin: with ``pairs``, listed pairs farther than ``thickness`` + this x
-                ``detect_every`` [m] at the search get no contact energy until the next one
-                (``ENERGY_MARGIN_M``; the reach: every listed pair).
             directional_bounds: with ``pairs``, each particle's bound is a half-space along its
                 bound normal and a ball (module docstring: ``bound_normal``, ``d_side``,
                 ``d_ball``) instead of the ball of ``d_min``: pressed layers may part and slide.
@@ -777,10 +756,6 @@ class SelfContact:
         if int(detect_every) != detect_every or detect_every < 1:
             raise ValueError(f"self-contact detect_every must be an integer >= 1 (got {detect_every!r})")
         self.detect_every = int(detect_every)
-        if not (np.isfinite(energy_margin) and energy_margin >= 0.0):
-            raise ValueError(f"self-contact energy_margin must be >= 0 [m] (got {energy_margin!r})")
-        self.energy_reach = min(self.thickness + self.margin, self.thickness + float(energy_margin) * self.detect_every)
-        """Pairs listed closer than this [m] carry the contact energy until the next search (``ENERGY_MARGIN_M``)."""
         if not (np.isfinite(bound_fraction) and 0.0 < bound_fraction < 0.5):
             raise ValueError(f"self-contact bound_fraction must be in (0, 0.5) (got {bound_fraction!r})")
         if not (np.isfinite(min_separation) and 0.0 <= min_separation < self.thickness):
@@ -837,8 +812,7 @@ class SelfContact:
             self.vt_tri = wp.full((count, k), -1, dtype=wp.int32, device=dev)
             """Each particle's nearest triangles within the reach, nearest first, -1 after the last."""
             self.vt_radius = wp.zeros((count, k), dtype=float, device=dev)
-            """Contact radius of each listed pair [m] (``contact_radius``); -1 for a pair listed farther than
-            ``energy_reach`` (bounds only, no energy until the next search)."""
+            """Contact radius of each listed pair [m] (``contact_radius``)."""
             self.tv_count = wp.zeros(n_tri, dtype=wp.int32, device=dev)
             """Particles listing each triangle (the same pairs seen from the triangle)."""
             self.tv_start = wp.zeros(n_tri, dtype=wp.int32, device=dev)
@@ -903,8 +877,7 @@ class SelfContact:
             wp.copy(self.x_searched, x)
             wp.launch(vertex_triangle_pairs, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos,
-                              self.energy_reach],
+                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
                       outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball],
                       device=m.device)
             self.tv_count.zero_()
@@ -923,8 +896,7 @@ class SelfContact:
             self.edge_bvh.refit()
             wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
                       inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos,
-                              self.energy_reach],
+                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
                       outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball],
                       device=m.device)
 

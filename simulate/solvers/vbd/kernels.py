@@ -287,10 +287,9 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
         pairs, as an end of its edges' edge-edge pairs (``SelfContact`` with ``pairs``)."""
         force = wp.vec3(0.0)
         hess = wp.mat33(0.0)
-        # rows are sorted nearest first and pairs past the energy reach have radius -1 (bounds only)
         for k in range(vt_tri.shape[1]):
             t = vt_tri[i, k]
-            if t < 0 or vt_radius[i, k] < 0.0:
+            if t < 0:
                 break
             f, h = vertex_triangle_contact(wp.vec3(0.0), wp.vec3(position(xs, x64, tri_indices[t, 0], base) - xi),
                                            wp.vec3(position(xs, x64, tri_indices[t, 1], base) - xi),
@@ -304,8 +303,6 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
                 t = slot // 3
                 corner = slot - 3 * t
                 for k in range(tv_start[t], tv_start[t] + tv_count[t]):
-                    if tv_radius[k] < 0.0:
-                        continue
                     j = tv_vertex[k]
                     f, h = vertex_triangle_contact(wp.vec3(position(xs, x64, j, base) - xi),
                                                    wp.vec3(position(xs, x64, tri_indices[t, 0], base) - xi),
@@ -322,7 +319,7 @@ def make_vbd_sweep_kernel(tile_particles: int, bending: bool, attachments: bool,
             q1 = wp.vec3(position(xs, x64, edges[e][1], base) - xi)
             for k in range(ee_edge.shape[1]):
                 g = ee_edge[e, k]
-                if g < 0 or ee_radius[e, k] < 0.0:
+                if g < 0:
                     break
                 f, h = edge_edge_contact(p1, q1, wp.vec3(position(xs, x64, edges[g][0], base) - xi),
                                          wp.vec3(position(xs, x64, edges[g][1], base) - xi), end, ee_radius[e, k],
