@@ -237,17 +237,25 @@ class SolverVBD(SolverBase):
             if substep % sc.detect_every == 0:
                 sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
                           world_self_contact=control.world_self_contact)
-        wp.launch_tiled(self._kernel, dim=[m.world_count],
-                        inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
-                                m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count), m.tri_indices,
-                                m.tri_dm_inv, m.tri_compliance, m.bend_indices, m.bend_rest_angle,
-                                m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
-                                m.particle_attachment, control.attachment_target, control.world_attachment_stiffness,
-                                control.world_attachment_enabled, self.contact_active, self.contact_normal,
-                                self.contact_offset, self.contact_motion, m.world_friction,
-                                FRICTION_SLIP_SPEED * float(dt), self._x64_prev, self._target, *self._sc_pairs,
-                                *self._sc_bounds, control.world_self_contact, self.x64],
-                        block_dim=self.block_dim, device=dev)
+        try:
+            wp.launch_tiled(self._kernel, dim=[m.world_count],
+                            inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
+                                    m.particle_inv_mass, m.particle_adj_start, m.particle_adj_slot, int(m.tri_count),
+                                    m.tri_indices, m.tri_dm_inv, m.tri_compliance, m.bend_indices, m.bend_rest_angle,
+                                    m.bend_compliance, control.world_active, 1.0 / (dt * dt), self.iterations,
+                                    m.particle_attachment, control.attachment_target,
+                                    control.world_attachment_stiffness, control.world_attachment_enabled,
+                                    self.contact_active, self.contact_normal, self.contact_offset, self.contact_motion,
+                                    m.world_friction, FRICTION_SLIP_SPEED * float(dt), self._x64_prev, self._target,
+                                    *self._sc_pairs, *self._sc_bounds, control.world_self_contact, self.x64],
+                            block_dim=self.block_dim, device=dev)
+        except RuntimeError as err:
+            if "too many resources" not in str(err):
+                raise
+            # the sweep's registers per thread times block_dim exceed the SM's (one H100: 512
+            # threads fail with self-contact on)
+            raise ValueError(f"SolverVBD block_dim={self.block_dim}: the sweep kernel needs more registers per "
+                             f"block than {dev} has; expected 256 or fewer threads per world block") from None
         wp.launch(kernels.finalize_particles_vbd, dim=m.particle_count,
                   inputs=[m.particle_inv_mass, m.particle_world, control.world_active, m.world_damping,
                           self.extra_damping, self.gravity, float(dt), self._x64_prev, state_in.particle_qd,
