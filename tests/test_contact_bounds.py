@@ -13,6 +13,7 @@ from simulate.quasi_static import QuasiStaticSimulator
 from simulate.scenes import grid_cloth, icosphere
 from simulate.quality import QualityMeter
 from simulate.solvers.vbd.kernels import edge_edge_contact, vertex_triangle_contact
+from contact_scenes import folded_sheet_worlds
 from unit_sim import unit_settings
 
 DEVICES = ["cpu"] + (["cuda:0"] if wp.get_cuda_device_count() > 0 else [])
@@ -348,19 +349,8 @@ def test_bounds_match_brute_force(directional: bool) -> None:
     the rules are left out (a handful)."""
     from simulate.contact.self_contact import SelfContact
 
-    v, f = grid_cloth(9, 9, 0.16, 0.16, plane="xz")
-    rng = np.random.default_rng(5)
-    folded = v.astype(np.float64).copy()
-    top = folded[:, 0] > 0.08 + 1e-6
-    folded[top, 0] = 0.16 - folded[top, 0]
-    folded[top, 1] = 0.003
-    folded += rng.normal(0.0, 6e-4, folded.shape)
-    builder = ClothBuilder()
-    for _ in range(2):
-        builder.add_garment(v, f, fabric="cotton")
-    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    model, x = folded_sheet_worlds(seed=5, jitter=6e-4)
     contact = SelfContact(model, pairs=True, directional_bounds=directional)
-    x = np.concatenate([folded, folded + np.array([0.5, 0.0, 0.0])]).astype(np.float32)
     xw = wp.array(x, dtype=wp.vec3, device="cpu")
     for _ in range(2):  # the second search takes its bound normals from the first one's pairs
         contact.detect(xw, model.control().world_active)

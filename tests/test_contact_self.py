@@ -9,6 +9,7 @@ import warp as wp
 from simulate.cloth import ClothBuilder, Features
 from simulate.quasi_static import QuasiStaticSimulator, SimSettings
 from simulate.scenes import grid_cloth
+from contact_scenes import folded_sheet_worlds
 from unit_sim import unit_settings
 
 wp.init()
@@ -226,20 +227,8 @@ def test_candidate_search_matches_brute_force(rest_exclusion: float) -> None:
     Without the rest-shape exclusion the 2-ring alone keeps the fold's own triangles out."""
     from simulate.contact.self_contact import SelfContact
 
-    n = 9
-    v, f = grid_cloth(n, n, 0.16, 0.16, plane="xz")
-    rng = np.random.default_rng(3)
-    folded = v.astype(np.float64).copy()
-    top = folded[:, 0] > 0.08 + 1e-6  # the half past the fold line x = 0.08 lies back over the other half
-    folded[top, 0] = 0.16 - folded[top, 0]
-    folded[top, 1] = 0.003
-    folded += rng.normal(0.0, 4e-4, folded.shape)
-    builder = ClothBuilder()
-    for _ in range(2):
-        builder.add_garment(v, f, fabric="cotton")
-    model = builder.finalize("cpu", features=Features(self_contact=True, body_contact=False))
+    model, x = folded_sheet_worlds(seed=3, jitter=4e-4)
     contact = SelfContact(model, thickness=0.004, margin=0.004, rest_exclusion=rest_exclusion)
-    x = np.concatenate([folded, folded + np.array([0.5, 0.0, 0.0])]).astype(np.float32)
     contact.detect(wp.array(x, dtype=wp.vec3, device="cpu"), model.control().world_active)
     got = contact.candidate.numpy()
     tri = model.tri_indices.numpy()
