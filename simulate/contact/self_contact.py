@@ -831,8 +831,9 @@ class SelfContact:
                       outputs=[lowers, uppers], device=dev)
             # SAH with one edge per leaf, as the triangle BVHs (``BVH_OPTIONS``): CUDA's default LBVH
             # sorts the leaves by Morton codes over the whole grid of world cells, coarser there than
-            # an edge, so its nodes overlap and each query walks many of them (one H100, 256 t-shirts
-            # of 7.7k: 125 ms per search with LBVH, 53 ms with SAH; ``docs/benchmarks.md``, "Where VBD's time goes")
+            # an edge, so its nodes overlap and each query walks many of them (one H100, 256
+            # t-shirts of 7.7k: 125 ms per search with LBVH, 53 ms with SAH; ``docs/benchmarks.md``,
+            # "Where VBD's time goes")
             self.edge_bvh = wp.Bvh(lowers, uppers, constructor=BVH_OPTIONS["bvh_constructor"],
                                    leaf_size=BVH_OPTIONS["bvh_leaf_size"])
             """BVH over the edges' boxes at their world cells, built here at rest and refit at each search."""
