@@ -368,7 +368,8 @@ def test_bounds_match_brute_force(directional: bool) -> None:
 
     def bound(particles, m_own, sep, margin, d):
         for j, sign in particles:
-            if abs(d - reach) < 1e-6 or (directional and (margin < 1e-6 or abs(sign * m_own @ normal[j] - cone) < 1e-4)):
+            near_cone = abs(sign * m_own @ normal[j] - cone) < 1e-4
+            if abs(d - reach) < 1e-6 or (directional and (margin < 1e-6 or near_cone)):
                 fragile[j] = True
             if d >= reach:
                 continue
