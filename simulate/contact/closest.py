@@ -45,7 +45,8 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 __all__ = [
-    "closest_point_barycentric", "face_points", "nearest_face", "nearest_in_box", "point_side", "shift_tolerance",
+    "closest_point_barycentric", "face_points", "nearest_face", "nearest_in_box", "point_side",
+    "point_triangle_offset", "shift_tolerance",
 ]
 
 
@@ -86,6 +87,13 @@ def closest_point_barycentric(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
     v = vb * denom
     w = vc * denom
     return wp.vec3(1.0 - v - w, v, w)
+
+
+@wp.func
+def point_triangle_offset(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec3:
+    """``p`` less the point of triangle abc closest to it [m] (its length is their distance)."""
+    bary = closest_point_barycentric(p, a, b, c)
+    return p - (a * bary[0] + b * bary[1] + c * bary[2])
 
 
 @wp.func

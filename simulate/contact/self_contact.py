@@ -64,7 +64,7 @@ import warp as wp
 
 from simulate.cloth.model import ClothModel
 from simulate.contact.body_collider import BVH_OPTIONS, world_cell_offsets
-from simulate.contact.closest import closest_point_barycentric, shift_tolerance
+from simulate.contact.closest import closest_point_barycentric, point_triangle_offset, shift_tolerance
 
 wp.set_module_options({"enable_backward": False})
 
@@ -391,8 +391,10 @@ def vertex_triangle_pairs(
         c = tri_indices[face, 2]
         if a == i or b == i or c == i:
             continue
-        bary = closest_point_barycentric(p, x[a], x[b], x[c])
-        diff = p - (x[a] * bary[0] + x[b] * bary[1] + x[c] * bary[2])
+        xa = x[a]
+        xb = x[b]
+        xc = x[c]
+        diff = point_triangle_offset(p, xa, xb, xc)
         d = wp.length(diff)
         if d >= reach:
             continue
@@ -406,10 +408,13 @@ def vertex_triangle_pairs(
             # certificate: the particles' mean bound normal where it separates by >= d / 2
             m = wp.vec3(0.0)
             sep = float(0.0)
-            raw = n_i - normal[a] - normal[b] - normal[c]
+            na = normal[a]
+            nb = normal[b]
+            nc = normal[c]
+            raw = n_i - na - nb - nc
             if wp.length(raw) > 0.5:
                 m = wp.normalize(raw)
-                sep = wp.dot(m, p) - wp.max(wp.dot(m, x[a]), wp.max(wp.dot(m, x[b]), wp.dot(m, x[c])))
+                sep = wp.dot(m, p) - wp.max(wp.dot(m, xa), wp.max(wp.dot(m, xb), wp.dot(m, xc)))
             if sep < 0.5 * d:
                 m = diff / wp.max(d, 1.0e-12)
                 sep = d
@@ -417,9 +422,9 @@ def vertex_triangle_pairs(
                 side_i = wp.min(side_i, sep)
             else:
                 ball_i = wp.min(ball_i, sep)
-            classify_bound(a, -m, sep, normal, cone_cos, d_side, d_ball)
-            classify_bound(b, -m, sep, normal, cone_cos, d_side, d_ball)
-            classify_bound(c, -m, sep, normal, cone_cos, d_side, d_ball)
+            classify_bound(a, na, -m, sep, cone_cos, d_side, d_ball)
+            classify_bound(b, nb, -m, sep, cone_cos, d_side, d_ball)
+            classify_bound(c, nc, -m, sep, cone_cos, d_side, d_ball)
     if cone_cos == 0.0:
         wp.atomic_min(d_min, i, best)
     else:
@@ -430,11 +435,9 @@ def vertex_triangle_pairs(
         t = pair_tri[i, k]
         if t < 0:
             break
-        ra = x_rest[tri_indices[t, 0]]
-        rb = x_rest[tri_indices[t, 1]]
-        rc = x_rest[tri_indices[t, 2]]
-        bary = closest_point_barycentric(pr, ra, rb, rc)
-        pair_radius[i, k] = contact_radius(wp.length(pr - (ra * bary[0] + rb * bary[1] + rc * bary[2])), thickness)
+        rest_offset = point_triangle_offset(pr, x_rest[tri_indices[t, 0]], x_rest[tri_indices[t, 1]],
+                                            x_rest[tri_indices[t, 2]])
+        pair_radius[i, k] = contact_radius(wp.length(rest_offset), thickness)
 
 
 @wp.kernel
@@ -526,11 +529,7 @@ def bound_normals(
         t = vt_tri[i, k]
         if t < 0:
             break
-        a = x[tri_indices[t, 0]]
-        b = x[tri_indices[t, 1]]
-        c = x[tri_indices[t, 2]]
-        bary = closest_point_barycentric(p, a, b, c)
-        diff = p - (a * bary[0] + b * bary[1] + c * bary[2])
+        diff = point_triangle_offset(p, x[tri_indices[t, 0]], x[tri_indices[t, 1]], x[tri_indices[t, 2]])
         d = wp.length(diff)
         if d < best and d > 1.0e-12:
             best = d
@@ -543,9 +542,7 @@ def bound_normals(
             b = x[tri_indices[t, 1]]
             c = x[tri_indices[t, 2]]
             for k in range(tv_start[t], tv_start[t] + tv_count[t]):
-                q = x[tv_vertex[k]]
-                bary = closest_point_barycentric(q, a, b, c)
-                diff = (a * bary[0] + b * bary[1] + c * bary[2]) - q
+                diff = -point_triangle_offset(x[tv_vertex[k]], a, b, c)
                 d = wp.length(diff)
                 if d < best and d > 1.0e-12:
                     best = d
@@ -570,11 +567,12 @@ def bound_normals(
 
 
 @wp.func
-def classify_bound(j: int, m: wp.vec3, s: float, normal: wp.array(dtype=wp.vec3), cone_cos: float,
+def classify_bound(j: int, n_j: wp.vec3, m: wp.vec3, s: float, cone_cos: float,
                    d_side: wp.array(dtype=float), d_ball: wp.array(dtype=float)):
     """A pair's certificate (direction ``m`` from particle ``j``'s side, distance ``s`` [m]) into
-    ``j``'s half-space bound where ``m`` is within the cone around its bound normal, else its ball."""
-    if wp.dot(m, normal[j]) >= cone_cos:
+    ``j``'s half-space bound where ``m`` is within the cone around its bound normal ``n_j``, else
+    its ball."""
+    if wp.dot(m, n_j) >= cone_cos:
         wp.atomic_min(d_side, j, s)
     else:
         wp.atomic_min(d_ball, j, s)
