@@ -3,12 +3,17 @@ executor on one GPU against Ray on N GPUs, same spec, in the same run; (b) epoch
 learner at world size 1 against N (``torchrun``). Prints one JSON object.
 
     python bench/bench_scale_out.py --spec tailornet-tshirt --gpus 2,4 --out /scratch/scale
+    python bench/bench_scale_out.py --spec tailornet-tshirt --gpus 4 --local-batches 1 --out /scratch/scale
     python bench/bench_scale_out.py --spec tiny.yaml --gpus 2 --device cpu --epochs 2   # CPU smoke
 
 (a) writes OUT/local and OUT/rayN (the Ray runs reuse the local run's garment cache, so both
 time the simulation of the same tasks); the rate is kept frames / the simulation seconds each
 run records (manifest ``audit.simulation``; for Ray this includes starting the workers and
-building their contexts), and ``identical_shards`` compares each Ray dataset's shard hashes with the local one's.
+building their contexts); the plan has one batch per GPU of the largest run (``simulation.batches``).
+``--local-batches K`` has the local run simulate only the plan's first K batches (the whole
+TailorNet spec takes ~23 minutes on one H100, longer than a device call): its rate is that of
+those batches. Each Ray dataset is compared with the local one on the tasks both list: shards
+compared, byte-identical, and whether every one kept the same frames.
 (b) trains ``--learner`` on ``--data`` (default: OUT/local) for ``--epochs`` epochs into
 OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the epoch time is
 the mean of the logged epoch seconds after the first (rank 0's clock: it includes the gradient
@@ -34,12 +39,24 @@ TIMED_STAGE = {"baseline": "baseline", "tailornet": "hf", "uvimage": "uvimage", 
                "collision_aware": "vae", "gcvae": "gcvae"}
 
 
-def _shard_hashes(root: Path) -> dict[str, str]:
+def _shards(root: Path) -> dict[str, tuple[str, int]]:
+    """task id -> (sha256, kept frames) of every shard the dataset in ``root`` lists."""
     manifest = json.loads((root / "manifest.json").read_text())
-    return {s["task_id"]: s["sha256"] for s in manifest["shards"]}
+    return {s["task_id"]: (s["sha256"], int(s["frame_count"])) for s in manifest["shards"]}
 
 
-def _generate(spec: dict, out: Path, *, executor: str, device: str, gpus: int, cpus: int | None) -> dict:
+def compare_shards(local: Path, other: Path) -> dict:
+    """The shards of the tasks both datasets list: how many, how many are byte-identical, and
+    whether every one kept the same number of frames."""
+    a, b = _shards(local), _shards(other)
+    common = sorted(set(a) & set(b))
+    return {"shards_compared": len(common), "shards_identical": sum(a[t][0] == b[t][0] for t in common),
+            "kept_frames_equal": all(a[t][1] == b[t][1] for t in common),
+            "identical_shards": bool(common) and all(a[t][0] == b[t][0] for t in common)}
+
+
+def _generate(spec: dict, out: Path, *, executor: str, device: str, gpus: int, cpus: int | None,
+              max_batches: int | None = None) -> dict:
     from pipelines.generate_dataset import generate
 
     started = time.perf_counter()
@@ -51,7 +68,8 @@ def _generate(spec: dict, out: Path, *, executor: str, device: str, gpus: int, c
     try:
         # the run's log and heartbeat lines on stderr: a run stopped by a time limit still says how far it got
         manifest = generate(spec, out, executor=executor, device=device, progress=False, heartbeat_s=30.0,
-                            log=lambda m: print(f"[{executor} {gpus}] {m}", file=sys.stderr, flush=True))
+                            log=lambda m: print(f"[{executor} {gpus}] {m}", file=sys.stderr, flush=True),
+                            max_batches=max_batches)
     finally:
         if executor == "ray":
             ray.shutdown()
@@ -78,7 +96,9 @@ def bench_generate(args: argparse.Namespace) -> dict:
     for d in outs:
         if d.exists() and not args.keep:
             shutil.rmtree(d)
-    local = _generate(spec, local_out, executor="local", device=args.sim_device(0), gpus=1, cpus=None)
+    local = _generate(spec, local_out, executor="local", device=args.sim_device(0), gpus=1, cpus=None,
+                      max_batches=args.local_batches)
+    local["batches"] = min(args.local_batches or spec["simulation"]["batches"], spec["simulation"]["batches"])
     # each run's figures as soon as they exist, on stderr: a run stopped later keeps them
     print(json.dumps({"local": local}), file=sys.stderr, flush=True)
     result = {"spec": str(args.spec), "batches": int(spec["simulation"]["batches"]),
@@ -88,7 +108,7 @@ def bench_generate(args: argparse.Namespace) -> dict:
             shutil.copytree(local_out / "cache", ray_out / "cache")
         ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=n, cpus=args.cpus)
         rate = (ray_run["kept_frames_per_s"] or 0) / (local["kept_frames_per_s"] or float("nan"))
-        ray_run.update(speedup=round(rate, 3), identical_shards=_shard_hashes(local_out) == _shard_hashes(ray_out))
+        ray_run.update(speedup=round(rate, 3), **compare_shards(local_out, ray_out))
         result["ray"][n] = ray_run
         print(json.dumps({f"ray{n}": ray_run}), file=sys.stderr, flush=True)
     return result
@@ -133,6 +153,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spec", default="tailornet-tshirt", help="dataset spec (shipped name or YAML path)")
     parser.add_argument("--gpus", default=None, help="N or N,M,...: GPU counts of the Ray runs and torchrun processes "
                         "(default: all the GPUs)")
+    parser.add_argument("--local-batches", type=int, default=None,
+                        help="one GPU simulates only the first K batches of the plan (default: all): the whole "
+                        "TailorNet spec on one GPU outlasts a device call; its rate is then that of those batches")
     parser.add_argument("--train-count", type=int, default=None, help="poses.train_count of (a)'s spec (default: the spec's)")
     parser.add_argument("--out", type=Path, default=Path("scale-out-bench"), help="scratch directory")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cuda or cpu")
@@ -157,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--gpus must be N or N,M,... (got {args.gpus!r})")
     if min(args.gpus) < 1 or (cuda and max(args.gpus) > available):
         parser.error(f"--gpus must be counts in 1..{available or 'N'} (got {args.gpus})")
+    if args.local_batches is not None and args.local_batches < 1:
+        parser.error(f"--local-batches must be >= 1 (got {args.local_batches})")
     args.sim_device = lambda k: f"cuda:{k}" if cuda else "cpu"
     args.train_device = "cuda" if cuda else "cpu"
     args.out.mkdir(parents=True, exist_ok=True)

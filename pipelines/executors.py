@@ -121,11 +121,15 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
     ``on_shard(record)`` each shard record of a finished batch, ``on_phases(stats)`` the batch's
     ``run_sequences`` statistics, then ``on_batch()``. Returns a summary: worker processes, nodes,
     GPUs used and batches re-run after a worker died. ``log`` gets a warning when the cluster has
-    more GPUs than the plan has batches (``simulation.batches``)."""
+    more GPUs than the plan has batches (``simulation.batches``). The summary also says when the
+    first target pose finished (``first_target_s``: Ray's and the workers' start-up, their contexts
+    and the first batch set-ups) and when each batch returned (``batch_done_s``), in seconds from
+    the call: where a run's time went beside the simulation."""
     try:
         import ray
     except ImportError as exc:
         raise ValueError("--executor ray needs Ray: pip install -e '.[distributed]'") from exc
+    t_start = time.perf_counter()
     started = False
     if not ray.is_initialized():
         kwargs = {"address": address} if address else {"num_cpus": num_cpus, "include_dashboard": False}
@@ -155,7 +159,12 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
         gpus: set[tuple[str, str]] = set()
         attempts: dict[int, int] = {}
 
+        first_target_s: list[float] = []
+        batch_done_s: dict[int, float] = {}
+
         def show(number: int, done: int) -> None:
+            if done > 0 and not first_target_s:
+                first_target_s.append(time.perf_counter() - t_start)
             if done != shown[number]:
                 on_progress(done - shown[number])
                 shown[number] = done
@@ -169,6 +178,7 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
             for ref in done:
                 number, batch = pending.pop(ref)
                 unfinished.discard(number)
+                batch_done_s[number] = time.perf_counter() - t_start
                 try:
                     result = ray.get(ref)
                 except ray.exceptions.RayError as error:
@@ -193,7 +203,9 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
         # every batch returned: a temporary shard file left now was a dead attempt's
         remove_orphan_temporaries(Path(out_dir) / SHARD_DIR)
         return {"workers": len(workers), "nodes": len({node for node, _ in workers}), "gpus": len(gpus),
-                "batches_rerun": sum(max(0, a - 1) for a in attempts.values())}
+                "batches_rerun": sum(max(0, a - 1) for a in attempts.values()),
+                "first_target_s": round(first_target_s[0], 2) if first_target_s else None,
+                "batch_done_s": [round(batch_done_s[n], 2) for n in sorted(batch_done_s)]}
     finally:
         if started:
             ray.shutdown()

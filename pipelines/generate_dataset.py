@@ -453,6 +453,9 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     if ray:
         lines.append(f"  {'Ray workers':<26}{int(ray['workers']):>6}  (on {int(ray['nodes'])} node(s), {int(ray['gpus'])} GPU(s); "
                      f"{int(ray['batches_rerun'])} batch(es) re-run after a worker died)")
+        if ray.get("batch_done_s"):
+            lines.append(f"  {'Ray timeline':<22}first target pose at {ray.get('first_target_s')} s; batches returned at "
+                         + ", ".join(f"{t:.0f}" for t in ray["batch_done_s"]) + " s")
     phases = ((manifest.audit or {}).get("simulation") or {}).get("phases")
     if phases and seconds > 0:
         lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
@@ -604,7 +607,8 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
                      device: str | None = None, ray_address: str | None = None, ray_cpus: int | None = None,
                      progress: bool = True,
                      log: Callable[[str], None] = print, heartbeat_s: float = 30.0,
-                     on_heartbeat: Callable[[dict], None] | None = None, save_every_s: float = 10.0) -> Any:
+                     on_heartbeat: Callable[[dict], None] | None = None, save_every_s: float = 10.0,
+                     max_batches: int | None = None) -> Any:
     """Runs (or resumes) a dataset generation in ``out_dir`` (whose writer lock the caller holds);
     returns the finished Manifest.
 
@@ -616,7 +620,10 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
     The manifest is saved after each batch and, within a batch, at most every ``save_every_s`` seconds
     as shards finish (0: after every shard). ``ray_address``: the Ray cluster of ``executor="ray"``
     (default: a Ray started for this run with ``ray_cpus`` CPUs, default all); heartbeats and the
-    summary then add up every worker's batches (:mod:`pipelines.executors`)."""
+    summary then add up every worker's batches (:mod:`pipelines.executors`). ``max_batches``: simulate
+    only the first this many of the batches left, then stop as a killed run would (the manifest lists
+    their shards and the same command without it resumes the rest); benchmarks time one GPU on part
+    of a plan with it."""
     from data_manifest.manifest import Manifest, collect_provenance
     from data_manifest.schema import template_sha256
     from data_manifest.shard import remove_orphan_temporaries
@@ -625,6 +632,8 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
 
     if executor not in EXECUTORS:
         raise ValueError(f"--executor must be one of {', '.join(EXECUTORS)} (got {executor!r})")
+    if max_batches is not None and (not isinstance(max_batches, int) or isinstance(max_batches, bool) or max_batches < 1):
+        raise ValueError(f"max_batches must be an integer >= 1 or None (got {max_batches!r})")
     spec = validate_spec(dict(spec_or_path)) if isinstance(spec_or_path, dict) else load_spec(spec_or_path)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -640,7 +649,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
     worlds = int(spec["simulation"]["worlds"])
     all_batches = plan_batches(ctx.plan.tasks, worlds, int(spec["simulation"]["batches"]))
     done = {t.task_id for t in ctx.plan.tasks if manifest.is_complete(t.task_id)}
-    batches = [b for b in all_batches if not set(b) <= done]
+    batches = [b for b in all_batches if not set(b) <= done][:max_batches]
     pending = [ctx.tasks[t] for b in batches for t in b if t not in done]
     if done:
         log(f"resuming: {len(done)} of {len(ctx.plan.tasks)} shards already complete")

@@ -262,6 +262,9 @@ def test_ray_executor_matches_local(reference, tmp_path, monkeypatch):
     ray = manifest.audit["simulation"]["ray"]
     assert ray["batches_rerun"] == 1 and ray["nodes"] == 1 and ray["gpus"] == 0 and 1 <= ray["workers"] <= 2, ray
     assert any("Ray workers" in m and "1 batch(es) re-run" in m for m in lines), lines
+    # when each batch returned (one world: a batch per pair), after the first target pose finished
+    assert len(ray["batch_done_s"]) == 2 and 0 < ray["first_target_s"] <= max(ray["batch_done_s"]), ray
+    assert any("Ray timeline" in m and "batches returned at" in m for m in lines), lines
     # the driver adds up the statistics of the attempts that finished: those of the local run
     local = Manifest.load(reference).audit["simulation"]["phases"]
     phases = manifest.audit["simulation"]["phases"]
@@ -403,6 +406,28 @@ def test_the_manifest_is_saved_after_each_batch_not_after_each_shard(tmp_path, m
     # one save per batch, then the finished manifest
     assert listed == [2, 4, 4], listed
     assert len(manifest.shards) == 4 and validate_dataset(tmp_path).ok
+
+
+def test_max_batches_stops_after_the_first_batches_and_the_rest_resumes(reference, tmp_path):
+    """``max_batches`` (benchmarks time one GPU on part of a plan): the first batch's shards are
+    those of the whole run, listed in a manifest that says the rest is pending, and the same
+    command without it finishes the dataset as an uninterrupted run would."""
+    from pipelines.generate_dataset import generate
+
+    with pytest.raises(ValueError, match="max_batches must be an integer >= 1"):
+        generate(_with(**NO_AUDIT), tmp_path / "bad", progress=False, log=lambda m: None, max_batches=0)
+    out = tmp_path / "part"
+    whole = _shard_hashes(reference)
+    manifest = generate(_with(**NO_AUDIT), out, progress=False, log=lambda m: None, max_batches=1)
+    part = _shard_hashes(out)
+    # one world: a batch per pair, its train and test tasks (4 tasks, 2 batches)
+    assert len(part) == 2 and all(whole[t] == h for t, h in part.items()), (part, whole)
+    assert manifest.audit["simulation"]["kept_frames"] == sum(s["frame_count"] for s in manifest.shards)
+    assert [e.kind for e in validate_dataset(out).errors] == ["pending"] * 2
+    lines: list[str] = []
+    generate(_with(**NO_AUDIT), out, progress=False, log=lines.append)
+    assert any("resuming: 2 of 4" in m for m in lines), lines
+    assert _shard_hashes(out) == whole
 
 
 def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
