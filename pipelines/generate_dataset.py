@@ -665,7 +665,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
         raise
     if len(plan.pruned_reasons):
         why, counts = np.unique(plan.pruned_reasons, return_counts=True)
-        log(f"pruned sampled poses before simulation: " + ", ".join(f"{c} {w}" for w, c in zip(why, counts))
+        log("pruned sampled poses before simulation: " + ", ".join(f"{c} {w}" for w, c in zip(why, counts))
             + f" (poses.min_clearance {spec['poses']['min_clearance']}; {out_dir / 'pruned_poses.npz'})")
     total_keys = sum(len(t.poses) for t in pending)
     from pipelines.errors import free_bytes, human_bytes

@@ -169,7 +169,8 @@ def _run(args: argparse.Namespace, entry) -> int:
     from data_manifest.reader import DatasetReader
     from learn.data import DrapeDataset
     from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_baseline, fit_tailornet,
-                                       frame_arrays_from_dataset, garment_pose_indices, stages_for_rank)
+                                       frame_arrays_from_dataset, garment_pose_indices, hf_parts_for,
+                                       stages_for_rank)
     from simulate.body import load_body_model
 
     check_number(args.seed, "--seed", minimum=0, integer=True)
@@ -231,10 +232,12 @@ def _run(args: argparse.Namespace, entry) -> int:
     common = dict(run_dir=out, pose_indices=pose_indices, canonical_pose=body.canonical_pose, hyperparameters=hyper,
                   fingerprint=fingerprint, device=args.device, seed=args.seed, progress=not args.no_progress)
     if args.learner == "tailornet":
-        stages = stages_for_rank(rank, world) if world > 1 else None
+        # the stages (hf possibly in parts of its prototypes) spread over the processes
+        stages = stages_for_rank(rank, world, hyper) if world > 1 else None
         tn_stages = None if stages is None else [s for s in stages if s != "baseline"]
         if tn_stages is None or tn_stages or rank == 0:
-            fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0, **common)
+            fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0,
+                          hf_parts=hf_parts_for(world, hyper) if world > 1 else 1, **common)
         if stages is None or "baseline" in stages:
             fit_baseline(data, template["faces"], **common)
     else:

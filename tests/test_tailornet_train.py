@@ -19,6 +19,7 @@ from data_manifest.synthetic import tube_template, write_synthetic_dataset
 from learn.common.mesh import grid_mesh
 from learn.registry import LEARNERS, get_learner
 from learn.tailornet.evaluate import PosingContext, evaluate_split, predict_displacements, time_inference
+from learn.tailornet.hf import HighFrequencyPrototypes
 from learn.tailornet.lf import low_frequency_model
 from learn.tailornet.model import TailorNet
 from learn.tailornet.train import (
@@ -35,6 +36,9 @@ from learn.tailornet.train import (
     merged_hyperparameters,
     STAGE_ORDER,
     stages_for_rank,
+    hf_part_members,
+    hf_part_stage,
+    hf_parts_for,
     template_sha256,
     train_hf,
     train_stage,
@@ -288,10 +292,62 @@ def test_stacked_prototype_training_equals_independent_trainings(tmp_path: Path)
     assert (tmp_path / "stacked" / "hf.done").exists() and (tmp_path / "separate" / "hf_02.done").exists()
 
 
+def test_stages_and_prototype_parts_are_spread_over_processes() -> None:
+    """Every stage (hf as its parts where split) is trained by exactly one process; with the
+    paper's epochs hf goes alone on 2 processes and in halves on 4, so the longest process
+    trains half of hf (its cost model: seconds per epoch x epochs, STAGE_EPOCH_SECONDS)."""
+    for world in range(1, 7):
+        parts = hf_parts_for(world)
+        hf_units = [hf_part_stage(i, parts) for i in range(parts)] if parts > 1 else ["hf"]
+        units = sum((stages_for_rank(r, world) for r in range(world)), [])
+        assert sorted(units) == sorted([s for s in STAGE_ORDER if s != "hf"] + hf_units), (world, units)
+    assert hf_parts_for(1) == hf_parts_for(2) == 1 and hf_parts_for(4) == 2
+    assert stages_for_rank(0, 2) == ["hf"] and stages_for_rank(1, 2) == ["baseline", "lf", "shape_style"]
+    assert [stages_for_rank(r, 4) for r in range(4)] == [["hf_1of2"], ["hf_2of2"], ["baseline"], ["lf", "shape_style"]]
+    # a few hf epochs: no process is given a part of it
+    assert hf_parts_for(4, {"hf": {"epochs": 10}}) == 1
+    assert hf_part_members(20, 1, 3).tolist() == list(range(7, 14)) and hf_part_members(5, 4, 5).tolist() == [4]
+    with pytest.raises(ValueError, match="cannot split 2 prototypes into 3 parts"):
+        hf_part_members(2, 0, 3)
+
+
+def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -> None:
+    """hf split into parts (one per process): each part sees the batches the whole stage gives
+    its prototypes, so without dropout the parts, put together, are the stacked stage up to
+    float rounding; split over 'ranks' sharing a run directory they assemble the model."""
+    data, faces = make_frames(4, 8, _pairs()[:3])
+    add_low_frequency(data, faces, iterations=10)
+    hyper = {"hf": {"lr": 1e-3, "epochs": 5, "batch_size": 4, "hidden_size": 16, "dropout": 0.0}}
+    args = dict(hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False, seed=7)
+    pairs = np.array([2, 0, 1])
+    whole = train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "whole", **args)
+    parts = [train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "parts", part=(i, 2), **args)
+             for i in range(2)]
+    assert [p.prototype_count for p in parts] == [2, 1]
+    assert (tmp_path / "parts" / "hf_1of2.done").exists() and (tmp_path / "parts" / "hf_2of2.done").exists()
+    joined = HighFrequencyPrototypes.cat(parts)
+    for (name, a), b in zip(whole.state_dict().items(), joined.state_dict().values()):
+        torch.testing.assert_close(a, b, atol=ATOL_STACKED_PARAMETER, rtol=0, msg=f"{name} differs from the stacked stage")
+    # fit_tailornet over two 'ranks': the first trains a part and returns without the rest; the
+    # second trains the other stages and the other part, then assembles the model
+    train, faces = make_frames(0, 12, _pairs())
+    hyper = {**HYPER, **{k: {**HYPER[k], "dropout": 0.0} for k in ("lf", "hf", "shape_style")}}
+    fit = dict(hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False)
+    with pytest.raises(ValueError, match="hf_parts must be an integer >= 1"):
+        fit_tailornet(train, faces, run_dir=tmp_path / "bad", hf_parts=0, **fit)
+    with pytest.raises(ValueError, match="unknown TailorNet stages"):
+        fit_tailornet(train, faces, run_dir=tmp_path / "bad", stages=["hf_1of3"], hf_parts=2, **fit)
+    assert fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["hf_2of2"], hf_parts=2, **fit) is None
+    model = fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["shape_style", "lf", "hf_1of2"],
+                          hf_parts=2, **fit)
+    alone = fit_tailornet(train, faces, run_dir=tmp_path / "alone", **fit)
+    test, _ = make_frames(1, 6, _pairs())
+    np.testing.assert_allclose(predict_displacements(model, test.pose, test.shape, test.style),
+                               predict_displacements(alone, test.pose, test.shape, test.style), atol=1e-5, rtol=0)
+
+
 def test_stages_split_over_processes_assemble_the_same_model(trained: dict, tmp_path: Path) -> None:
     """Two 'ranks' sharing a run directory give the model one process trains alone."""
-    assert stages_for_rank(0, 2) == ["hf", "baseline"] and stages_for_rank(1, 2) == ["lf", "shape_style"]
-    assert sorted(sum((stages_for_rank(r, 3) for r in range(3)), [])) == sorted(STAGE_ORDER)
     with pytest.raises(ValueError, match="rank"):
         stages_for_rank(2, 2)
     train, faces = make_frames(0, 24, _pairs())

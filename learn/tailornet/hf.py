@@ -118,6 +118,25 @@ class HighFrequencyPrototypes(nn.Module):
             stacked.bias3.copy_(torch.stack([l3.bias for _, _, l3 in layers]))
         return stacked.to(first.pose_indices.device)
 
+    @classmethod
+    def cat(cls, parts: Sequence[HighFrequencyPrototypes]) -> HighFrequencyPrototypes:
+        """The prototypes of ``parts`` (same inputs, width and vertex count) as one model, in
+        order: parts trained by different processes (:func:`learn.tailornet.train.train_hf`'s
+        ``part``) assembled."""
+        if not parts:
+            raise ValueError("cat needs at least one part, got 0")
+        first = parts[0]
+        for i, m in enumerate(parts):
+            if (m.hidden_size, m.vertex_count, m.dropout) != (first.hidden_size, first.vertex_count, first.dropout) \
+                    or not torch.equal(m.pose_indices.cpu(), first.pose_indices.cpu()):
+                raise ValueError(f"prototype part {i} differs from part 0 in inputs, width, dropout or vertex count")
+        joined = cls(sum(m.prototype_count for m in parts), first.vertex_count, first.pose_indices.tolist(),
+                     hidden_size=first.hidden_size, dropout=first.dropout).to(first.weight1.device)
+        with torch.no_grad():
+            for name in ("weight1", "bias1", "weight2", "bias2", "weight3", "bias3"):
+                getattr(joined, name).copy_(torch.cat([getattr(m, name) for m in parts], dim=0))
+        return joined
+
     def _hidden(self, pose: torch.Tensor) -> torch.Tensor:
         x = pose[:, self.pose_indices]  # (B, P')
         h1 = torch.relu(torch.einsum("bp,kph->bkh", x, self.weight1) + self.bias1)  # (B, K, H)

@@ -1,6 +1,7 @@
 """Training of TailorNet's networks and of the baseline, as library functions.
 
-Each stage (``shape_style``, ``lf``, ``hf_00`` ... ``hf_{K-1}``, ``baseline``) is trained
+Each stage (``shape_style``, ``lf``, ``hf`` (stacked, or ``hf_00`` ... ``hf_{K-1}``, or parts
+``hf_<i>of<P>`` trained by different processes: :func:`stages_for_rank`), ``baseline``) is trained
 with Adam on an L1 displacement loss, with the authors' hyper-parameters as defaults
 (:data:`DEFAULT_HYPERPARAMETERS`, overridable per stage by a dict). A stage saves a
 checkpoint after every epoch (model, optimizer, epoch, RNG states, dataset fingerprint)
@@ -31,7 +32,7 @@ import csv
 import json
 import os
 import time
-from collections.abc import Callable, Collection, Mapping
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -501,6 +502,7 @@ def train_stacked_prototypes(
     seed: int = 0,
     progress: bool = True,
     stage: str = "hf",
+    members: Sequence[int] | None = None,
 ) -> HighFrequencyPrototypes:
     """Train the K prototype MLPs at once, each on its own frames (stage ``hf``).
 
@@ -511,10 +513,17 @@ def train_stacked_prototypes(
     ceil(max_k n_k / batch_size) full batches per prototype, drawn from a per-prototype
     random order repeated as needed (exactly one pass when all n_k are equal multiples
     of the batch size, as with TailorNet's equal pose sets).
+
+    ``members``: ``model`` holds only these prototypes of the K that ``frames_per_prototype``
+    lists (a part trained by one of several processes). Their batches are those of the whole
+    run: every prototype's order is drawn and the step count is the whole run's, so a part's
+    prototypes see the frames they would see trained with all K (dropout masks aside).
     """
+    members = list(range(len(frames_per_prototype))) if members is None else [int(m) for m in members]
     k = model.prototype_count
-    if len(frames_per_prototype) != k:
-        raise ValueError(f"frames_per_prototype must list {k} index arrays, got {len(frames_per_prototype)}")
+    if len(members) != k or not all(0 <= m < len(frames_per_prototype) for m in members):
+        raise ValueError(f"the model holds {k} prototypes; members {members} must name as many of the "
+                         f"{len(frames_per_prototype)} listed in frames_per_prototype")
     counts = [int(np.asarray(f).size) for f in frames_per_prototype]
     if min(counts) == 0:
         raise ValueError(f"every prototype needs frames; counts per prototype: {counts}")
@@ -531,7 +540,7 @@ def train_stacked_prototypes(
             order = idx[torch.randperm(idx.numel(), generator=generator)]
             repeats = -(-steps * batch_size // idx.numel())
             sequences.append(order.repeat(repeats)[: steps * batch_size])
-        sequence = torch.stack(sequences).to(device)  # (K, steps * batch)
+        sequence = torch.stack([sequences[m] for m in members]).to(device)  # (K, steps * batch)
         total = torch.zeros((), device=device)
         for step in range(steps):
             batch = sequence[:, step * batch_size : (step + 1) * batch_size]  # (K, b)
@@ -637,6 +646,7 @@ def train_hf(
     seed: int = 0,
     progress: bool = True,
     stacked: bool | None = None,
+    part: tuple[int, int] | None = None,
 ) -> HighFrequencyPrototypes:
     """Train one D_HF(pose) per prototype pair on that pair's frames, target D - D_LF.
 
@@ -644,6 +654,11 @@ def train_hf(
     as one stage ``hf`` (:func:`train_stacked_prototypes`, far faster on a GPU);
     otherwise one stage per prototype, ``hf_00``, ``hf_01``, ... Both start from the
     same initial weights. Returns the K models stacked, in eval mode.
+
+    ``part`` = (i, P): only the i-th of P contiguous groups of the prototypes
+    (:func:`hf_part_members`), stacked as stage ``hf_<i+1>of<P>`` (:func:`hf_part_stage`) with
+    the batches the whole stage would give them, or as their own ``hf_kk`` stages; the P parts,
+    trained by different processes, make the K prototypes (``HighFrequencyPrototypes.cat``).
 
     A streamed split (:class:`learn.streamed_split.StreamedSplit`, after its
     ``prepare_low_frequency``) gives the prototype pairs' frames only, read into memory: every
@@ -677,14 +692,17 @@ def train_hf(
                 dropout=float(hyper["hf"]["dropout"]),
             )
         )
+    members = list(range(len(initial))) if part is None else hf_part_members(len(initial), *part).tolist()
     if stacked:
         return train_stacked_prototypes(
-            HighFrequencyPrototypes.from_mlps(initial), data, data.displacements - data.low_frequency,
-            frames_per_prototype, run_dir=run_dir, hyperparameters=stage_hyper(hyper["hf"], hyper["model"]),
-            fingerprint=fingerprint, device=device, seed=seed + 1, progress=progress,
+            HighFrequencyPrototypes.from_mlps([initial[k] for k in members]), data,
+            data.displacements - data.low_frequency, frames_per_prototype, run_dir=run_dir,
+            hyperparameters=stage_hyper(hyper["hf"], hyper["model"]), fingerprint=fingerprint, device=device,
+            seed=seed + 1, progress=progress, stage="hf" if part is None else hf_part_stage(*part), members=members,
         )
     models = []
-    for k, (frames, model) in enumerate(zip(frames_per_prototype, initial)):
+    for k in members:
+        frames, model = frames_per_prototype[k], initial[k]
         subset = data.subset(frames)
         models.append(
             train_stage(
@@ -741,20 +759,89 @@ def garment_pose_indices(
 
 
 TAILORNET_STAGES = ("shape_style", "lf", "hf")
-# Longest first, for spreading stages over processes (torchrun ranks), one GPU each.
+# The stages `drape train tailornet` spreads over processes (torchrun ranks), one GPU each.
 STAGE_ORDER = ("hf", "lf", "baseline", "shape_style")
 
+#: Seconds per epoch of each stage on one H100 at full scale (30,581 frames of the 7.7k t-shirt,
+#: 20 prototypes stacked; docs/benchmarks.md, "Training and evaluation time at full scale"):
+#: with the configured epochs, the cost model that spreads the stages over processes.
+STAGE_EPOCH_SECONDS = {"hf": 0.47, "lf": 1.69, "baseline": 1.73, "shape_style": 0.002}
 
-def stages_for_rank(rank: int, world_size: int) -> list[str]:
-    """Stages (of :data:`STAGE_ORDER`) that process ``rank`` of ``world_size`` trains.
+#: More hf parts are taken only where they shorten the longest process by more than this share.
+HF_SPLIT_GAIN = 0.1
 
-    With 4 processes each trains one stage; with 2, rank 0 trains hf and baseline and
-    rank 1 lf and shape_style. TailorNet's stages are independent given the data, so
-    they parallelise across GPUs without gradient exchange.
+
+def hf_part_stage(index: int, parts: int) -> str:
+    """Stage name of part ``index`` (from 0) of hf split into ``parts``: ``hf_<index+1>of<parts>``
+    (checkpoints and .done markers; a run resumed with another split trains its parts anew)."""
+    if parts < 1 or not 0 <= index < parts:
+        raise ValueError(f"need 0 <= index < parts, got index={index}, parts={parts}")
+    return f"hf_{index + 1}of{parts}"
+
+
+def hf_part_members(prototype_count: int, index: int, parts: int) -> np.ndarray:
+    """The prototypes (indices) of part ``index`` of ``parts``: contiguous groups whose sizes
+    differ by at most one."""
+    hf_part_stage(index, parts)
+    if parts > prototype_count:
+        raise ValueError(f"cannot split {prototype_count} prototypes into {parts} parts")
+    return np.array_split(np.arange(prototype_count), parts)[index]
+
+
+def _stage_costs(hyperparameters: Mapping[str, Mapping[str, Any]] | None) -> dict[str, float]:
+    hyper = merged_hyperparameters(hyperparameters)
+    return {stage: STAGE_EPOCH_SECONDS[stage] * int(hyper[stage]["epochs"]) for stage in STAGE_ORDER}
+
+
+def _schedule(costs: Mapping[str, float], world_size: int) -> tuple[list[list[str]], float]:
+    """Longest processing time first: each unit to the least loaded process. Returns the units
+    per process and the longest process's cost."""
+    loads = [0.0] * world_size
+    units: list[list[str]] = [[] for _ in range(world_size)]
+    for name, cost in sorted(costs.items(), key=lambda item: (-item[1], item[0])):
+        r = min(range(world_size), key=lambda i: (loads[i], i))
+        loads[r] += cost
+        units[r].append(name)
+    return units, max(loads)
+
+
+def hf_parts_for(world_size: int, hyperparameters: Mapping[str, Mapping[str, Any]] | None = None) -> int:
+    """How many parts hf is split into over ``world_size`` processes: the fewest (1 to the
+    process count, at most the prototype count) whose longest process is within
+    :data:`HF_SPLIT_GAIN` of the shortest reachable, with each stage's cost
+    :data:`STAGE_EPOCH_SECONDS` x its epochs and a part's cost its share of the prototypes.
+    With the paper's epochs: 1 part on 1-2 processes, 3 on 3, 2 on 4."""
+    hyper = merged_hyperparameters(hyperparameters)
+    most = max(1, min(int(world_size), int(hyper["model"]["prototype_count"])))
+    costs = _stage_costs(hyper)
+    spans = {}
+    for parts in range(1, most + 1):
+        split = {k: v for k, v in costs.items() if k != "hf"}
+        split.update({hf_part_stage(i, parts): costs["hf"] / parts for i in range(parts)})
+        spans[parts] = _schedule(split, world_size)[1]
+    best = min(spans.values())
+    return min(p for p, span in spans.items() if span <= best * (1.0 + HF_SPLIT_GAIN))
+
+
+def stages_for_rank(rank: int, world_size: int,
+                    hyperparameters: Mapping[str, Mapping[str, Any]] | None = None) -> list[str]:
+    """Stages (of :data:`STAGE_ORDER`, hf possibly as parts ``hf_<i>of<P>``,
+    :func:`hf_parts_for`) that process ``rank`` of ``world_size`` trains.
+
+    TailorNet's stages are independent given the data, and so are its prototypes: they
+    parallelise across GPUs without gradient exchange. The units go to the processes longest
+    first, each to the least loaded (costs: :data:`STAGE_EPOCH_SECONDS` x the configured
+    epochs). With the paper's epochs: 2 processes train hf | lf, baseline and shape_style; 4
+    train half of hf each on two, lf, and the baseline with shape_style.
     """
     if world_size < 1 or not 0 <= rank < world_size:
         raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
-    return [stage for i, stage in enumerate(STAGE_ORDER) if i % world_size == rank]
+    parts = hf_parts_for(world_size, hyperparameters)
+    costs = _stage_costs(hyperparameters)
+    if parts > 1:
+        hf = costs.pop("hf")
+        costs.update({hf_part_stage(i, parts): hf / parts for i in range(parts)})
+    return _schedule(costs, world_size)[0][rank]
 
 
 def _done_markers(run_dir: Path, stage: str, prototype_count: int, stacked: bool) -> list[Path]:
@@ -777,6 +864,7 @@ def fit_tailornet(
     progress: bool = True,
     stages: Collection[str] | None = None,
     wait_timeout_s: float = 0.0,
+    hf_parts: int = 1,
 ) -> TailorNet | None:
     """Train TailorNet's stages on the training split and save ``tailornet_model.pt``.
 
@@ -794,6 +882,8 @@ def fit_tailornet(
             are finished (their ``.done`` markers exist, waiting up to
             ``wait_timeout_s`` seconds) the model is assembled and saved, else None is
             returned and a later call (e.g. by rank 0) assembles it.
+        hf_parts: hf is trained as this many parts ``hf_<i>of<P>`` (:func:`train_hf`'s
+            ``part``); ``stages`` may name parts, and ``hf`` then means all of them.
     Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
     on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
 
@@ -811,10 +901,15 @@ def fit_tailornet(
         if settings != (SMOOTHNESS, ITERATIONS):
             raise ValueError(f"model.smoothing_lambda, model.smoothing_iterations = {settings} with streamed data: the "
                              f"streamed low-frequency cache is computed with ({SMOOTHNESS}, {ITERATIONS})")
+    if isinstance(hf_parts, bool) or not isinstance(hf_parts, int) or hf_parts < 1:
+        raise ValueError(f"hf_parts must be an integer >= 1 (got {hf_parts!r})")
+    parts = [hf_part_stage(i, hf_parts) for i in range(hf_parts)] if hf_parts > 1 else []
     stages = list(TAILORNET_STAGES if stages is None else stages)
-    unknown = sorted(set(stages) - set(TAILORNET_STAGES))
+    unknown = sorted(set(stages) - set(TAILORNET_STAGES) - set(parts))
     if unknown:
-        raise ValueError(f"unknown TailorNet stages {unknown}; expected among {list(TAILORNET_STAGES)}")
+        raise ValueError(f"unknown TailorNet stages {unknown}; expected among {list(TAILORNET_STAGES) + parts}")
+    if parts and "hf" in stages:
+        stages = [s for s in stages if s != "hf"] + [q for q in parts if q not in stages]
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
@@ -822,6 +917,8 @@ def fit_tailornet(
     canonical_frames = canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose)
     pair_count = canonical_frames.shape[0]
     prototype_count = min(int(hyper["model"]["prototype_count"]), pair_count)
+    if hf_parts > prototype_count:
+        raise ValueError(f"hf_parts={hf_parts} but the model has {prototype_count} prototypes")
     choice = choose_prototypes(data.subset(canonical_frames).displacements, prototype_count)
     (run_dir / "prototypes.json").write_text(
         json.dumps(
@@ -850,22 +947,30 @@ def fit_tailornet(
             )
         if stage == "lf":
             return train_lf(data, pose_indices, seed=seed + 1000, **common)
-        return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, **common)
+        part = None if stage == "hf" else (parts.index(stage), hf_parts)
+        return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, part=part, **common)
 
-    trained = {stage: train(stage) for stage in TAILORNET_STAGES if stage in stages}
-    markers = [
-        marker
-        for stage in TAILORNET_STAGES
-        if stage not in trained
-        for marker in _done_markers(run_dir, stage, prototype_count, bool(hyper["hf"]["stacked"]))
-    ]
+    units = [s for s in TAILORNET_STAGES if s != "hf"] + (parts or ["hf"])
+    trained = {unit: train(unit) for unit in units if unit in stages}
+    stacked = bool(hyper["hf"]["stacked"])
+
+    def unit_markers(unit: str) -> list[Path]:
+        if unit not in parts:
+            return _done_markers(run_dir, unit, prototype_count, stacked)
+        if stacked:
+            return [run_dir / f"{unit}.done"]
+        return [run_dir / f"hf_{k:02d}.done" for k in hf_part_members(prototype_count, parts.index(unit), hf_parts)]
+
+    markers = [marker for unit in units if unit not in trained for marker in unit_markers(unit)]
     deadline = time.monotonic() + max(0.0, wait_timeout_s)
     while not all(m.exists() for m in markers):
         if time.monotonic() >= deadline:
             return None
         time.sleep(min(5.0, max(0.0, deadline - time.monotonic())))
     # Stages finished elsewhere load from their complete checkpoints (no further epochs).
-    modules = {stage: trained[stage] if stage in trained else train(stage) for stage in TAILORNET_STAGES}
+    modules = {unit: trained[unit] if unit in trained else train(unit) for unit in units}
+    if parts:
+        modules["hf"] = HighFrequencyPrototypes.cat([modules[q] for q in parts]).eval()
     prototype_frames = canonical_frames[choice.indices]
     model = TailorNet(
         modules["lf"], modules["hf"], modules["shape_style"],
