@@ -15,6 +15,7 @@ import json
 import os
 import secrets
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -87,6 +88,24 @@ class IntegrityChecker:
         self.root = Path(root)
         self._cache_file: Path | None = None
         self._digests: dict[str, list] | None = None
+        self._deferred = 0  # open batch() blocks: digests are written when the last one ends
+        self._unsaved = False
+
+    @contextmanager
+    def batch(self):
+        """Digests computed inside the block go to the cache file once, when it ends, not after
+        each file: the cache is rewritten whole, so saving per file made checking n new shards
+        cost n rewrites of an n-entry file."""
+        with _CACHE_LOCK:
+            self._deferred += 1
+        try:
+            yield self
+        finally:
+            with _CACHE_LOCK:
+                self._deferred -= 1
+                if not self._deferred and self._unsaved:
+                    self._save()
+                    self._unsaved = False
 
     # -- cache ---------------------------------------------------------------------------
 
@@ -142,7 +161,10 @@ class IntegrityChecker:
         digest = file_sha256(path)
         with _CACHE_LOCK:
             self._load()[key] = stamp + [digest]
-            self._save()
+            if self._deferred:
+                self._unsaved = True
+            else:
+                self._save()
         return digest
 
     # -- checks --------------------------------------------------------------------------

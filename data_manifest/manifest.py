@@ -160,6 +160,7 @@ class Manifest:
         shards: Iterable[Mapping[str, Any]] = (),
         audit: Mapping[str, Any] | None = None,
         root: str | os.PathLike[str] | None = None,
+        _validated: bool = False,
     ):
         self.name = name
         self.spec: dict[str, Any] = _json_value(dict(spec), where="spec")
@@ -177,6 +178,10 @@ class Manifest:
         version this code writes (also after a resume, which writes shards of that version)."""
         for split, task_ids in (splits or {}).items():
             self.plan_split(split, task_ids)
+        if _validated:  # from_dict checked the whole manifest: each entry is listed as it is
+            for entry in shards:
+                self._put_entry(dict(entry))
+            return
         for entry in shards:
             self.add_shard(entry)
         errors = validate_manifest_dict(self.to_dict())
@@ -249,8 +254,10 @@ class Manifest:
 
     @classmethod
     def from_dict(cls, data: Any, *, root: str | os.PathLike[str] | None = None,
-                  source: str | None = None) -> "Manifest":
-        """Build from parsed JSON; raises ManifestSchemaError listing every violation."""
+                  source: str | None = None, _owned: bool = False) -> "Manifest":
+        """Build from parsed JSON; raises ManifestSchemaError listing every violation. The
+        manifest keeps copies of ``data``'s shard entries (``_owned``: ``data`` was parsed for
+        it alone, as by :meth:`load`, and is kept as it is)."""
         errors = validate_manifest_dict(data)
         if errors:
             raise ManifestSchemaError(errors, source=source)
@@ -258,7 +265,8 @@ class Manifest:
             raise ManifestSchemaError([_spec_hash_error(data)], source=source)
         manifest = cls(name=data["name"], spec=data["spec"], template_sha256=data["template_sha256"],
                        precision=data["precision"], provenance=data["provenance"], splits=data["splits"],
-                       shards=data["shards"], audit=data.get("audit"), root=root)
+                       shards=data["shards"] if _owned else copy.deepcopy(data["shards"]), audit=data.get("audit"),
+                       root=root, _validated=True)
         manifest.loaded_totals = copy.deepcopy(data["totals"])
         manifest.schema_version = int(data["schema_version"])
         return manifest
@@ -280,7 +288,7 @@ class Manifest:
         except json.JSONDecodeError as error:
             raise ValueError(f"dataset manifest {str(path)!r} is not valid JSON: {error.msg} at line "
                              f"{error.lineno} column {error.colno}") from None
-        return cls.from_dict(data, root=root, source=str(path))
+        return cls.from_dict(data, root=root, source=str(path), _owned=True)
 
     def to_dict(self) -> dict[str, Any]:
         """The manifest as JSON-ready data (shards sorted by task id, split lists sorted)."""

@@ -10,6 +10,7 @@ posed vertices with their per-frame origin added back.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections import OrderedDict
 from pathlib import Path
@@ -333,21 +334,23 @@ class DatasetReader:
         ``shard_no`` and ``frame_index`` (N,) as int64."""
         parts: dict[str, list[np.ndarray]] = {}
         keys: set[str] | None = None
-        for number in self._split_shards(split):
-            if self._entries[number]["frame_count"] == 0:
-                continue  # a task whose frames were all filtered out: nothing to stack
-            arrays = self._read_shard(number)
-            metrics = sorted(key for key in arrays if key.startswith(f"{QUALITY_GROUP}/"))
-            if keys is not None:
-                known = sorted(key for key in keys if key.startswith(f"{QUALITY_GROUP}/"))
-                if metrics != known:
-                    raise ValueError(f"shards of split {split!r} disagree on quality metrics: "
-                                     f"{self._entries[number]['task_id']!r} has {metrics}, earlier shards {known}")
-                keys &= set(arrays)
-            else:
-                keys = set(arrays)
-            for key, value in arrays.items():
-                parts.setdefault(key, []).append(value)
+        # each shard is checked against the manifest as it is read; new digests are cached once
+        with self._integrity.batch() if self._integrity is not None else contextlib.nullcontext():
+            for number in self._split_shards(split):
+                if self._entries[number]["frame_count"] == 0:
+                    continue  # a task whose frames were all filtered out: nothing to stack
+                arrays = self._read_shard(number)
+                metrics = sorted(key for key in arrays if key.startswith(f"{QUALITY_GROUP}/"))
+                if keys is not None:
+                    known = sorted(key for key in keys if key.startswith(f"{QUALITY_GROUP}/"))
+                    if metrics != known:
+                        raise ValueError(f"shards of split {split!r} disagree on quality metrics: "
+                                         f"{self._entries[number]['task_id']!r} has {metrics}, earlier shards {known}")
+                    keys &= set(arrays)
+                else:
+                    keys = set(arrays)
+                for key, value in arrays.items():
+                    parts.setdefault(key, []).append(value)
         if keys is None:
             return self._empty_split()
         # body_translation, root_joint and velocities are kept only when every shard of the split has them

@@ -81,8 +81,12 @@ def test_digests_are_cached_per_file(dataset, monkeypatch):
     hashed: list[str] = []
     real = integrity.file_sha256
     monkeypatch.setattr(integrity, "file_sha256", lambda p: hashed.append(Path(p).name) or real(p))
+    saves: list[int] = []
+    save = integrity.IntegrityChecker._save
+    monkeypatch.setattr(integrity.IntegrityChecker, "_save", lambda self: saves.append(1) or save(self))
     DatasetReader(dataset).load_split("train")
     assert sorted(hashed) == ["train-000.h5", "train-001.h5"]
+    assert len(saves) == 1, "a split's new digests are written once, not once per shard"
     cache = json.loads((dataset / "cache" / "integrity.json").read_text())
     assert set(cache["files"]) == {"shards/train-000.h5", "shards/train-001.h5"}
     hashed.clear()
