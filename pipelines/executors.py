@@ -2,8 +2,9 @@
 tasks on the GPUs of one host or of a cluster (``ray``, extra ``distributed``).
 
 Both take the same work description: the spec, the output directory and batches of
-task ids. A Ray worker rebuilds the context from the spec (the garment cache in
-``OUT/cache`` is shared storage, so it is computed once, by the driver), writes its shards
+task ids. A Ray worker rebuilds the context from the spec with the driver's plan and garment
+template (put in Ray's object store once) and the garment cache in ``OUT/cache`` (shared
+storage, so it is computed once, by the driver), writes its shards
 straight to ``OUT/shards`` and returns their manifest records; the driver alone writes the
 manifest, listing a batch's shards when the batch returns.
 
@@ -60,7 +61,7 @@ class _ProgressBoard:
 
 def _run_batch(build_context: Callable, simulate_batch: Callable, spec: dict, out_dir: str, task_ids: list[str],
                device: str | None, skip: frozenset = frozenset(), batch_no: int = 0, board=None,
-               progress_interval_s: float = 1.0, fault: str | None = None) -> dict:
+               progress_interval_s: float = 1.0, fault: str | None = None, prepared: dict | None = None) -> dict:
     """Ray entry point (module level so it pickles by reference; so do the two functions it gets).
     Returns the batch's shard records, its run_sequences statistics, the target poses it finished
     and where it ran."""
@@ -88,7 +89,7 @@ def _run_batch(build_context: Callable, simulate_batch: Callable, spec: dict, ou
             Path(fault).write_text(f"worker {os.getpid()} on node {node} exited after its first shard\n")
             os._exit(1)
 
-    ctx = build_context(spec, Path(out_dir), device=device, log=lambda msg: None)
+    ctx = build_context(spec, Path(out_dir), device=device, log=lambda msg: None, prepared=prepared)
     ctx.phases = {}  # this batch's statistics only (a worker keeps its context between batches)
     records = simulate_batch(ctx, Path(out_dir), task_ids, skip=skip, on_shard=on_shard, on_progress=on_progress)
     if board is not None:
@@ -111,7 +112,8 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
             device: str | None, on_shard: Callable, on_progress: Callable[[int], None],
             on_batch: Callable[[], None] | None = None, on_phases: Callable[[dict], None] | None = None,
             address: str | None = None, num_cpus: int | None = None, skip: set[str] = frozenset(),
-            max_retries: int = 3, progress_interval_s: float = 1.0, log: Callable[[str], None] | None = None) -> dict:
+            max_retries: int = 3, progress_interval_s: float = 1.0, log: Callable[[str], None] | None = None,
+            prepared: dict | None = None) -> dict:
     """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA) that builds its
     context with ``build_context`` and runs ``simulate_batch`` (generate-dataset's).
 
@@ -124,7 +126,8 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
     more GPUs than the plan has batches (``simulation.batches``). The summary also says when the
     first target pose finished (``first_target_s``: Ray's and the workers' start-up, their contexts
     and the first batch set-ups) and when each batch returned (``batch_done_s``), in seconds from
-    the call: where a run's time went beside the simulation."""
+    the call: where a run's time went beside the simulation. ``prepared``: passed to every
+    worker's ``build_context`` (the driver's plan and template, put in Ray's object store once)."""
     try:
         import ray
     except ImportError as exc:
@@ -150,9 +153,10 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
         remote = ray.remote(num_gpus=1 if gpu else 0, num_cpus=1, max_retries=max_retries,
                             retry_exceptions=False)(_run_batch)
         fault = os.environ.get(FAULT_ENV) or None
+        shared = None if prepared is None else ray.put(prepared)
         pending = {remote.remote(build_context, simulate_batch, spec, str(out_dir), batch, worker_device,
-                                 frozenset(skip) & set(batch), number, board, progress_interval_s, fault): (number, batch)
-                   for number, batch in enumerate(batches)}
+                                 frozenset(skip) & set(batch), number, board, progress_interval_s, fault, shared):
+                   (number, batch) for number, batch in enumerate(batches)}
         shown = {number: 0 for number in range(len(batches))}  # target poses already passed to on_progress
         unfinished = set(shown)
         workers: set[tuple[str, int]] = set()

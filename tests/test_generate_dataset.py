@@ -430,6 +430,29 @@ def test_max_batches_stops_after_the_first_batches_and_the_rest_resumes(referenc
     assert _shard_hashes(out) == whole
 
 
+def test_a_worker_context_takes_the_drivers_plan_and_template(reference, monkeypatch):
+    """A Ray worker builds its context with the driver's plan and template (``prepared``) instead
+    of planning again; everything else it rebuilds, the garments from the dataset's cache."""
+    import pipelines.dataset_plan as dataset_plan
+    import pipelines.generate_dataset as gd
+    import simulate.garment.templates as templates
+
+    spec = gd.validate_spec(_with())
+    monkeypatch.setattr(gd, "_CONTEXTS", {})
+    driver = gd.build_context(spec, reference, log=lambda m: None)
+    monkeypatch.setattr(gd, "_CONTEXTS", {})
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("planned again")
+
+    monkeypatch.setattr(dataset_plan, "plan_dataset", refuse)
+    monkeypatch.setattr(templates, "make_template", refuse)
+    worker = gd.build_context(spec, reference, log=lambda m: None,
+                              prepared={"plan": driver.plan, "template": driver.template})
+    assert worker.plan is driver.plan and worker.template is driver.template
+    np.testing.assert_array_equal(worker.style_start, driver.style_start)
+
+
 def _cuda_available() -> bool:
     import warp as wp
 
