@@ -328,6 +328,9 @@ def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -
     joined = HighFrequencyPrototypes.cat(parts)
     for (name, a), b in zip(whole.state_dict().items(), joined.state_dict().values()):
         torch.testing.assert_close(a, b, atol=ATOL_STACKED_PARAMETER, rtol=0, msg=f"{name} differs from the stacked stage")
+    # unstacked, a part trains its prototypes as their own stages
+    alone = train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "unstacked", part=(1, 2), stacked=False, **args)
+    assert alone.prototype_count == 1 and sorted(p.name for p in (tmp_path / "unstacked").glob("*.done")) == ["hf_02.done"]
     # fit_tailornet over two 'ranks': the first trains a part and returns without the rest; the
     # second trains the other stages and the other part, then assembles the model
     train, faces = make_frames(0, 12, _pairs())
