@@ -371,13 +371,18 @@ class QualityMeter:
     def _signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> np.ndarray:
         return self._launch_signed_distances(points, n, body_vertices).numpy().reshape(n, self.vertex_count)
 
-    def _launch_signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> wp.array:
-        """Queues the signed-distance queries; returns the (n * V,) device array they fill."""
-        body = np.asarray(body_vertices, np.float32)
-        if body.shape != (n, self._body_vertex_count, 3):
-            raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
-                             f"garment frame (got {body.shape})")
-        ids = self._bodies.load(self._upload("body", body.reshape(-1, 3), wp.vec3), n)
+    def _launch_signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray | wp.array) -> wp.array:
+        """Queues the signed-distance queries; returns the (n * V,) device array they fill.
+        ``body_vertices``: (n, Vb, 3) [m], or already on the device as (n * Vb,) vec3."""
+        if isinstance(body_vertices, wp.array):
+            flat_body = body_vertices
+        else:
+            body = np.asarray(body_vertices, np.float32)
+            if body.shape != (n, self._body_vertex_count, 3):
+                raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
+                                 f"garment frame (got {body.shape})")
+            flat_body = self._upload("body", body.reshape(-1, 3), wp.vec3)
+        ids = self._bodies.load(flat_body, n)
         v = self.vertex_count
         distance = self._buffer("distance", n * v, float)
         closest = self._buffer("closest", n * v, wp.vec3)
@@ -388,19 +393,34 @@ class QualityMeter:
 
     def _part_signed_distances(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """Signed distances (n, V) [m] of garments (n, V, 3) to their vertices' own parts of bodies (n, Vb, 3)."""
-        n = len(x)
-        out = np.empty((n, self.vertex_count), np.float32)
+        return self._read_part_distances(self._launch_part_signed_distances(*self._upload_parts(x, body)), len(x))
+
+    def _upload_parts(self, x: np.ndarray, body: np.ndarray) -> tuple[wp.array, list[wp.array], int]:
+        """The bodies (n * Vb,) and each part's garment points (n * k,) on the device."""
         flat_body = self._upload("body", np.asarray(body, np.float32).reshape(-1, 3), wp.vec3)
-        for g, (members, slots) in enumerate(self._parts):
+        points = [self._upload(f"part_points_{g}", np.asarray(x[:, members], np.float32).reshape(-1, 3), wp.vec3)
+                  for g, (members, _) in enumerate(self._parts)]
+        return flat_body, points, len(x)
+
+    def _launch_part_signed_distances(self, flat_body: wp.array, points: list[wp.array], n: int) -> list[wp.array]:
+        """Queues every part's queries (inputs from :meth:`_upload_parts`); returns each part's
+        (n * k,) distances."""
+        distances = []
+        for g, ((members, slots), pts) in enumerate(zip(self._parts, points)):
             ids = slots.load(flat_body, n)
-            pts = self._upload(f"part_points_{g}", np.asarray(x[:, members], np.float32).reshape(-1, 3), wp.vec3)
             k = len(members)
             distance = self._buffer(f"part_distance_{g}", n * k, float)
             closest = self._buffer(f"part_closest_{g}", n * k, wp.vec3)
             normal = self._buffer(f"part_normal_{g}", n * k, wp.vec3)
             wp.launch(query_body_signed_distance, dim=n * k, device=self.device,
                       inputs=[ids, pts, k, self.max_distance], outputs=[distance, closest, normal])
-            out[:, members] = distance.numpy().reshape(n, k)
+            distances.append(distance)
+        return distances
+
+    def _read_part_distances(self, distances: list[wp.array], n: int) -> np.ndarray:
+        out = np.empty((n, self.vertex_count), np.float32)
+        for (members, _), distance in zip(self._parts, distances):
+            out[:, members] = distance.numpy().reshape(n, len(members))
         return out
 
     def self_intersection_counts(self, garment_vertices: np.ndarray) -> np.ndarray:
@@ -457,11 +477,15 @@ class QualityMeter:
     def _area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> np.ndarray:
         return self._launch_area_ratios(points, n, rest_areas).numpy().reshape(n, len(self.faces))
 
-    def _launch_area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> wp.array:
-        """Queues the area ratios; returns the (n * F,) device array they fill."""
+    def _launch_area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | wp.array | None) -> wp.array:
+        """Queues the area ratios; returns the (n * F,) device array they fill. ``rest_areas``:
+        (F,) or (n, F) [m^2], None (the constructor's), or already on the device as (n * F,)."""
         f = len(self.faces)
-        rest = np.broadcast_to(np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64), (n, f))
-        rest_d = self._upload("rest_areas", rest.reshape(-1), wp.float64)
+        if isinstance(rest_areas, wp.array):
+            rest_d = rest_areas
+        else:
+            rest = np.broadcast_to(np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64), (n, f))
+            rest_d = self._upload("rest_areas", rest.reshape(-1), wp.float64)
         ratio = self._buffer("ratio", n * f, wp.float64)
         wp.launch(triangle_area_ratios, dim=n * f, device=self.device,
                   inputs=[points, self.vertex_count, self._faces, f, rest_d], outputs=[ratio])
@@ -535,15 +559,24 @@ class QualityMeter:
         good = np.nonzero(finite)[0]
         if len(good) == 0:
             return out
-        # the garment points go to the device once for all three metrics, and the three results
-        # come back after all of them are queued (one wait for the device, not three: the
-        # dataset driver measures while a simulator frame runs, which the waits queue behind)
+        # every input goes to the device first, then every metric is queued, then the results come
+        # back: one wait for the device, not one per metric or per upload (the dataset driver
+        # measures while a simulator frame runs, which each wait queues behind; a copy from host
+        # memory can wait for the work queued before it)
         points, m = self._garment_points(x[good])
-        ratio_d = self._launch_area_ratios(points, m, rest[good])
-        d_d = None if self._parts else self._launch_signed_distances(points, m, body[good])
+        rest_d = self._upload("rest_areas", rest[good].reshape(-1), wp.float64)
+        if self._parts:
+            parts_in = self._upload_parts(x[good], body[good])
+        else:
+            body_d = self._upload("body", body[good].reshape(-1, 3), wp.vec3)
+        ratio_d = self._launch_area_ratios(points, m, rest_d)
+        if self._parts:
+            part_d = self._launch_part_signed_distances(*parts_in)
+        else:
+            d_d = self._launch_signed_distances(points, m, body_d)
         hits_d = self._launch_self_intersection_counts(points, m) if self_intersection else None
         ratio = ratio_d.numpy().reshape(m, len(self.faces))
-        d = self._part_signed_distances(x[good], body[good]) if self._parts else d_d.numpy().reshape(m, self.vertex_count)
+        d = self._read_part_distances(part_d, m) if self._parts else d_d.numpy().reshape(m, self.vertex_count)
         hits = hits_d.numpy().astype(np.int64) if hits_d is not None else np.full(m, -1)
         contours = np.full(m, -1, np.int64)
         if hits_d is not None:
