@@ -369,20 +369,21 @@ class QualityMeter:
         return self._signed_distances(points, n, body_vertices)
 
     def _signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray) -> np.ndarray:
-        return self._launch_signed_distances(points, n, body_vertices).numpy().reshape(n, self.vertex_count)
+        distance = self._launch_signed_distances(points, n, self._upload_bodies(body_vertices, n))
+        return distance.numpy().reshape(n, self.vertex_count)
 
-    def _launch_signed_distances(self, points: wp.array, n: int, body_vertices: np.ndarray | wp.array) -> wp.array:
-        """Queues the signed-distance queries; returns the (n * V,) device array they fill.
-        ``body_vertices``: (n, Vb, 3) [m], or already on the device as (n * Vb,) vec3."""
-        if isinstance(body_vertices, wp.array):
-            flat_body = body_vertices
-        else:
-            body = np.asarray(body_vertices, np.float32)
-            if body.shape != (n, self._body_vertex_count, 3):
-                raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
-                                 f"garment frame (got {body.shape})")
-            flat_body = self._upload("body", body.reshape(-1, 3), wp.vec3)
-        ids = self._bodies.load(flat_body, n)
+    def _upload_bodies(self, body_vertices: np.ndarray, n: int) -> wp.array:
+        """Bodies (n, Vb, 3) [m] on the device as (n * Vb,) vec3."""
+        body = np.asarray(body_vertices, np.float32)
+        if body.shape != (n, self._body_vertex_count, 3):
+            raise ValueError(f"body_vertices must have shape ({n}, {self._body_vertex_count}, 3), one body per "
+                             f"garment frame (got {body.shape})")
+        return self._upload("body", body.reshape(-1, 3), wp.vec3)
+
+    def _launch_signed_distances(self, points: wp.array, n: int, bodies: wp.array) -> wp.array:
+        """Queues the signed-distance queries against ``bodies`` (:meth:`_upload_bodies`); returns
+        the (n * V,) device array they fill."""
+        ids = self._bodies.load(bodies, n)
         v = self.vertex_count
         distance = self._buffer("distance", n * v, float)
         closest = self._buffer("closest", n * v, wp.vec3)
@@ -393,21 +394,21 @@ class QualityMeter:
 
     def _part_signed_distances(self, x: np.ndarray, body: np.ndarray) -> np.ndarray:
         """Signed distances (n, V) [m] of garments (n, V, 3) to their vertices' own parts of bodies (n, Vb, 3)."""
-        return self._read_part_distances(self._launch_part_signed_distances(*self._upload_parts(x, body)), len(x))
+        n = len(x)
+        bodies, points = self._upload_bodies(body, n), self._upload_part_points(x)
+        return self._read_part_distances(self._launch_part_signed_distances(bodies, points, n), n)
 
-    def _upload_parts(self, x: np.ndarray, body: np.ndarray) -> tuple[wp.array, list[wp.array], int]:
-        """The bodies (n * Vb,) and each part's garment points (n * k,) on the device."""
-        flat_body = self._upload("body", np.asarray(body, np.float32).reshape(-1, 3), wp.vec3)
-        points = [self._upload(f"part_points_{g}", np.asarray(x[:, members], np.float32).reshape(-1, 3), wp.vec3)
-                  for g, (members, _) in enumerate(self._parts)]
-        return flat_body, points, len(x)
+    def _upload_part_points(self, x: np.ndarray) -> list[wp.array]:
+        """Each part's garment points (n * k,) on the device."""
+        return [self._upload(f"part_points_{g}", np.asarray(x[:, members], np.float32).reshape(-1, 3), wp.vec3)
+                for g, (members, _) in enumerate(self._parts)]
 
-    def _launch_part_signed_distances(self, flat_body: wp.array, points: list[wp.array], n: int) -> list[wp.array]:
-        """Queues every part's queries (inputs from :meth:`_upload_parts`); returns each part's
-        (n * k,) distances."""
+    def _launch_part_signed_distances(self, bodies: wp.array, points: list[wp.array], n: int) -> list[wp.array]:
+        """Queues every part's queries (``bodies`` from :meth:`_upload_bodies`, ``points`` from
+        :meth:`_upload_part_points`); returns each part's (n * k,) distances."""
         distances = []
         for g, ((members, slots), pts) in enumerate(zip(self._parts, points)):
-            ids = slots.load(flat_body, n)
+            ids = slots.load(bodies, n)
             k = len(members)
             distance = self._buffer(f"part_distance_{g}", n * k, float)
             closest = self._buffer(f"part_closest_{g}", n * k, wp.vec3)
@@ -475,20 +476,21 @@ class QualityMeter:
         return self._area_ratios(points, n, rest_areas)
 
     def _area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | None) -> np.ndarray:
-        return self._launch_area_ratios(points, n, rest_areas).numpy().reshape(n, len(self.faces))
+        ratio = self._launch_area_ratios(points, n, self._upload_rest_areas(rest_areas, n))
+        return ratio.numpy().reshape(n, len(self.faces))
 
-    def _launch_area_ratios(self, points: wp.array, n: int, rest_areas: np.ndarray | wp.array | None) -> wp.array:
-        """Queues the area ratios; returns the (n * F,) device array they fill. ``rest_areas``:
-        (F,) or (n, F) [m^2], None (the constructor's), or already on the device as (n * F,)."""
+    def _upload_rest_areas(self, rest_areas: np.ndarray | None, n: int) -> wp.array:
+        """Rest areas (F,) or (n, F) [m^2] (None: the constructor's) on the device as (n * F,)."""
+        rest = np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64)
+        return self._upload("rest_areas", np.broadcast_to(rest, (n, len(self.faces))).reshape(-1), wp.float64)
+
+    def _launch_area_ratios(self, points: wp.array, n: int, rest_areas: wp.array) -> wp.array:
+        """Queues the area ratios against ``rest_areas`` (:meth:`_upload_rest_areas`); returns the
+        (n * F,) device array they fill."""
         f = len(self.faces)
-        if isinstance(rest_areas, wp.array):
-            rest_d = rest_areas
-        else:
-            rest = np.broadcast_to(np.asarray(self.rest_areas if rest_areas is None else rest_areas, np.float64), (n, f))
-            rest_d = self._upload("rest_areas", rest.reshape(-1), wp.float64)
         ratio = self._buffer("ratio", n * f, wp.float64)
         wp.launch(triangle_area_ratios, dim=n * f, device=self.device,
-                  inputs=[points, self.vertex_count, self._faces, f, rest_d], outputs=[ratio])
+                  inputs=[points, self.vertex_count, self._faces, f, rest_areas], outputs=[ratio])
         return ratio
 
     def signed_distance(self, garment_vertices: np.ndarray, body_vertices: np.ndarray) -> np.ndarray:
@@ -564,16 +566,14 @@ class QualityMeter:
         # measures while a simulator frame runs, which each wait queues behind; a copy from host
         # memory can wait for the work queued before it)
         points, m = self._garment_points(x[good])
-        rest_d = self._upload("rest_areas", rest[good].reshape(-1), wp.float64)
-        if self._parts:
-            parts_in = self._upload_parts(x[good], body[good])
-        else:
-            body_d = self._upload("body", body[good].reshape(-1, 3), wp.vec3)
+        rest_d = self._upload_rest_areas(rest[good], m)
+        bodies = self._upload_bodies(body[good], m)
+        part_points = self._upload_part_points(x[good]) if self._parts else None
         ratio_d = self._launch_area_ratios(points, m, rest_d)
         if self._parts:
-            part_d = self._launch_part_signed_distances(*parts_in)
+            part_d = self._launch_part_signed_distances(bodies, part_points, m)
         else:
-            d_d = self._launch_signed_distances(points, m, body_d)
+            d_d = self._launch_signed_distances(points, m, bodies)
         hits_d = self._launch_self_intersection_counts(points, m) if self_intersection else None
         ratio = ratio_d.numpy().reshape(m, len(self.faces))
         d = self._read_part_distances(part_d, m) if self._parts else d_d.numpy().reshape(m, self.vertex_count)

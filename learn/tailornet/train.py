@@ -771,26 +771,36 @@ STAGE_EPOCH_SECONDS = {"hf": 0.47, "lf": 1.69, "baseline": 1.73, "shape_style": 
 HF_SPLIT_GAIN = 0.1
 
 
+def _check_part(index: int, parts: int) -> None:
+    if parts < 1 or not 0 <= index < parts:
+        raise ValueError(f"need 0 <= index < parts, got index={index}, parts={parts}")
+
+
 def hf_part_stage(index: int, parts: int) -> str:
     """Stage name of part ``index`` (from 0) of hf split into ``parts``: ``hf_<index+1>of<parts>``
     (checkpoints and .done markers; a run resumed with another split trains its parts anew)."""
-    if parts < 1 or not 0 <= index < parts:
-        raise ValueError(f"need 0 <= index < parts, got index={index}, parts={parts}")
+    _check_part(index, parts)
     return f"hf_{index + 1}of{parts}"
 
 
 def hf_part_members(prototype_count: int, index: int, parts: int) -> np.ndarray:
     """The prototypes (indices) of part ``index`` of ``parts``: contiguous groups whose sizes
     differ by at most one."""
-    hf_part_stage(index, parts)
+    _check_part(index, parts)
     if parts > prototype_count:
         raise ValueError(f"cannot split {prototype_count} prototypes into {parts} parts")
     return np.array_split(np.arange(prototype_count), parts)[index]
 
 
-def _stage_costs(hyperparameters: Mapping[str, Mapping[str, Any]] | None) -> dict[str, float]:
+def _unit_costs(hyperparameters: Mapping[str, Mapping[str, Any]] | None, parts: int) -> dict[str, float]:
+    """Each unit's cost [s]: a stage's :data:`STAGE_EPOCH_SECONDS` x its epochs, hf as ``parts``
+    equal parts where ``parts`` > 1."""
     hyper = merged_hyperparameters(hyperparameters)
-    return {stage: STAGE_EPOCH_SECONDS[stage] * int(hyper[stage]["epochs"]) for stage in STAGE_ORDER}
+    costs = {stage: STAGE_EPOCH_SECONDS[stage] * int(hyper[stage]["epochs"]) for stage in STAGE_ORDER}
+    if parts > 1:
+        hf = costs.pop("hf")
+        costs.update({hf_part_stage(i, parts): hf / parts for i in range(parts)})
+    return costs
 
 
 def _schedule(costs: Mapping[str, float], world_size: int) -> tuple[list[list[str]], float]:
@@ -813,12 +823,7 @@ def hf_parts_for(world_size: int, hyperparameters: Mapping[str, Mapping[str, Any
     With the paper's epochs: 1 part on 1-2 processes, 3 on 3, 2 on 4."""
     hyper = merged_hyperparameters(hyperparameters)
     most = max(1, min(int(world_size), int(hyper["model"]["prototype_count"])))
-    costs = _stage_costs(hyper)
-    spans = {}
-    for parts in range(1, most + 1):
-        split = {k: v for k, v in costs.items() if k != "hf"}
-        split.update({hf_part_stage(i, parts): costs["hf"] / parts for i in range(parts)})
-        spans[parts] = _schedule(split, world_size)[1]
+    spans = {parts: _schedule(_unit_costs(hyper, parts), world_size)[1] for parts in range(1, most + 1)}
     best = min(spans.values())
     return min(p for p, span in spans.items() if span <= best * (1.0 + HF_SPLIT_GAIN))
 
@@ -837,11 +842,7 @@ def stages_for_rank(rank: int, world_size: int,
     if world_size < 1 or not 0 <= rank < world_size:
         raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
     parts = hf_parts_for(world_size, hyperparameters)
-    costs = _stage_costs(hyperparameters)
-    if parts > 1:
-        hf = costs.pop("hf")
-        costs.update({hf_part_stage(i, parts): hf / parts for i in range(parts)})
-    return _schedule(costs, world_size)[0][rank]
+    return _schedule(_unit_costs(hyperparameters, parts), world_size)[0][rank]
 
 
 def _done_markers(run_dir: Path, stage: str, prototype_count: int, stacked: bool) -> list[Path]:
