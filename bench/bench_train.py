@@ -2,7 +2,7 @@
 of the paper's epochs (lf 100, hf 800, shape_style 400, baseline 100), and the evaluation time
 of the test frames, printed as one JSON line.
 
-    python bench/bench_train.py DATASET [--device cuda] [--epochs 3] [--mixed-precision]
+    python bench/bench_train.py DATASET [--device cuda] [--epochs 3] [--mixed-precision] [--no-cuda-graphs]
     python bench/bench_train.py --synthetic 30581 7744 [--test-frames 6900] [--device cuda]
 
 ``DATASET``: a drape generate-dataset directory (train_train trains; the test splits are
@@ -107,6 +107,8 @@ def main() -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--epochs", type=int, default=3, help="epochs timed per stage (default 3)")
     parser.add_argument("--mixed-precision", action="store_true", help="bf16 autocast (model.mixed_precision)")
+    parser.add_argument("--no-cuda-graphs", action="store_true",
+                        help="eager steps instead of steps replayed as CUDA graphs (model.cuda_graphs: false)")
     parser.add_argument("--no-evaluate", action="store_true")
     parser.add_argument("--stages", default=None,
                         help="comma-separated stages to train (default all): run one process per group of stages "
@@ -130,6 +132,7 @@ def main() -> None:
     from pipelines.evaluate import default_postprocess_workers
 
     result: dict = {"device": args.device, "epochs_timed": args.epochs, "mixed_precision": args.mixed_precision,
+                    "cuda_graphs": not args.no_cuda_graphs,
                     "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None}
     if args.synthetic:
         t0 = time.perf_counter()
@@ -145,6 +148,7 @@ def main() -> None:
                   test_frames={s: d.frame_count for s, d in tests.items()})
     hyper = {stage: {"epochs": args.epochs} for stage in PAPER_EPOCHS}
     hyper["model"] = {"checkpoint_interval_s": 1e9, "mixed_precision": args.mixed_precision,
+                      "cuda_graphs": not args.no_cuda_graphs,
                       "prototype_count": min(20, result["pairs"]), "shape_components": train.shape.shape[1],
                       "style_components": train.style.shape[1]}
     with tempfile.TemporaryDirectory() as tmp:

@@ -64,8 +64,8 @@ class MemoryBatches:
         self.frame_count = next(iter(counts.values()), 0)
         self.batch_size, self.device, self.shuffle = int(batch_size), device, bool(shuffle)
 
-    def epoch(self, generator: torch.Generator, optimizer: Any = None) -> Iterator[Batch]:
-        """One epoch's batches (``optimizer`` is not used: the deal leaves no rank without a step)."""
+    def indices(self, generator: torch.Generator) -> Iterator[tuple[torch.Tensor, int]]:
+        """One epoch's steps as (this rank's frame indices on the device, (b,) int64; its frame count)."""
         n = self.frame_count
         if self.shuffle:
             order = torch.randperm(n, generator=generator).to(self.device)
@@ -73,8 +73,16 @@ class MemoryBatches:
             order = torch.arange(n, device=self.device)
         for begin in range(0, n, self.batch_size):
             index = distributed.shard(order[begin:begin + self.batch_size])  # this rank's frames (all in one process)
-            frames = 0 if distributed.share() == 0.0 else int(index.numel())
-            yield Batch({name: t[index] for name, t in self.tensors.items()}, frames)
+            yield index, 0 if distributed.share() == 0.0 else int(index.numel())
+
+    def gather(self, index: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The frames ``index`` ((b,) int64 on the device) of every array (name -> (b, ...))."""
+        return {name: t[index] for name, t in self.tensors.items()}
+
+    def epoch(self, generator: torch.Generator, optimizer: Any = None) -> Iterator[Batch]:
+        """One epoch's batches (``optimizer`` is not used: the deal leaves no rank without a step)."""
+        for index, frames in self.indices(generator):
+            yield Batch(self.gather(index), frames)
 
 
 class StreamBatches:

@@ -15,7 +15,9 @@ loading against a different dataset raises :class:`DatasetMismatchError`.
 The step loops keep everything on the training device: the stage's inputs and targets are
 copied there once, each epoch's shuffled order is one host-to-device copy, batches are
 gathered by device-side indexing and the epoch's loss is summed on the device and read once
-at the epoch's end. ``model.mixed_precision`` runs the forward passes under bf16 autocast
+at the epoch's end. On a GPU each in-memory step (gather, forward, loss, backward, Adam) is
+replayed as one CUDA graph (:mod:`learn.common.training_step`; ``model.cuda_graphs: false`` turns
+it off): the paper's batches of 32 frames are otherwise bound by kernel launches. ``model.mixed_precision`` runs the forward passes under bf16 autocast
 (weights, Adam's moments and the L1 loss stay float32). Each step loop is a plain function of
 (model, optimizer, frame order): a data-parallel wrapper of the model (DDP) goes around
 ``model`` before :func:`run_epochs`, and a per-rank shard of the order replaces
@@ -46,6 +48,7 @@ from learn.batches import MemoryBatches, batches_for, is_streamed
 from learn.data import FrameArrays
 from learn.common.losses import l1_displacement_loss
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
+from learn.common.training_step import TrainingStep
 from learn.tailornet.baseline import baseline_model
 from learn.tailornet.hf import HighFrequencyPrototypes, high_frequency_model
 from learn.tailornet.lf import DisplacementMLP, low_frequency_model
@@ -82,6 +85,7 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "min_joint_weight_sum": 1.0,
         "pose_mask": True,
         "mixed_precision": False,
+        "cuda_graphs": True,
         "smoothing_iterations": 80,
         "smoothing_lambda": 0.15,
         "checkpoint_interval_s": DEFAULT_CHECKPOINT_INTERVAL_S,
@@ -295,7 +299,8 @@ def autocast(device: str | torch.device, enabled: bool) -> torch.autocast:
     """bf16 autocast on ``device``'s type when ``enabled`` (a no-op context otherwise). Matmuls
     run in bf16 with float32 accumulation; callers cast the prediction back to float32 before
     the loss, so the loss and the optimizer see float32."""
-    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bool(enabled))
+    # no weight cache: a step replayed as a CUDA graph must cast its weights inside the graph
+    return torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bool(enabled), cache_enabled=False)
 
 
 EpochFn = Callable[[torch.nn.Module, torch.optim.Optimizer, torch.Generator], float]
@@ -352,6 +357,7 @@ def run_epochs(
     optimizer = torch.optim.Adam(
         model.parameters(), lr=float(hyperparameters["lr"]), weight_decay=float(hyperparameters["weight_decay"]),
         fused=torch.device(device).type == "cuda",  # one kernel per step on GPUs
+        capturable=torch.device(device).type == "cuda",  # its step count on the GPU: steps replay as graphs
     )
     start_epoch = 0
     if checkpoint_path.exists():
@@ -458,6 +464,7 @@ def train_stage(
         raise ValueError(f"{stage}: no training frames")
     batch_size = int(hyperparameters["batch_size"])
     mixed = bool(hyperparameters.get("mixed_precision", False))
+    graphs = bool(hyperparameters.get("cuda_graphs", True))
     shuffle = bool(hyperparameters.get("shuffle", True))
     if isinstance(target, str):
         source = batches_for(data, ("pose", "shape", "style", target), batch_size=batch_size, device=device,
@@ -471,8 +478,23 @@ def train_stage(
                                batch_size=batch_size, device=device, shuffle=shuffle)
         target = "target"
 
+    steps: dict[int, TrainingStep] = {}  # per optimizer (a resumed stage builds a new one)
+
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         total = torch.zeros((), device=device)
+        if isinstance(source, MemoryBatches) and not distributed.active():  # one graph per step on a GPU
+            if id(optimizer) not in steps:
+                def loss_of(inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+                    batch = source.gather(inputs["index"])
+                    with autocast(device, mixed):
+                        prediction = net(batch["pose"], batch["shape"], batch["style"])
+                    return l1_displacement_loss(prediction.float(), batch[target])
+
+                steps[id(optimizer)] = TrainingStep(loss_of, optimizer, graph=graphs)
+            step = steps[id(optimizer)]
+            for index, frames in source.indices(generator):
+                total += step({"index": index}) * frames
+            return float(total) / data.frame_count
         for batch in source.epoch(generator, optimizer):  # this rank's frames (all in one process)
             with autocast(device, mixed):
                 prediction = net(batch["pose"], batch["shape"], batch["style"])
@@ -533,6 +555,8 @@ def train_stacked_prototypes(
     target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
     frames = [torch.as_tensor(np.asarray(f), dtype=torch.int64) for f in frames_per_prototype]
     steps = -(-max(counts) // batch_size)
+    graphs = bool(hyperparameters.get("cuda_graphs", True))
+    training_steps: dict[int, TrainingStep] = {}  # per optimizer (a resumed stage builds a new one)
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         sequences = []
@@ -541,18 +565,20 @@ def train_stacked_prototypes(
             repeats = -(-steps * batch_size // idx.numel())
             sequences.append(order.repeat(repeats)[: steps * batch_size])
         sequence = torch.stack([sequences[m] for m in members]).to(device)  # (K, steps * batch)
+        if id(optimizer) not in training_steps:
+            def loss_of(inputs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+                batch = inputs["index"]  # (K, b)
+                with autocast(device, mixed):
+                    prediction = net.forward_each(pose[batch])  # (K, b, V, 3)
+                # the sum of the K prototypes' mean L1 losses
+                return (prediction.float() - target_t[batch]).abs().sum(-1).mean(dim=(1, 2)).sum()
+
+            training_steps[id(optimizer)] = TrainingStep(loss_of, optimizer, graph=graphs)
+        training_step = training_steps[id(optimizer)]
         total = torch.zeros((), device=device)
         for step in range(steps):
-            batch = sequence[:, step * batch_size : (step + 1) * batch_size]  # (K, b)
-            with autocast(device, mixed):
-                prediction = net.forward_each(pose[batch])  # (K, b, V, 3)
-            per_prototype = (prediction.float() - target_t[batch]).abs().sum(-1).mean(dim=(1, 2))  # (K,)
-            loss = per_prototype.sum()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            total += per_prototype.detach().mean()
-        return float(total) / steps
+            total += training_step({"index": sequence[:, step * batch_size : (step + 1) * batch_size]})
+        return float(total) / (steps * len(members))  # the mean over steps of the prototypes' mean loss
 
     return run_epochs(
         stage, model, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
@@ -565,6 +591,7 @@ def stage_hyper(hyper: Mapping[str, Any], model_hyper: Mapping[str, Any] | None 
     if model_hyper is not None:
         stage["checkpoint_interval_s"] = float(model_hyper["checkpoint_interval_s"])
         stage["mixed_precision"] = bool(model_hyper.get("mixed_precision", False))
+        stage["cuda_graphs"] = bool(model_hyper.get("cuda_graphs", True))
     return stage
 
 
