@@ -12,7 +12,9 @@ run records (manifest ``audit.simulation``; for Ray this includes starting the w
 building their contexts); the plan has one batch per GPU of the largest run (``simulation.batches``).
 ``--local-batches K`` has the local run simulate only the plan's first K batches (the whole
 TailorNet spec takes ~23 minutes on one H100, longer than a device call): its rate is that of
-those batches. Each Ray dataset is compared with the local one on the tasks both list: shards
+those batches; ``--ray-batches-per-gpu K`` has a Ray run on N GPUs simulate the first K x N
+(``--local-batches 2 --ray-batches-per-gpu 1 --gpus 2`` times the same two batches on one GPU and
+on two). ``--batches`` sets the plan's batch count. Each Ray dataset is compared with the local one on the tasks both list: shards
 compared, byte-identical, and whether every one kept the same frames.
 (b) trains ``--learner`` on ``--data`` (default: OUT/local) for ``--epochs`` epochs into
 OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the epoch time is
@@ -90,7 +92,7 @@ def bench_generate(args: argparse.Namespace) -> dict:
     spec = load_spec(args.spec)
     spec["audit"]["samples"] = 0  # the audit is not part of the simulation rate
     # one batch per GPU of the largest run at least (the same plan, so the same shards, on every run)
-    spec["simulation"]["batches"] = max(int(spec["simulation"]["batches"]), max(args.gpus))
+    spec["simulation"]["batches"] = max(int(args.batches or spec["simulation"]["batches"]), max(args.gpus))
     if args.train_count is not None:
         spec["poses"]["train_count"] = args.train_count
     local_out = args.out / "local"
@@ -108,7 +110,10 @@ def bench_generate(args: argparse.Namespace) -> dict:
     for n, ray_out in zip(args.gpus, outs[1:]):
         if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
             shutil.copytree(local_out / "cache", ray_out / "cache")
-        ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=n, cpus=args.cpus)
+        part = None if args.ray_batches_per_gpu is None else args.ray_batches_per_gpu * n
+        ray_run = _generate(spec, ray_out, executor="ray", device=args.sim_device(0), gpus=n, cpus=args.cpus,
+                            max_batches=part)
+        ray_run["batches"] = min(part or spec["simulation"]["batches"], spec["simulation"]["batches"])
         rate = (ray_run["kept_frames_per_s"] or 0) / (local["kept_frames_per_s"] or float("nan"))
         ray_run.update(speedup=round(rate, 3), **compare_shards(local_out, ray_out))
         result["ray"][n] = ray_run
@@ -168,6 +173,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--local-batches", type=int, default=None,
                         help="one GPU simulates only the first K batches of the plan (default: all): the whole "
                         "TailorNet spec on one GPU outlasts a device call; its rate is then that of those batches")
+    parser.add_argument("--ray-batches-per-gpu", type=int, default=None,
+                        help="each Ray run on N GPUs simulates only the plan's first K x N batches (default: all): "
+                        "with --local-batches K x N both time the same tasks")
+    parser.add_argument("--batches", type=int, default=None,
+                        help="simulation.batches of the plan (default: the spec's, at least the largest --gpus)")
     parser.add_argument("--train-count", type=int, default=None, help="poses.train_count of (a)'s spec (default: the spec's)")
     parser.add_argument("--out", type=Path, default=Path("scale-out-bench"), help="scratch directory")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cuda or cpu")
@@ -194,8 +204,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--gpus must be N or N,M,... (got {args.gpus!r})")
     if min(args.gpus) < 1 or (cuda and max(args.gpus) > available):
         parser.error(f"--gpus must be counts in 1..{available or 'N'} (got {args.gpus})")
-    if args.local_batches is not None and args.local_batches < 1:
-        parser.error(f"--local-batches must be >= 1 (got {args.local_batches})")
+    for name in ("local_batches", "ray_batches_per_gpu", "batches"):
+        if getattr(args, name) is not None and getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     args.sim_device = lambda k: f"cuda:{k}" if cuda else "cpu"
     args.train_device = "cuda" if cuda else "cpu"
     args.out.mkdir(parents=True, exist_ok=True)
