@@ -58,6 +58,8 @@ class DisplacementMLP(nn.Module):
         self.shape_components = int(shape_components)
         self.style_components = int(style_components)
         self.register_buffer("pose_indices", pose_index)
+        # the pose length the inputs need, kept on the host: a step replayed as a CUDA graph cannot read the buffer
+        self.min_pose_size = int(pose_index.max()) + 1 if pose_index.numel() else 0
         self.mlp = MLP(input_size, 3 * vertex_count, hidden_size=hidden_size, dropout=dropout)
 
     @property
@@ -78,9 +80,9 @@ class DisplacementMLP(nn.Module):
         """Selected inputs, shape (B, input_size)."""
         parts = []
         if self.pose_indices.numel():
-            if pose.ndim != 2 or pose.shape[1] <= int(self.pose_indices.max()):
+            if pose.ndim != 2 or pose.shape[1] < self.min_pose_size:
                 raise ValueError(
-                    f"pose must have shape (B, P) with P > {int(self.pose_indices.max())}, "
+                    f"pose must have shape (B, P) with P >= {self.min_pose_size}, "
                     f"got {tuple(pose.shape)}"
                 )
             parts.append(pose[:, self.pose_indices])

@@ -789,10 +789,11 @@ TAILORNET_STAGES = ("shape_style", "lf", "hf")
 # The stages `drape train tailornet` spreads over processes (torchrun ranks), one GPU each.
 STAGE_ORDER = ("hf", "lf", "baseline", "shape_style")
 
-#: Seconds per epoch of each stage on one H100 at full scale (30,581 frames of the 7.7k t-shirt,
-#: 20 prototypes stacked; docs/benchmarks.md, "Training and evaluation time at full scale"):
+#: Seconds per epoch of each stage on one H200 at full scale, steps replayed as CUDA graphs (30,581
+#: frames of the 7.7k t-shirt, 20 prototypes stacked; docs/benchmarks.md, "Training and evaluation
+#: time at full scale"):
 #: with the configured epochs, the cost model that spreads the stages over processes.
-STAGE_EPOCH_SECONDS = {"hf": 0.47, "lf": 1.69, "baseline": 1.73, "shape_style": 0.002}
+STAGE_EPOCH_SECONDS = {"hf": 0.394, "lf": 0.521, "baseline": 0.521, "shape_style": 0.003}
 
 #: More hf parts are taken only where they shorten the longest process by more than this share.
 HF_SPLIT_GAIN = 0.1
@@ -847,7 +848,7 @@ def hf_parts_for(world_size: int, hyperparameters: Mapping[str, Mapping[str, Any
     process count, at most the prototype count) whose longest process is within
     :data:`HF_SPLIT_GAIN` of the shortest reachable, with each stage's cost
     :data:`STAGE_EPOCH_SECONDS` x its epochs and a part's cost its share of the prototypes.
-    With the paper's epochs: 1 part on 1-2 processes, 3 on 3, 2 on 4."""
+    With the paper's epochs: 2 parts on 2-3 processes, 3 on 4-5."""
     hyper = merged_hyperparameters(hyperparameters)
     most = max(1, min(int(world_size), int(hyper["model"]["prototype_count"])))
     spans = {parts: _schedule(_unit_costs(hyper, parts), world_size)[1] for parts in range(1, most + 1)}
@@ -863,8 +864,9 @@ def stages_for_rank(rank: int, world_size: int,
     TailorNet's stages are independent given the data, and so are its prototypes: they
     parallelise across GPUs without gradient exchange. The units go to the processes longest
     first, each to the least loaded (costs: :data:`STAGE_EPOCH_SECONDS` x the configured
-    epochs). With the paper's epochs: 2 processes train hf | lf, baseline and shape_style; 4
-    train half of hf each on two, lf, and the baseline with shape_style.
+    epochs). With the paper's epochs: 2 processes train half of hf each, one with the baseline and
+    shape_style, the other with lf; 4 train a third of hf each on three, and lf, the baseline and
+    shape_style on the fourth.
     """
     if world_size < 1 or not 0 <= rank < world_size:
         raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
