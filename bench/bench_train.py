@@ -141,7 +141,8 @@ def main() -> None:
         data, faces, grid = synthetic_frames(args.synthetic[0] + args.test_frames, args.synthetic[1], pairs=args.pairs)
         order = np.random.default_rng(1).permutation(data.frame_count)
         train, test = data.subset(np.sort(order[:args.synthetic[0]])), data.subset(np.sort(order[args.synthetic[0]:]))
-        tests, posing, pose_indices = {"test": test}, _synthetic_posing(grid, faces), np.arange(data.pose.shape[1])
+        tests, pose_indices = {"test": test}, np.arange(data.pose.shape[1])
+        posing = None if args.no_evaluate else _synthetic_posing(grid, faces)  # trimesh: only to evaluate
         result.update(data="synthetic", synthetic_s=round(time.perf_counter() - t0, 2))
     else:
         train, tests, faces, posing, pose_indices, load_s = _dataset(Path(args.data), args.device)
