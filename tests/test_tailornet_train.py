@@ -302,7 +302,7 @@ def test_stages_and_prototype_parts_are_spread_over_processes() -> None:
         units = sum((stages_for_rank(r, world) for r in range(world)), [])
         assert sorted(units) == sorted([s for s in STAGE_ORDER if s != "hf"] + hf_units), (world, units)
     assert hf_parts_for(1) == 1 and hf_parts_for(2) == 2 and hf_parts_for(4) == 3
-    assert [stages_for_rank(r, 2) for r in range(2)] == [["hf_1of2", "baseline", "shape_style"], ["hf_2of2", "lf"]]
+    assert [stages_for_rank(r, 2) for r in range(2)] == [["hf_1of2", "baseline"], ["hf_2of2", "lf", "shape_style"]]
     assert [stages_for_rank(r, 4) for r in range(4)] == [["hf_1of3"], ["hf_2of3"], ["hf_3of3"],
                                                          ["baseline", "lf", "shape_style"]]
     # a few hf epochs: no process is given a part of it

@@ -789,11 +789,11 @@ TAILORNET_STAGES = ("shape_style", "lf", "hf")
 # The stages `drape train tailornet` spreads over processes (torchrun ranks), one GPU each.
 STAGE_ORDER = ("hf", "lf", "baseline", "shape_style")
 
-#: Seconds per epoch of each stage on one H200 at full scale, steps replayed as CUDA graphs (30,581
+#: Seconds per epoch of each stage on one H100 at full scale, steps replayed as CUDA graphs (30,581
 #: frames of the 7.7k t-shirt, 20 prototypes stacked; docs/benchmarks.md, "Training and evaluation
 #: time at full scale"):
 #: with the configured epochs, the cost model that spreads the stages over processes.
-STAGE_EPOCH_SECONDS = {"hf": 0.394, "lf": 0.521, "baseline": 0.521, "shape_style": 0.003}
+STAGE_EPOCH_SECONDS = {"hf": 0.468, "lf": 0.588, "baseline": 0.589, "shape_style": 0.005}
 
 #: More hf parts are taken only where they shorten the longest process by more than this share.
 HF_SPLIT_GAIN = 0.1
@@ -864,8 +864,8 @@ def stages_for_rank(rank: int, world_size: int,
     TailorNet's stages are independent given the data, and so are its prototypes: they
     parallelise across GPUs without gradient exchange. The units go to the processes longest
     first, each to the least loaded (costs: :data:`STAGE_EPOCH_SECONDS` x the configured
-    epochs). With the paper's epochs: 2 processes train half of hf each, one with the baseline and
-    shape_style, the other with lf; 4 train a third of hf each on three, and lf, the baseline and
+    epochs). With the paper's epochs: 2 processes train half of hf each, one with the baseline, the
+    other with lf and shape_style; 4 train a third of hf each on three, and lf, the baseline and
     shape_style on the fourth.
     """
     if world_size < 1 or not 0 <= rank < world_size:
