@@ -473,6 +473,33 @@ def test_two_cuda_runs_write_identical_shards(tmp_path):
     assert _shard_hashes(tmp_path / "a") == _shard_hashes(tmp_path / "b")
 
 
+@pytest.mark.skipif(not _cuda_available(), reason="needs a CUDA device")
+def test_cuda_run_from_cached_garments_and_a_prepared_plan_writes_identical_shards(tmp_path):
+    """A Ray worker differs from a local run in two ways: its garments come from the run's cache
+    and its plan and template from the driver (``prepared``). Each alone, on one device, must give
+    the local run's shards byte for byte (on 2 H200s, 76 of 558 shards of a Ray run differed from
+    the local run's at float16 rounding, docs/scale-out.md; this tells the two causes apart)."""
+    import shutil
+
+    from pipelines import generate_dataset as gd
+
+    spec = _with(**NO_AUDIT, simulation__device="cuda", simulation__worlds=2)
+    gd.generate(spec, tmp_path / "fresh", progress=False, log=lambda m: None)
+    shutil.copytree(tmp_path / "fresh" / "cache", tmp_path / "cached" / "cache")
+    gd._CONTEXTS.clear()
+    gd.generate(spec, tmp_path / "cached", progress=False, log=lambda m: None)
+    assert _shard_hashes(tmp_path / "cached") == _shard_hashes(tmp_path / "fresh"), "garments from the cache"
+    ctx = next(iter(gd._CONTEXTS.values()))
+    prepared = {"plan": ctx.plan, "template": ctx.template}
+    gd._CONTEXTS.clear()
+    out = tmp_path / "prepared"
+    shutil.copytree(tmp_path / "fresh" / "cache", out / "cache")
+    # the context generate() then takes (keyed by spec and device), built as a Ray worker builds it
+    gd.build_context(gd.validate_spec(dict(spec)), out, device=None, log=lambda m: None, prepared=prepared)
+    gd.generate(spec, out, progress=False, log=lambda m: None)
+    assert _shard_hashes(out) == _shard_hashes(tmp_path / "fresh"), "the driver's plan and template"
+
+
 def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
     """``simulation.batches``: pairs stay whole, every task is in exactly one batch, no batch has
     more pairs than worlds, the batches' target poses differ by at most the largest pair's, and the
