@@ -200,6 +200,8 @@ def test_attachment_targets_from_torch_tensors(device: str) -> None:
     targets = np.random.default_rng(0).normal(size=(3, 3)).astype(np.float64)
     sim.control.set_attachment_targets(torch.as_tensor(targets, device=device))
     np.testing.assert_array_equal(sim.control.attachment_target.numpy(), targets.astype(np.float32))
+    sim.control.set_attachment_targets(torch.as_tensor(2 * targets, device=device), check_finite=False)
+    np.testing.assert_array_equal(sim.control.attachment_target.numpy(), (2 * targets).astype(np.float32))
     with pytest.raises(ValueError, match=r"shape \(3, 3\)"):
         sim.control.set_attachment_targets(torch.zeros(2, 3, device=device))
     bad = torch.as_tensor(targets, device=device)

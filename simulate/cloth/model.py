@@ -80,16 +80,19 @@ class ClothControl:
         self._self_contact_host = np.ones(model.world_count, dtype=np.int32)
         self._model = model
 
-    def set_attachment_targets(self, targets) -> None:
+    def set_attachment_targets(self, targets, *, check_finite: bool = True) -> None:
         """Set attachment target positions [m], shape (attachment_count, 3): a numpy array, or a
-        torch tensor (a CUDA one on a CUDA model is copied without leaving the device)."""
+        torch tensor (a CUDA one on a CUDA model is copied without leaving the device).
+        ``check_finite`` False skips the finiteness check of a CUDA tensor: reading its answer on
+        the host waits for all the device work queued before it (the sequence driver moves the
+        targets with every body move, from posed bodies)."""
         if type(targets).__module__.startswith("torch") and targets.is_cuda and self.attachment_target.device.is_cuda:
             import torch
 
             expected = (self._model.attachment_count, 3)
             if tuple(targets.shape) != expected:
                 raise ValueError(f"attachment targets must have shape {expected} (got {tuple(targets.shape)})")
-            if not bool(torch.isfinite(targets).all()):
+            if check_finite and not bool(torch.isfinite(targets).all()):
                 raise ValueError("attachment targets must be finite (got NaN or inf)")
             if self._model.attachment_count:
                 copy_cuda_tensor(self.attachment_target, targets)

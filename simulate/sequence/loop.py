@@ -327,7 +327,7 @@ def set_attachment_targets(control, anchors: tuple[torch.Tensor, torch.Tensor], 
     cur = torch.as_tensor(np.asarray(current, np.int64), device=anchor.device)
     idx = anchor[cur]  # (W, A)
     targets = torch.gather(bodies, 1, idx[..., None].expand(-1, -1, 3)).float() + offset[cur]
-    control.set_attachment_targets(targets.reshape(-1, 3))
+    control.set_attachment_targets(targets.reshape(-1, 3), check_finite=False)  # posed bodies: no device sync
 
 
 def starting_bodies(tasks: list[SequenceTask], start: PosedBody, start_shapes: np.ndarray, neutral: np.ndarray,
