@@ -14,8 +14,9 @@ building their contexts); the plan has one batch per GPU of the largest run (``s
 TailorNet spec takes ~23 minutes on one H100, longer than a device call): its rate is that of
 those batches; ``--ray-batches-per-gpu K`` has a Ray run on N GPUs simulate the first K x N
 (``--local-batches 2 --ray-batches-per-gpu 1 --gpus 2`` times the same two batches on one GPU and
-on two). ``--batches`` sets the plan's batch count. Each Ray dataset is compared with the local one on the tasks both list: shards
-compared, byte-identical, and whether every one kept the same frames.
+on two). ``--batches`` sets the plan's batch count. Each Ray dataset is compared with the local
+one on the tasks both list: shards compared, byte-identical, and whether every one kept the same
+frames.
 (b) trains ``--learner`` on ``--data`` (default: OUT/local) for ``--epochs`` epochs into
 OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the epoch time is
 the mean of the logged epoch seconds after the first (rank 0's clock: it includes the gradient

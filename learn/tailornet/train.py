@@ -17,8 +17,9 @@ copied there once, each epoch's shuffled order is one host-to-device copy, batch
 gathered by device-side indexing and the epoch's loss is summed on the device and read once
 at the epoch's end. On a GPU each in-memory step (gather, forward, loss, backward, Adam) is
 replayed as one CUDA graph (:mod:`learn.common.training_step`; ``model.cuda_graphs: false`` turns
-it off): the paper's batches of 32 frames are otherwise bound by kernel launches. ``model.mixed_precision`` runs the forward passes under bf16 autocast
-(weights, Adam's moments and the L1 loss stay float32). Each step loop is a plain function of
+it off): the paper's batches of 32 frames are otherwise bound by kernel launches.
+``model.mixed_precision`` runs the forward passes under bf16 autocast (weights, Adam's moments and
+the L1 loss stay float32). Each step loop is a plain function of
 (model, optimizer, frame order): a data-parallel wrapper of the model (DDP) goes around
 ``model`` before :func:`run_epochs`, and a per-rank shard of the order replaces
 ``torch.randperm`` in ``epoch_fn``.
@@ -478,7 +479,7 @@ def train_stage(
                                batch_size=batch_size, device=device, shuffle=shuffle)
         target = "target"
 
-    steps: dict[int, TrainingStep] = {}  # per optimizer (a resumed stage builds a new one)
+    steps: dict[int, TrainingStep] = {}  # by optimizer: the one run_epochs builds for this stage
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         total = torch.zeros((), device=device)
@@ -556,7 +557,7 @@ def train_stacked_prototypes(
     frames = [torch.as_tensor(np.asarray(f), dtype=torch.int64) for f in frames_per_prototype]
     steps = -(-max(counts) // batch_size)
     graphs = bool(hyperparameters.get("cuda_graphs", True))
-    training_steps: dict[int, TrainingStep] = {}  # per optimizer (a resumed stage builds a new one)
+    training_steps: dict[int, TrainingStep] = {}  # by optimizer: the one run_epochs builds for this stage
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         sequences = []
@@ -573,7 +574,8 @@ def train_stacked_prototypes(
                 # the sum of the K prototypes' mean L1 losses
                 return (prediction.float() - target_t[batch]).abs().sum(-1).mean(dim=(1, 2)).sum()
 
-            training_steps[id(optimizer)] = TrainingStep(loss_of, optimizer, graph=graphs)
+            # a data-parallel optimizer sums gradients over the ranks in its step: eager steps
+            training_steps[id(optimizer)] = TrainingStep(loss_of, optimizer, graph=graphs and not distributed.active())
         training_step = training_steps[id(optimizer)]
         total = torch.zeros((), device=device)
         for step in range(steps):
