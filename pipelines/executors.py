@@ -115,7 +115,9 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
             max_retries: int = 3, progress_interval_s: float = 1.0, log: Callable[[str], None] | None = None,
             prepared: dict | None = None) -> dict:
     """Schedules each batch as a Ray task (``num_gpus=1`` when the device is CUDA) that builds its
-    context with ``build_context`` and runs ``simulate_batch`` (generate-dataset's).
+    context with ``build_context`` and runs ``simulate_batch`` (generate-dataset's). A worker
+    process takes batch after batch (also on GPUs) and builds its context once, so a plan with
+    more batches than GPUs pays a batch's set-up per extra batch, not a worker's start.
 
     ``address``: a running cluster (``ray start --head`` prints it; ``auto`` finds the local one);
     without it a Ray instance is started for this run (``num_cpus`` CPUs, default all) and ended
@@ -150,8 +152,10 @@ def run_ray(spec: dict, out_dir: Path, batches: list[list[str]], *, build_contex
         # Ray shows each task only the GPU it holds, as cuda:0
         worker_device = "cuda:0" if gpu else device
         board = ray.remote(num_cpus=0)(_ProgressBoard).remote()
+        # max_calls=0: a worker runs batch after batch and keeps its context (body, plan, CUDA and
+        # kernels loaded); Ray's default for GPU tasks (1) starts a new worker process per batch
         remote = ray.remote(num_gpus=1 if gpu else 0, num_cpus=1, max_retries=max_retries,
-                            retry_exceptions=False)(_run_batch)
+                            retry_exceptions=False, max_calls=0)(_run_batch)
         fault = os.environ.get(FAULT_ENV) or None
         shared = None if prepared is None else ray.put(prepared)
         pending = {remote.remote(build_context, simulate_batch, spec, str(out_dir), batch, worker_device,

@@ -500,6 +500,23 @@ def test_cuda_run_from_cached_garments_and_a_prepared_plan_writes_identical_shar
     assert _shard_hashes(out) == _shard_hashes(tmp_path / "fresh"), "the driver's plan and template"
 
 
+@pytest.mark.skipif(not _cuda_available(), reason="needs a CUDA device")
+def test_a_ray_gpu_worker_runs_batch_after_batch(tmp_path, monkeypatch):
+    """One GPU, two batches: one worker process runs both (Ray's default for a GPU task is a new
+    process per call), and every shard keeps the frames of the local run."""
+    pytest.importorskip("ray")
+    from pipelines.generate_dataset import generate
+
+    spec = _with(**NO_AUDIT, simulation__device="cuda", simulation__worlds=1, simulation__batches=2)
+    local = generate(spec, tmp_path / "local", progress=False, log=lambda m: None)
+    monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0")  # the Ray started for the run sees one GPU
+    manifest = generate(spec, tmp_path / "ray", executor="ray", ray_cpus=2, progress=False, log=lambda m: None)
+    ray = manifest.audit["simulation"]["ray"]
+    assert ray["workers"] == 1 and ray["gpus"] == 1 and len(ray["batch_done_s"]) == 2, ray
+    kept = {s["task_id"]: s["frame_count"] for s in manifest.shards}
+    assert kept == {s["task_id"]: s["frame_count"] for s in local.shards}
+
+
 def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
     """``simulation.batches``: pairs stay whole, every task is in exactly one batch, no batch has
     more pairs than worlds, the batches' target poses differ by at most the largest pair's, and the
