@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# Jobs longer than one device call (10 minutes): start one in the background, then wait for it in
+# calls made back to back (the machine is given back after 30 s idle), each returning where it is.
+#
+#   bash bench/device_job.sh start NAME COMMAND...   # COMMAND runs from a snapshot of the checkout
+#   bash bench/device_job.sh wait NAME [SECONDS]     # up to SECONDS (default 540), then the log's tail
+#   bash bench/device_job.sh collect NAME            # the job's directory as $OUT/NAME.tgz (one file:
+#                                                    # a call brings back only a few files)
+#
+# The job runs in /root/jobs/NAME/snap (a copy of the working tree, so later calls may change it)
+# with PYTHONPATH=/tmp/site:SNAP (pack.sh's packages); COMMAND's own files go under $JOB
+# (/root/jobs/NAME/out), its output to /root/jobs/NAME/log, its exit status to /root/jobs/NAME/rc.
+#
+# The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet on one GPU beside uvimage):
+#   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
+set -uo pipefail
+cmd=${1:?start|wait|collect|learners-full}; name=${2:-}
+root=/root/jobs/$name
+case $cmd in
+  start)
+    shift 2
+    rm -rf "$root" && mkdir -p "$root/snap" "$root/out"
+    tar --exclude=./.device --exclude=./.venv -cf - . | tar -xf - -C "$root/snap"
+    (cd "$root/snap" && JOB="$root/out" PYTHONPATH="/tmp/site:$root/snap" PYTHONUNBUFFERED=1 TQDM_DISABLE=1 \
+      NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1 \
+      setsid nohup bash -c '"$@"; echo $? > '"$root/rc" _ "$@" > "$root/log" 2>&1 < /dev/null &)
+    echo "started $name: $*" ;;
+  wait)
+    end=$(( $(date +%s) + ${3:-540} ))
+    while [ ! -f "$root/rc" ] && [ "$(date +%s)" -lt "$end" ]; do sleep 5; done
+    [ -f "$root/rc" ] && echo "$name finished: rc=$(cat "$root/rc")" || echo "$name still running"
+    tail -n 15 "$root/log"
+    nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader 2>/dev/null || true ;;
+  collect)
+    tar -czf "${OUT:?}/$name.tgz" -C /root/jobs "$name/log" "$name/out" 2>/dev/null
+    ls -la "$OUT/$name.tgz" ;;
+  learners-full)
+    # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then train
+    # TailorNet at the paper's epochs on GPU 0 beside uvimage on GPU 1, evaluate with --analysis;
+    # logs, run.json, loss curves and evaluation.json under $JOB
+    gpus=${2:-4}
+    python - "$JOB/spec.yaml" "$gpus" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec("tailornet-tshirt")
+spec["audit"]["samples"] = 0
+spec["simulation"]["batches"] = int(sys.argv[2])
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+    ds=/root/jobs/data-tshirt
+    python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out $ds --executor ray --no-progress > "$JOB/generate.log" 2>&1
+    CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
+      --no-progress > "$JOB/train_tailornet.log" 2>&1 &
+    tn=$!
+    CUDA_VISIBLE_DEVICES=1 python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv" --device cuda \
+      --no-progress > "$JOB/train_uvimage.log" 2>&1 &
+    wait $tn
+    CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
+      > "$JOB/evaluate_tailornet.log" 2>&1
+    wait
+    find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
+    ;;
+  *) echo "unknown command $cmd (start, wait, collect, learners-full)" >&2; exit 2 ;;
+esac
