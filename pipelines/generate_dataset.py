@@ -463,6 +463,9 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
     if phases and seconds > 0:
         lines.append(f"  stepping / bodies / recording / recoveries / other  {_phase_split(phases)} s over "
                      f"{int(phases.get('frames', 0))} simulator frames")
+        if float(phases.get("sim_device_s", 0.0)) > 0:  # CUDA: how much of the loop the frames keep the device busy
+            lines.append(f"  {'frames on the device':<26}{float(phases['sim_device_s']):>6.1f} s of the loop's "
+                         f"{float(phases.get('loop_s', 0.0)):.1f} s (the rest: host work the device waits for)")
         lines.append("  set-up: orders and routes / cloth model / bodies and simulator  "
                      + " / ".join(f"{float(phases.get(k, 0.0)):.1f}" for k in
                                   ("setup_schedules_s", "setup_model_s", "setup_simulator_s")) + " s")

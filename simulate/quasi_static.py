@@ -277,6 +277,13 @@ class QuasiStaticSimulator:
                                    and self.solver.contact_detect_every == 1)
         self._cpu_graphs: tuple | None = None
         self._launched_running: np.ndarray | None = None
+        self.device_frame_s = 0.0
+        """The frames' own time on the device [s], summed: from each frame's start on its stream to
+        its end, timed by CUDA events (0 on the CPU). Against the wall time per frame it says how
+        much of a loop the host adds (``last_frame_device_s``: the last frame's)."""
+        self.last_frame_device_s = 0.0
+        self._frame_events = ((wp.Event(dev, enable_timing=True), wp.Event(dev, enable_timing=True))
+                              if wp.get_device(dev).is_cuda else None)
 
     # ----------------------------------------------------------------- stepping
     def _simulate_frame(self, *, cpu_graphs: tuple | None = None) -> None:
@@ -359,6 +366,14 @@ class QuasiStaticSimulator:
             raise RuntimeError("launch_frame called twice without finish_frame")
         self._sync_active()
         self._launched_running = self.status == WorldStatus.RUNNING
+        if self._frame_events is not None:
+            wp.record_event(self._frame_events[0])
+        self._queue_frame()
+        if self._frame_events is not None:
+            wp.record_event(self._frame_events[1])
+
+    def _queue_frame(self) -> None:
+        """The frame's work, by CUDA graph, CPU graphs or eagerly (``launch_frame``)."""
         if self._use_graph:
             if self._graph is None:
                 # The first frame runs eagerly so every kernel is compiled and loaded before capture.
@@ -403,6 +418,9 @@ class QuasiStaticSimulator:
         bad = self.world_bad.numpy()
         stretch = self.world_max_stretch.numpy()
         fast = self.world_fast_count.numpy()
+        if self._frame_events is not None:  # the reads above waited for the frame: no wait here
+            self.last_frame_device_s = wp.get_event_elapsed_time(*self._frame_events) / 1000.0
+            self.device_frame_s += self.last_frame_device_s
         s = self.settings
         residual = np.where(running, speed, np.nan)
         self._history.append(residual)

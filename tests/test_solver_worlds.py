@@ -81,6 +81,28 @@ def test_same_run_twice_gives_identical_arrays(device: str) -> None:
 
 
 @pytest.mark.parametrize("device", DEVICES)
+def test_frames_report_their_device_time(device: str) -> None:
+    """On CUDA each launched frame's device time (CUDA events) is positive and within the wall time
+    from its launch to its finish; on the CPU it stays 0."""
+    import time
+
+    model, collider = _sphere_scene(["denim", "silk"], device)
+    sim = QuasiStaticSimulator(model, collider, settings=unit_settings(substeps=4, iterations=4, max_frames=15))
+    walls = []
+    for _ in range(4):
+        t0 = time.perf_counter()
+        sim.launch_frame()
+        sim.finish_frame()
+        walls.append(time.perf_counter() - t0)
+        if device.startswith("cuda"):
+            assert 0 < sim.last_frame_device_s <= walls[-1]
+    if device.startswith("cuda"):
+        assert 0 < sim.device_frame_s <= sum(walls)
+    else:
+        assert sim.device_frame_s == 0.0 and sim.last_frame_device_s == 0.0
+
+
+@pytest.mark.parametrize("device", DEVICES)
 def test_a_world_revived_while_a_frame_is_in_flight_keeps_its_new_state(device: str) -> None:
     """launch_frame / finish_frame (what the sequence driver does between them): a world frozen
     when the frame was launched and revived before it finished is not stepped by that frame, keeps

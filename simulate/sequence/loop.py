@@ -284,6 +284,7 @@ def run_sequences(
                 t4 = time.perf_counter()
                 status = sim.finish_frame()
                 run.sim_s += time.perf_counter() - t4 + (t2 - t1)
+                run.sim_device_s += sim.last_frame_device_s
                 run.sim_launch_s += t2 - t1
                 run.frames += 1
                 run.world_frames += int(ran.sum())

@@ -18,6 +18,7 @@ class SequenceStats:
     motion_world_frames: int = 0  # ... stepping to a motion frame and recording it
     sim_s: float = 0  # stepping: launch plus the wait left after the host work beside the frame
     sim_launch_s: float = 0  # the launch alone
+    sim_device_s: float = 0  # the frames' own device time (CUDA events; 0 on the CPU): the rest of loop_s is the host's
     body_s: float = 0  # posing bodies, moving the collider's targets
     record_s: float = 0  # copying, handing over and routing target frames
     recover_s: float = 0  # explosion recoveries
