@@ -106,6 +106,12 @@ class Context:
     def tasks(self) -> dict:
         return {t.task_id: t for t in self.plan.tasks}
 
+    @property
+    def prepared(self) -> dict:
+        """What another process of the same spec takes instead of building it again
+        (``build_context(..., prepared=)``): the plan and the garment template."""
+        return {"plan": self.plan, "template": self.template}
+
 
 _CONTEXTS: dict[str, Context] = {}
 
@@ -766,7 +772,7 @@ def _generate_locked(spec_or_path: dict | str | Path, out_dir: str | Path, *, ex
         cluster = run_ray(spec, out_dir, batches, build_context=build_context, simulate_batch=simulate_batch,
                           device=ctx.device, on_shard=on_shard, on_progress=on_progress, on_batch=after_batch,
                           on_phases=add_phases, address=ray_address, num_cpus=ray_cpus, skip=done, log=log,
-                          prepared={"plan": ctx.plan, "template": ctx.template})
+                          prepared=ctx.prepared)
     bar.close()
     sim_seconds = time.perf_counter() - t_sim
     audit = dict(manifest.audit or {})

@@ -447,8 +447,7 @@ def test_a_worker_context_takes_the_drivers_plan_and_template(reference, monkeyp
 
     monkeypatch.setattr(dataset_plan, "plan_dataset", refuse)
     monkeypatch.setattr(templates, "make_template", refuse)
-    worker = gd.build_context(spec, reference, log=lambda m: None,
-                              prepared={"plan": driver.plan, "template": driver.template})
+    worker = gd.build_context(spec, reference, log=lambda m: None, prepared=driver.prepared)
     assert worker.plan is driver.plan and worker.template is driver.template
     np.testing.assert_array_equal(worker.style_start, driver.style_start)
 
@@ -489,8 +488,7 @@ def test_cuda_run_from_cached_garments_and_a_prepared_plan_writes_identical_shar
     gd._CONTEXTS.clear()
     gd.generate(spec, tmp_path / "cached", progress=False, log=lambda m: None)
     assert _shard_hashes(tmp_path / "cached") == _shard_hashes(tmp_path / "fresh"), "garments from the cache"
-    ctx = next(iter(gd._CONTEXTS.values()))
-    prepared = {"plan": ctx.plan, "template": ctx.template}
+    prepared = next(iter(gd._CONTEXTS.values())).prepared
     gd._CONTEXTS.clear()
     out = tmp_path / "prepared"
     shutil.copytree(tmp_path / "fresh" / "cache", out / "cache")
