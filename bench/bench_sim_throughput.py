@@ -93,6 +93,11 @@ def main() -> None:
     parser.add_argument("--self-contact", action="store_true", help="cloth self-contact on (Features.self_contact)")
     parser.add_argument("--self-contact-detect-every", type=int, default=1,
                         help="search cloth-cloth pairs every N substeps (SimSettings.self_contact_detect_every)")
+    parser.add_argument("--self-contact-search-every", type=int, default=1,
+                        help="VBD self-contact: BVH searches on every N-th self-contact substep, the pair lists "
+                             "refreshed in between (SimSettings.self_contact_search_every)")
+    parser.add_argument("--self-contact-skin", type=float, default=0.0,
+                        help="VBD self-contact: extra list distance of the searches [m] (SimSettings.self_contact_skin)")
     parser.add_argument("--ball-bounds", action="store_true",
                         help="VBD self-contact: ball displacement bounds instead of the directional ones "
                              "(SimSettings.self_contact_directional_bounds=False)")
@@ -147,6 +152,8 @@ def main() -> None:
                           body_contact_detect_every=args.contact_detect_every,
                           self_contact_directional_bounds=not args.ball_bounds,
                           self_contact_detect_every=args.self_contact_detect_every,
+                          self_contact_search_every=args.self_contact_search_every,
+                          self_contact_skin=args.self_contact_skin,
                           max_frames=10 ** 9, **BENCH_SETTINGS)
         sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=raw,
                                    solver_options=solver_options)
@@ -168,6 +175,7 @@ def main() -> None:
             "contact_detect_every": args.contact_detect_every,
             "self_contact": args.self_contact, "ball_bounds": args.ball_bounds,
             "self_contact_detect_every": args.self_contact_detect_every,
+            "self_contact_search_every": args.self_contact_search_every, "self_contact_skin": args.self_contact_skin,
             "vbd_block_dim": getattr(sim.solver, "block_dim", None) if args.solver == "vbd" else None,
             "vbd_shared": getattr(sim.solver, "shared", None), "garments": args.garments,
             "element_data_copies": getattr(sim.solver, "element_data_copies", None),
@@ -185,7 +193,9 @@ def main() -> None:
                                    gs_sweep=args.gs_sweep, gs_block_dim=args.gs_block_dim,
                                    body_contact_detect_every=args.contact_detect_every, tolerance=args.tolerance,
                                    self_contact_directional_bounds=not args.ball_bounds,
-                          self_contact_detect_every=args.self_contact_detect_every,
+                                   self_contact_detect_every=args.self_contact_detect_every,
+                                   self_contact_search_every=args.self_contact_search_every,
+                                   self_contact_skin=args.self_contact_skin,
                                    max_frames=args.max_frames, **BENCH_SETTINGS)
             sim = QuasiStaticSimulator(model, collider, solver=args.solver, settings=settings,
                                        solver_options=solver_options)
@@ -211,6 +221,8 @@ def main() -> None:
             records.append({"bench": "sim_profile", "device": device, "worlds": worlds, "scene": args.scene,
                             "vertices_per_world": vertices, "substeps": sim.substeps, "iterations": args.iterations,
                             "mode": args.mode, "self_contact": args.self_contact, "ball_bounds": args.ball_bounds,
+                            "self_contact_search_every": args.self_contact_search_every,
+                            "self_contact_skin": args.self_contact_skin,
                             "graph_ms_per_frame": record["ms_per_frame"],
                             **kernel_profile(sim, args.profile_frames)})
         for rec in records:

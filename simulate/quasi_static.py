@@ -114,6 +114,14 @@ class SimSettings:
     of 0.45 its nearest pair distance: layers pressed together by the body may part and slide
     along each other instead of being pinned, and still never cross (docs/benchmarks.md,
     "Directional displacement bounds")."""
+    self_contact_search_every: int = 1
+    """Self-contact (VBD): the pair lists are searched with the BVHs on every this-many-th
+    self-contact substep of a frame and refreshed in between (distances and bounds of the listed
+    pairs, the rest bounded by their distance at the search less the world's largest
+    displacement since; ``SelfContact.refresh``)."""
+    self_contact_skin: float = 0.0
+    """Self-contact (VBD): extra distance [m] the searches list pairs at, so pairs that close
+    before the next search are already listed (``SelfContact``'s ``skin``)."""
     self_contact_rest_exclusion: float | None = None
     """Self-contact: particle-triangle pairs closer than this in the rest geometry are never
     contacts [m] (None = SelfContact's default, twice the contact reach)."""
@@ -163,6 +171,9 @@ class SimSettings:
             "max_frames": int(self.max_frames) == self.max_frames and self.max_frames >= 1,
             "self_contact_detect_every": int(self.self_contact_detect_every) == self.self_contact_detect_every
             and self.self_contact_detect_every >= 1,
+            "self_contact_search_every": int(self.self_contact_search_every) == self.self_contact_search_every
+            and self.self_contact_search_every >= 1,
+            "self_contact_skin": np.isfinite(self.self_contact_skin) and self.self_contact_skin >= 0.0,
             "self_contact_rest_exclusion": self.self_contact_rest_exclusion is None
             or (np.isfinite(self.self_contact_rest_exclusion) and self.self_contact_rest_exclusion >= 0.0),
             "untangle": isinstance(self.untangle, bool),
@@ -232,7 +243,9 @@ class QuasiStaticSimulator:
             opts.setdefault("iterations", s.iterations)
             opts.setdefault("self_contact_options", {"detect_every": int(s.self_contact_detect_every),
                                                      "rest_exclusion": s.self_contact_rest_exclusion,
-                                                     "directional_bounds": bool(s.self_contact_directional_bounds)})
+                                                     "directional_bounds": bool(s.self_contact_directional_bounds),
+                                                     "search_every": int(s.self_contact_search_every),
+                                                     "skin": float(s.self_contact_skin)})
         self.solver = make_solver(solver, model, **opts)
         if s.substeps is None:
             self.substeps = int(self.solver.substeps_for(s.frame_dt)) if hasattr(self.solver, "substeps_for") else 10

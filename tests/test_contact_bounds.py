@@ -239,11 +239,17 @@ def test_directional_bounds_let_pressed_layers_part(device: str) -> None:
     assert rise[True] > 0.8 * 0.3 * 3.0 / 60.0, f"the directional bound should let it part: {rise}"
 
 
+REFRESHED = {"search_every": 5, "skin": 2.0e-3}
+"""Self-contact options: a BVH search on every 5th substep, the lists refreshed in between."""
+
+
 @pytest.mark.parametrize("device", DEVICES)
-def test_directional_bounds_stop_a_fast_layer(device: str) -> None:
+@pytest.mark.parametrize("lists", [{}, REFRESHED], ids=["searched", "refreshed"])
+def test_directional_bounds_stop_a_fast_layer(device: str, lists: dict) -> None:
     """The fast-layer scene of ``test_fast_layer_does_not_pass_through`` with directional bounds:
-    the patch thrown at the sheet lands on it and never crosses it."""
-    upper, crossings = _throw_layer(device, "vbd", {"directional_bounds": True}, (1.5, -6.0, 0.0))
+    the patch thrown at the sheet lands on it and never crosses it, also with one search per
+    frame (5 substeps) and the lists refreshed in between."""
+    upper, crossings = _throw_layer(device, "vbd", {"directional_bounds": True, **lists}, (1.5, -6.0, 0.0))
     assert max(crossings) == 0, f"crossings per frame: {crossings}"
     assert upper[:, 1].min() > 0.0
 
@@ -259,11 +265,13 @@ def _layer_gap(x: np.ndarray, faces: np.ndarray, lower_faces: int, lower_count: 
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_directional_bounds_keep_squeezed_layers_apart(device: str) -> None:
+@pytest.mark.parametrize("lists", [{}, REFRESHED], ids=["searched", "refreshed"])
+def test_directional_bounds_keep_squeezed_layers_apart(device: str, lists: dict) -> None:
     """Two 6 cm patches between a torso sphere and an arm sphere that sinks 15 mm into it, each
     patch meeting only its own sphere (primary parts): the skins squeeze the layers together, the
     bounds win, and the gap settles at the bounds' separation (0.1 mm) instead of closing by a
-    share of itself search after search (to float32's resolution, ~0.2 um, and through)."""
+    share of itself search after search (to float32's resolution, ~0.2 um, and through); also
+    with two searches per frame and the lists refreshed in between."""
     torso_r, arm_r = 0.15, 0.06
     tv, tf = icosphere(torso_r, subdivisions=4)
     av, af = icosphere(arm_r, subdivisions=4)
@@ -282,7 +290,7 @@ def test_directional_bounds_keep_squeezed_layers_apart(device: str) -> None:
     collider = BodyCollider(np.concatenate([tv, av + [0.0, arm_y, 0.0]]), faces, device=device, face_groups=groups)
     sim = QuasiStaticSimulator(model, collider, solver="vbd",
                                settings=unit_settings(substeps=10, iterations=3, damping=20.0, frame_dt=1.0 / 45.0),
-                               solver_options={"self_contact_options": {"directional_bounds": True}})
+                               solver_options={"self_contact_options": {"directional_bounds": True, **lists}})
     meter = QualityMeter(cloth_faces, verts, cloth_faces[:1], 3, device=device)
     gaps, crossings = [], []
     for k in range(30):
@@ -411,3 +419,48 @@ def test_bounds_match_brute_force(directional: bool) -> None:
         np.testing.assert_allclose(contact.d_ball.numpy()[keep], ball[keep], rtol=1e-4, atol=1e-7)
     else:
         np.testing.assert_allclose(contact.d_min.numpy()[keep], d_min[keep], rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.parametrize("directional", [True, False], ids=["directional", "ball"])
+def test_refreshed_bounds_are_never_wider_than_a_search(directional: bool) -> None:
+    """A refresh of the pair lists (``SelfContact.refresh``: no BVH query) bounds every particle at
+    least as tightly as a search at the same positions would: the listed pairs as the search, the
+    pairs the lists left out (one per primitive here, so most are) by their distance at the
+    search less twice the world's largest displacement since. Right after the search, a refresh
+    gives the search's ball bounds exactly. Then the folded half of the second world is pressed
+    1.5 mm down (the pairs there close by half) and both worlds jittered: a refresh without the
+    displacement term, or without the left-out pairs, would bound some particle wider than the
+    search does."""
+    from simulate.contact.self_contact import SelfContact
+
+    model, x0 = folded_sheet_worlds(seed=7, jitter=6e-4)
+    n = len(x0) // 2
+    x1 = x0 + np.random.default_rng(3).normal(0.0, 2.0e-4, x0.shape).astype(np.float32)
+    x1[n:][x0[n:, 1] > 0.0015, 1] -= 0.0015
+    active = model.control().world_active
+    opts = {"pairs": True, "directional_bounds": directional, "pairs_per_primitive": 1, "skin": 2.0e-3}
+    refreshed, searched = SelfContact(model, **opts), SelfContact(model, **opts)
+    for contact in (refreshed, searched):
+        for _ in range(2):  # the second search takes its bound normals from the first one's pairs
+            contact.detect(wp.array(x0, dtype=wp.vec3, device="cpu"), active)
+    reach = refreshed.thickness + refreshed.margin
+    assert (refreshed.horizon.numpy() < reach).sum() > 20, "the lists must leave pairs within the reach out"
+    if not directional:
+        at_search = refreshed.d_min.numpy().copy()
+        refreshed.refresh(wp.array(x0, dtype=wp.vec3, device="cpu"), active)
+        np.testing.assert_array_equal(refreshed.d_min.numpy(), at_search)
+    refreshed.refresh(wp.array(x1, dtype=wp.vec3, device="cpu"), active)
+    searched.detect(wp.array(x1, dtype=wp.vec3, device="cpu"), active)
+    moved = refreshed.world_moved.numpy()
+    assert moved[1] > 1.4e-3 > moved[0], moved
+    if directional:
+        np.testing.assert_array_equal(refreshed.bound_normal.numpy(), searched.bound_normal.numpy())
+        r_ball, s_ball = refreshed.d_ball.numpy(), searched.d_ball.numpy()
+        assert (r_ball <= s_ball + 1e-7).all(), f"a refreshed ball is wider than the search's by {np.max(r_ball - s_ball)} m"
+        r = np.minimum(refreshed.d_side.numpy(), r_ball)
+        s = np.minimum(searched.d_side.numpy(), s_ball)
+    else:
+        r, s = refreshed.d_min.numpy(), searched.d_min.numpy()
+    assert (r <= s + 1e-7).all(), f"a refreshed bound is wider than the search's by {np.max(r - s)} m"
+    assert (s < reach).sum() > n
+    assert np.median(r[:n] / s[:n]) > 0.3, "where little moved, the refresh should keep most of the search's bounds"

@@ -36,6 +36,16 @@ between them, and never below ``min_separation`` once that far apart: new inters
 form, whatever the penalty and the elastic forces do. The bounds also win over body contact: where a body part presses two layers together
 (an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
 
+**Refreshed lists** (``search_every``, ``skin``): the BVH queries are most of the cost, so a solver
+may search on every ``search_every``-th substep only, listing pairs up to ``skin`` beyond the reach,
+and in between *refresh*: the listed pairs' distances, certificates and bounds at the new positions,
+computed as a search computes them, without a query. A pair the lists leave out (farther than the
+list reach, or past ``pairs_per_primitive``) put its distance at the search into its particles'
+``horizon``; at a refresh it bounds them by ``horizon`` less twice the largest displacement in the
+world since the search (no pair closed by more), and, with directional bounds, by half of that in
+the ball (a certificate is at least half its pair's distance). A refresh's bounds are therefore
+never wider than a search's at the same positions.
+
 **Directional bounds** (``directional_bounds``): a ball of 0.45 ``d_min`` pins two layers pressed
 together (the gap and so the ball go to ``min_separation``): they can neither slide nor part, and
 the cloth around them stretches. Instead each particle gets a *bound normal* ``n`` (the direction
@@ -307,7 +317,8 @@ def insert_nearest(ids: wp.array2d(dtype=wp.int32), dist: wp.array2d(dtype=float
     """Puts ``key`` at distance ``d`` into row ``row`` of a list kept sorted by (distance, key),
     the farthest entry falling off a full row. Each key arrives once (its BVH leaf is visited
     once), and the result does not depend on the order keys arrive in (no atomics, one row per
-    thread)."""
+    thread). Returns the key that is not in the row after the insert and its distance: ``key``
+    itself where the row is full of nearer ones, the entry that fell off, or -1."""
     n = ids.shape[1]
     pos = n
     for k in range(n):
@@ -316,7 +327,9 @@ def insert_nearest(ids: wp.array2d(dtype=wp.int32), dist: wp.array2d(dtype=float
             pos = k
             break
     if pos == n:
-        return
+        return key, d
+    dropped = ids[row, n - 1]
+    dropped_d = dist[row, n - 1]
     k = n - 1
     while k > pos:
         ids[row, k] = ids[row, k - 1]
@@ -324,6 +337,7 @@ def insert_nearest(ids: wp.array2d(dtype=wp.int32), dist: wp.array2d(dtype=float
         k -= 1
     ids[row, pos] = key
     dist[row, pos] = d
+    return dropped, dropped_d
 
 
 @wp.func
@@ -332,6 +346,58 @@ def contact_radius(rest_distance: float, thickness: float) -> float:
     rest geometry where that is less (where panels meet at an acute angle, the rest shape is
     at rest)."""
     return wp.min(thickness, rest_distance)
+
+
+@wp.func
+def vertex_triangle_bound(p: wp.vec3, a: int, b: int, c: int, xa: wp.vec3, xb: wp.vec3, xc: wp.vec3, diff: wp.vec3,
+                          d: float, n_i: wp.vec3, normal: wp.array(dtype=wp.vec3), cone_cos: float,
+                          side_i: float, ball_i: float, d_min: wp.array(dtype=float), d_side: wp.array(dtype=float),
+                          d_ball: wp.array(dtype=float)):
+    """A vertex-triangle pair (point ``p`` with bound normal ``n_i``, triangle ``a b c`` at ``xa xb
+    xc``, offset ``diff`` of length ``d`` [m] from the triangle to the point) into the bounds: with
+    ``cone_cos`` 0 its distance into the corners' ``d_min`` (atomics), else its certificate into
+    the corners' ``d_side`` / ``d_ball`` (atomics) and the point's, which are returned (the point
+    gathers its own in registers)."""
+    if cone_cos == 0.0:
+        wp.atomic_min(d_min, a, d)
+        wp.atomic_min(d_min, b, d)
+        wp.atomic_min(d_min, c, d)
+        return side_i, ball_i
+    # certificate: the particles' mean bound normal where it separates by >= d / 2
+    m = wp.vec3(0.0)
+    sep = float(0.0)
+    na = normal[a]
+    nb = normal[b]
+    nc = normal[c]
+    raw = n_i - na - nb - nc
+    if wp.length(raw) > 0.5:
+        m = wp.normalize(raw)
+        sep = wp.dot(m, p) - wp.max(wp.dot(m, xa), wp.max(wp.dot(m, xb), wp.dot(m, xc)))
+    if sep < 0.5 * d:
+        m = diff / wp.max(d, 1.0e-12)
+        sep = d
+    side = side_i
+    ball = ball_i
+    if wp.dot(m, n_i) >= cone_cos:
+        side = wp.min(side, sep)
+    else:
+        ball = wp.min(ball, sep)
+    classify_bound(a, na, -m, sep, cone_cos, d_side, d_ball)
+    classify_bound(b, nb, -m, sep, cone_cos, d_side, d_ball)
+    classify_bound(c, nc, -m, sep, cone_cos, d_side, d_ball)
+    return side, ball
+
+
+@wp.func
+def own_bounds(i: int, best: float, side_i: float, ball_i: float, cone_cos: float, d_min: wp.array(dtype=float),
+               d_side: wp.array(dtype=float), d_ball: wp.array(dtype=float)):
+    """A particle's bounds gathered in registers, into its ``d_min`` (``cone_cos`` 0) or its
+    ``d_side`` / ``d_ball`` (one atomic each)."""
+    if cone_cos == 0.0:
+        wp.atomic_min(d_min, i, best)
+    else:
+        wp.atomic_min(d_side, i, side_i)
+        wp.atomic_min(d_ball, i, ball_i)
 
 
 @wp.kernel
@@ -346,6 +412,7 @@ def vertex_triangle_pairs(
     x: wp.array(dtype=wp.vec3),
     x_rest: wp.array(dtype=wp.vec3),
     reach: float,
+    list_reach: float,
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
@@ -353,16 +420,19 @@ def vertex_triangle_pairs(
     pair_tri: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
     pair_radius: wp.array2d(dtype=float),
-    # In/out (filled with ``reach`` by the caller):
+    # In/out (filled with ``reach``, ``horizon`` with ``list_reach``, by the caller):
     d_min: wp.array(dtype=float),
     d_side: wp.array(dtype=float),
     d_ball: wp.array(dtype=float),
+    horizon: wp.array(dtype=float),
 ):
-    """Each particle's nearest triangles within ``reach`` [m] that do not contain it (``pair_tri``,
-    -1 past the last; their contact radii in ``pair_radius``), and the bounds: with ``cone_cos`` 0
-    the smallest distance of these pairs to the particle and the triangle's corners (``d_min``),
-    else each pair's certificate into its four particles' ``d_side`` / ``d_ball`` (the particle's
-    own gathered in registers; float atomic min)."""
+    """Each particle's nearest triangles within ``list_reach`` [m] that do not contain it
+    (``pair_tri``, -1 past the last; their contact radii in ``pair_radius``), and the bounds of
+    the pairs within ``reach``: with ``cone_cos`` 0 the smallest distance of these pairs to the
+    particle and the triangle's corners (``d_min``), else each pair's certificate into its four
+    particles' ``d_side`` / ``d_ball`` (the particle's own gathered in registers; float atomic
+    min). A pair within ``list_reach`` that the full list leaves out puts its distance into its
+    four particles' ``horizon`` (what a refresh of the lists cannot see)."""
     i = wp.tid()
     for k in range(pair_tri.shape[1]):
         pair_tri[i, k] = -1
@@ -373,7 +443,7 @@ def vertex_triangle_pairs(
     if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
         return
     q = p + world_offset[w]
-    r_box = reach + shift_tolerance(world_offset[w])
+    r_box = list_reach + shift_tolerance(world_offset[w])
     r = wp.vec3(r_box, r_box, r_box)
     query = wp.mesh_query_aabb(mesh, q - r, q + r)
     face = int(0)
@@ -383,6 +453,7 @@ def vertex_triangle_pairs(
     n_i = normal[i]
     side_i = reach
     ball_i = reach
+    hor_i = list_reach
     while wp.mesh_query_aabb_next(query, face):
         if tri_world[face] != w:
             continue
@@ -396,40 +467,20 @@ def vertex_triangle_pairs(
         xc = x[c]
         diff = point_triangle_offset(p, xa, xb, xc)
         d = wp.length(diff)
-        if d >= reach:
+        if d >= list_reach:
             continue
-        best = wp.min(best, d)
-        insert_nearest(pair_tri, pair_dist, i, face, d)
-        if cone_cos == 0.0:
-            wp.atomic_min(d_min, a, d)
-            wp.atomic_min(d_min, b, d)
-            wp.atomic_min(d_min, c, d)
-        else:
-            # certificate: the particles' mean bound normal where it separates by >= d / 2
-            m = wp.vec3(0.0)
-            sep = float(0.0)
-            na = normal[a]
-            nb = normal[b]
-            nc = normal[c]
-            raw = n_i - na - nb - nc
-            if wp.length(raw) > 0.5:
-                m = wp.normalize(raw)
-                sep = wp.dot(m, p) - wp.max(wp.dot(m, xa), wp.max(wp.dot(m, xb), wp.dot(m, xc)))
-            if sep < 0.5 * d:
-                m = diff / wp.max(d, 1.0e-12)
-                sep = d
-            if wp.dot(m, n_i) >= cone_cos:
-                side_i = wp.min(side_i, sep)
-            else:
-                ball_i = wp.min(ball_i, sep)
-            classify_bound(a, na, -m, sep, cone_cos, d_side, d_ball)
-            classify_bound(b, nb, -m, sep, cone_cos, d_side, d_ball)
-            classify_bound(c, nc, -m, sep, cone_cos, d_side, d_ball)
-    if cone_cos == 0.0:
-        wp.atomic_min(d_min, i, best)
-    else:
-        wp.atomic_min(d_side, i, side_i)
-        wp.atomic_min(d_ball, i, ball_i)
+        if d < reach:
+            best = wp.min(best, d)
+            side_i, ball_i = vertex_triangle_bound(p, a, b, c, xa, xb, xc, diff, d, n_i, normal, cone_cos, side_i,
+                                                   ball_i, d_min, d_side, d_ball)
+        dropped, dropped_d = insert_nearest(pair_tri, pair_dist, i, face, d)
+        if dropped >= 0:
+            hor_i = wp.min(hor_i, dropped_d)
+            wp.atomic_min(horizon, tri_indices[dropped, 0], dropped_d)
+            wp.atomic_min(horizon, tri_indices[dropped, 1], dropped_d)
+            wp.atomic_min(horizon, tri_indices[dropped, 2], dropped_d)
+    own_bounds(i, best, side_i, ball_i, cone_cos, d_min, d_side, d_ball)
+    wp.atomic_min(horizon, i, hor_i)
     pr = x_rest[i]
     for k in range(pair_tri.shape[1]):
         t = pair_tri[i, k]
@@ -438,6 +489,77 @@ def vertex_triangle_pairs(
         rest_offset = point_triangle_offset(pr, x_rest[tri_indices[t, 0]], x_rest[tri_indices[t, 1]],
                                             x_rest[tri_indices[t, 2]])
         pair_radius[i, k] = contact_radius(wp.length(rest_offset), thickness)
+
+
+@wp.kernel
+def vertex_triangle_refresh(
+    tri_indices: wp.array2d(dtype=wp.int32),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+    reach: float,
+    normal: wp.array(dtype=wp.vec3),
+    cone_cos: float,
+    pair_tri: wp.array2d(dtype=wp.int32),
+    horizon: wp.array(dtype=float),
+    world_moved: wp.array(dtype=float),
+    # In/out (filled with ``reach`` by the caller):
+    d_min: wp.array(dtype=float),
+    d_side: wp.array(dtype=float),
+    d_ball: wp.array(dtype=float),
+):
+    """The bounds of each particle's listed vertex-triangle pairs at positions ``x``, as the search
+    finds them (``vertex_triangle_pairs``), and of the pairs the lists left out: at least the
+    particle's ``horizon`` less twice its world's largest displacement since the search
+    (``world_moved``), into ``d_min``, or as half of that into ``d_ball`` (a left-out pair has no
+    certificate, which is at least half its distance)."""
+    i = wp.tid()
+    w = particle_world[i]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
+        return
+    best = reach
+    n_i = normal[i]
+    side_i = reach
+    ball_i = reach
+    for k in range(pair_tri.shape[1]):
+        face = pair_tri[i, k]
+        if face < 0:
+            break
+        a = tri_indices[face, 0]
+        b = tri_indices[face, 1]
+        c = tri_indices[face, 2]
+        xa = x[a]
+        xb = x[b]
+        xc = x[c]
+        diff = point_triangle_offset(p, xa, xb, xc)
+        d = wp.length(diff)
+        if d < reach:
+            best = wp.min(best, d)
+            side_i, ball_i = vertex_triangle_bound(p, a, b, c, xa, xb, xc, diff, d, n_i, normal, cone_cos, side_i,
+                                                   ball_i, d_min, d_side, d_ball)
+    unseen = wp.max(horizon[i] - 2.0 * world_moved[w], 0.0)
+    if cone_cos == 0.0:
+        best = wp.min(best, unseen)
+    else:
+        ball_i = wp.min(ball_i, 0.5 * unseen)
+    own_bounds(i, best, side_i, ball_i, cone_cos, d_min, d_side, d_ball)
+
+
+@wp.kernel
+def world_displacement(x: wp.array(dtype=wp.vec3), x_listed: wp.array(dtype=wp.vec3),
+                       particle_world: wp.array(dtype=wp.int32), world_moved: wp.array(dtype=float)):
+    """Each world's largest particle displacement [m] since the lists were searched (float atomic
+    max: the result does not depend on the order)."""
+    i = wp.tid()
+    u = wp.length(x[i] - x_listed[i])
+    if wp.isfinite(u):
+        wp.atomic_max(world_moved, particle_world[i], u)
+    else:
+        wp.atomic_max(world_moved, particle_world[i], 1.0e30)
 
 
 @wp.kernel
@@ -596,6 +718,49 @@ def edge_certificate(cl: wp.vec3, p1: wp.vec3, q1: wp.vec3, p2: wp.vec3, q2: wp.
     return m, sep
 
 
+@wp.func
+def edge_edge_bound(e: int, f: int, p: wp.vec3, q: wp.vec3, xa: wp.vec3, xb: wp.vec3, cl: wp.vec3, n0: wp.vec3,
+                    n1: wp.vec3, raw: wp.vec3, cone_cos: float, side0: float, ball0: float, side1: float,
+                    ball1: float):
+    """Edge ``e`` (ends ``p q``, bound normals ``n0 n1``)'s pair with edge ``f`` (``xa xb``;
+    ``cl``: ``segment_closest(p, q, xa, xb)``, ``raw``: e's ends' bound normals less f's) into
+    e's ends' half-space and ball bounds (returned). The certificate is computed lower edge first
+    from both edges of a pair, so its four particles keep to the same m and s (bit for bit)."""
+    if e < f:
+        m, sep = edge_certificate(cl, p, q, xa, xb, raw)
+    else:
+        m, sep = edge_certificate(segment_closest(xa, xb, p, q), xa, xb, p, q, -raw)
+        m = -m
+    s0 = side0
+    b0 = ball0
+    s1 = side1
+    b1 = ball1
+    if wp.dot(m, n0) >= cone_cos:
+        s0 = wp.min(s0, sep)
+    else:
+        b0 = wp.min(b0, sep)
+    if wp.dot(m, n1) >= cone_cos:
+        s1 = wp.min(s1, sep)
+    else:
+        b1 = wp.min(b1, sep)
+    return s0, b0, s1, b1
+
+
+@wp.func
+def edge_end_bounds(i0: int, i1: int, best: float, side0: float, ball0: float, side1: float, ball1: float,
+                    cone_cos: float, d_min: wp.array(dtype=float), d_side: wp.array(dtype=float),
+                    d_ball: wp.array(dtype=float)):
+    """An edge's bounds gathered in registers into its two ends (one atomic per end and bound)."""
+    if cone_cos == 0.0:
+        wp.atomic_min(d_min, i0, best)
+        wp.atomic_min(d_min, i1, best)
+    else:
+        wp.atomic_min(d_side, i0, side0)
+        wp.atomic_min(d_ball, i0, ball0)
+        wp.atomic_min(d_side, i1, side1)
+        wp.atomic_min(d_ball, i1, ball1)
+
+
 @wp.kernel
 def edge_edge_pairs(
     edge_bvh: wp.uint64,
@@ -607,6 +772,7 @@ def edge_edge_pairs(
     x: wp.array(dtype=wp.vec3),
     x_rest: wp.array(dtype=wp.vec3),
     reach: float,
+    list_reach: float,
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
@@ -618,11 +784,13 @@ def edge_edge_pairs(
     d_min: wp.array(dtype=float),
     d_side: wp.array(dtype=float),
     d_ball: wp.array(dtype=float),
+    horizon: wp.array(dtype=float),
 ):
-    """Each edge's nearest edges within ``reach`` [m] that share no vertex with it (a BVH over the
-    edges' boxes), and the bounds: with ``cone_cos`` 0 the smallest distance at both its ends
-    (``d_min``), else its pairs' certificates (``d_side`` / ``d_ball``), each computed lower
-    edge first."""
+    """Each edge's nearest edges within ``list_reach`` [m] that share no vertex with it (a BVH over
+    the edges' boxes), and the bounds of its pairs within ``reach``: with ``cone_cos`` 0 the
+    smallest distance at both its ends (``d_min``), else its pairs' certificates (``d_side`` /
+    ``d_ball``, ``edge_edge_bound``). A pair within ``list_reach`` that the full list leaves out
+    puts its distance into the edge's ends' ``horizon``."""
     e = wp.tid()
     for k in range(pair_edge.shape[1]):
         pair_edge[e, k] = -1
@@ -637,11 +805,12 @@ def edge_edge_pairs(
             and wp.isfinite(q[2])):
         return
     off = world_offset[w]
-    r_box = reach + shift_tolerance(off)
+    r_box = list_reach + shift_tolerance(off)
     r = wp.vec3(r_box, r_box, r_box)
     query = wp.bvh_query_aabb(edge_bvh, wp.min(p, q) + off - r, wp.max(p, q) + off + r)
     f = int(0)
     best = reach
+    hor = list_reach
     n0 = normal[i0]
     n1 = normal[i1]
     side0 = reach
@@ -653,39 +822,23 @@ def edge_edge_pairs(
         b = edges[f][1]
         if a == i0 or a == i1 or b == i0 or b == i1 or particle_world[a] != w:
             continue
-        cl = segment_closest(p, q, x[a], x[b])
+        xa = x[a]
+        xb = x[b]
+        cl = segment_closest(p, q, xa, xb)
         d = cl[2]
-        best = wp.min(best, d)
         if d < reach:
-            insert_nearest(pair_edge, pair_dist, e, f, d)
+            best = wp.min(best, d)
             if cone_cos > 0.0:
-                # each pair is seen from both edges, and each edge bounds its own ends by it; the
-                # certificate is computed lower edge first on both, so its four particles keep to
-                # the same m and s (bit for bit)
-                xa = x[a]
-                xb = x[b]
-                if e < f:
-                    m, sep = edge_certificate(cl, p, q, xa, xb, n0 + n1 - normal[a] - normal[b])
-                else:
-                    m, sep = edge_certificate(segment_closest(xa, xb, p, q), xa, xb, p, q,
-                                              normal[a] + normal[b] - n0 - n1)
-                    m = -m
-                if wp.dot(m, n0) >= cone_cos:
-                    side0 = wp.min(side0, sep)
-                else:
-                    ball0 = wp.min(ball0, sep)
-                if wp.dot(m, n1) >= cone_cos:
-                    side1 = wp.min(side1, sep)
-                else:
-                    ball1 = wp.min(ball1, sep)
-    if cone_cos == 0.0:
-        wp.atomic_min(d_min, i0, best)
-        wp.atomic_min(d_min, i1, best)
-    else:
-        wp.atomic_min(d_side, i0, side0)
-        wp.atomic_min(d_ball, i0, ball0)
-        wp.atomic_min(d_side, i1, side1)
-        wp.atomic_min(d_ball, i1, ball1)
+                side0, ball0, side1, ball1 = edge_edge_bound(e, f, p, q, xa, xb, cl, n0, n1,
+                                                             n0 + n1 - normal[a] - normal[b], cone_cos, side0, ball0,
+                                                             side1, ball1)
+        if d < list_reach:
+            dropped, dropped_d = insert_nearest(pair_edge, pair_dist, e, f, d)
+            if dropped >= 0:
+                hor = wp.min(hor, dropped_d)
+    edge_end_bounds(i0, i1, best, side0, ball0, side1, ball1, cone_cos, d_min, d_side, d_ball)
+    wp.atomic_min(horizon, i0, hor)
+    wp.atomic_min(horizon, i1, hor)
     rp = x_rest[i0]
     rq = x_rest[i1]
     for k in range(pair_edge.shape[1]):
@@ -695,6 +848,62 @@ def edge_edge_pairs(
         pair_radius[e, k] = contact_radius(segment_distance(rp, rq, x_rest[edges[g][0]], x_rest[edges[g][1]]), thickness)
 
 
+@wp.kernel
+def edge_edge_refresh(
+    edges: wp.array(dtype=wp.vec2i),
+    particle_world: wp.array(dtype=wp.int32),
+    world_active: wp.array(dtype=wp.int32),
+    world_self_contact: wp.array(dtype=wp.int32),
+    x: wp.array(dtype=wp.vec3),
+    reach: float,
+    normal: wp.array(dtype=wp.vec3),
+    cone_cos: float,
+    pair_edge: wp.array2d(dtype=wp.int32),
+    # In/out:
+    d_min: wp.array(dtype=float),
+    d_side: wp.array(dtype=float),
+    d_ball: wp.array(dtype=float),
+):
+    """The bounds of each edge's listed edge-edge pairs at positions ``x``, as the search finds
+    them (``edge_edge_pairs``); the pairs the lists left out are in the particles' horizon
+    (``vertex_triangle_refresh``)."""
+    e = wp.tid()
+    i0 = edges[e][0]
+    i1 = edges[e][1]
+    w = particle_world[i0]
+    if world_active[w] == 0 or world_self_contact[w] == 0:
+        return
+    p = x[i0]
+    q = x[i1]
+    if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2]) and wp.isfinite(q[0]) and wp.isfinite(q[1])
+            and wp.isfinite(q[2])):
+        return
+    best = reach
+    n0 = normal[i0]
+    n1 = normal[i1]
+    side0 = reach
+    ball0 = reach
+    side1 = reach
+    ball1 = reach
+    for k in range(pair_edge.shape[1]):
+        f = pair_edge[e, k]
+        if f < 0:
+            break
+        a = edges[f][0]
+        b = edges[f][1]
+        xa = x[a]
+        xb = x[b]
+        cl = segment_closest(p, q, xa, xb)
+        d = cl[2]
+        if d < reach:
+            best = wp.min(best, d)
+            if cone_cos > 0.0:
+                side0, ball0, side1, ball1 = edge_edge_bound(e, f, p, q, xa, xb, cl, n0, n1,
+                                                             n0 + n1 - normal[a] - normal[b], cone_cos, side0, ball0,
+                                                             side1, ball1)
+    edge_end_bounds(i0, i1, best, side0, ball0, side1, ball1, cone_cos, d_min, d_side, d_ball)
+
+
 class SelfContact:
     """Buffers and launches of vertex-triangle self-contact for one ClothModel."""
 
@@ -702,7 +911,8 @@ class SelfContact:
                  rest_exclusion: float | None = None, relaxation: float = 0.3, detect_every: int = 1,
                  bounds: bool = True, bound_fraction: float = BOUND_FRACTION,
                  min_separation: float = MIN_SEPARATION_M, pairs: bool = False,
-                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE, directional_bounds: bool = False) -> None:
+                 pairs_per_primitive: int = PAIRS_PER_PRIMITIVE, directional_bounds: bool = False,
+                 search_every: int = 1, skin: float = 0.0) -> None:
         """
         Args:
             model: cloth model.
@@ -735,6 +945,14 @@ class SelfContact:
             directional_bounds: with ``pairs``, each particle's bound is a half-space along its
                 bound normal and a ball (module docstring: ``bound_normal``, ``d_side``,
                 ``d_ball``) instead of the ball of ``d_min``: pressed layers may part and slide.
+            search_every: with ``pairs``, the lists are searched (BVH queries) on every this-many-th
+                ``detect`` of a solver and refreshed in between (``refresh``: the listed pairs'
+                distances and bounds at the new positions, no BVH query), see ``skin``.
+            skin: with ``pairs``, the search lists pairs up to ``thickness + margin + skin`` [m]
+                apart, so pairs that close in between are already listed. A pair the lists leave
+                out (farther, or past ``pairs_per_primitive``) still bounds its particles at a
+                refresh: by its distance at the search less twice the largest displacement in its
+                world since (``horizon``, ``world_moved``), so the bounds stay conservative.
         """
         self.model = model
         dev = model.device
@@ -764,6 +982,12 @@ class SelfContact:
             raise ValueError(f"self-contact pairs_per_primitive must be an integer >= 1 (got {pairs_per_primitive!r})")
         self.bound_fraction = float(bound_fraction)
         self.min_separation = float(min_separation)
+        if int(search_every) != search_every or search_every < 1:
+            raise ValueError(f"self-contact search_every must be an integer >= 1 (got {search_every!r})")
+        if not (np.isfinite(skin) and skin >= 0.0):
+            raise ValueError(f"self-contact skin must be >= 0 [m] (got {skin!r})")
+        self.search_every = int(search_every)
+        self.skin = float(skin)
         rest = model.particle_q_rest_np
         extent = float(np.max(rest.max(axis=0) - rest.min(axis=0)))
         centers = 0.5 * (rest.min(axis=0) + rest.max(axis=0))
@@ -822,6 +1046,13 @@ class SelfContact:
             """Each edge's nearest edges within the reach (sharing no vertex with it)."""
             self.ee_radius = wp.zeros((n_edge, k), dtype=float, device=dev)
             self._dist = [wp.zeros((count, k), dtype=float, device=dev), wp.zeros((n_edge, k), dtype=float, device=dev)]
+            self.horizon = wp.zeros(count, dtype=float, device=dev)
+            """Smallest distance [m] at the last search of a pair within the list reach that the lists
+            left out, per particle (the list reach where none)."""
+            self.x_listed = wp.zeros(count, dtype=wp.vec3, device=dev)
+            """Positions at the last search [m] (the lists' and ``horizon``'s)."""
+            self.world_moved = wp.zeros(model.world_count, dtype=float, device=dev)
+            """Largest particle displacement [m] per world from ``x_listed`` at the last refresh."""
             lowers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
             uppers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
             wp.launch(place_edge_boxes, dim=n_edge if model.particle_count else 0,
@@ -861,23 +1092,17 @@ class SelfContact:
             self._detect_candidates(x, world_active, v, dt, world_self_contact)
         if self.bounds or self.pairs:
             reach = self.thickness + self.margin
+            list_reach = reach + self.skin
             active_sc = world_active if world_self_contact is None else world_self_contact
-            if self.directional_bounds:
-                # bound normals from the last search's pairs at the new positions (empty lists at
-                # the first search: zero normals, every pair in the ball)
-                wp.launch(bound_normals, dim=m.particle_count,
-                          inputs=[x, int(m.tri_count), m.tri_indices, m.particle_adj_start, m.particle_adj_slot,
-                                  self.vt_tri, self.tv_start, self.tv_count, self.tv_vertex, self.ee_edge, self.edges,
-                                  self.edge_adj_start, self.edge_adj],
-                          outputs=[self.bound_normal], device=m.device)
-                self.d_side.fill_(reach)
-                self.d_ball.fill_(reach)
-            self.d_min.fill_(reach)
-            wp.copy(self.x_searched, x)
+            self._bound_normals_and_reset(x, reach)
+            self.horizon.fill_(list_reach)
+            wp.copy(self.x_listed, x)
             wp.launch(vertex_triangle_pairs, dim=m.particle_count,
                       inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
-                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball],
+                              self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
+                              self.cone_cos],
+                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball,
+                               self.horizon],
                       device=m.device)
             self.tv_count.zero_()
             self._tv_cursor.zero_()
@@ -895,9 +1120,53 @@ class SelfContact:
             self.edge_bvh.refit()
             wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
                       inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, self.thickness, self.bound_normal, self.cone_cos],
-                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball],
+                              self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
+                              self.cone_cos],
+                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball,
+                               self.horizon],
                       device=m.device)
+
+    def refresh(self, x: wp.array, world_active: wp.array, *, world_self_contact: wp.array | None = None) -> None:
+        """The bounds at positions ``x`` from the lists of the last ``detect`` (``pairs``), without a
+        BVH query: the listed pairs' distances and certificates as a search computes them, and
+        every pair the lists left out at its ``horizon`` less twice its world's largest
+        displacement since the search. Conservative: a particle's bounds are never wider than a
+        search at ``x`` would give (``tests/test_contact_bounds.py``). The lists, the contact radii
+        and ``horizon`` stay; the bounds' centres move to ``x``."""
+        if not self.pairs:
+            raise ValueError("SelfContact.refresh needs pairs=True (the pair lists it refreshes)")
+        m = self.model
+        reach = self.thickness + self.margin
+        active_sc = world_active if world_self_contact is None else world_self_contact
+        self._bound_normals_and_reset(x, reach)
+        self.world_moved.zero_()
+        wp.launch(world_displacement, dim=m.particle_count, inputs=[x, self.x_listed, m.particle_world],
+                  outputs=[self.world_moved], device=m.device)
+        wp.launch(vertex_triangle_refresh, dim=m.particle_count,
+                  inputs=[m.tri_indices, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
+                          self.cone_cos, self.vt_tri, self.horizon, self.world_moved],
+                  outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
+        wp.launch(edge_edge_refresh, dim=self.edges.shape[0],
+                  inputs=[self.edges, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
+                          self.cone_cos, self.ee_edge],
+                  outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
+
+    def _bound_normals_and_reset(self, x: wp.array, reach: float) -> None:
+        """Bound normals from the current lists at ``x`` (directional bounds), the bounds filled with
+        ``reach`` and their centres set to ``x``: what a search and a refresh start from."""
+        m = self.model
+        if self.directional_bounds:
+            # bound normals from the last lists' pairs at the new positions (empty lists at the
+            # first search: zero normals, every pair in the ball)
+            wp.launch(bound_normals, dim=m.particle_count,
+                      inputs=[x, int(m.tri_count), m.tri_indices, m.particle_adj_start, m.particle_adj_slot,
+                              self.vt_tri, self.tv_start, self.tv_count, self.tv_vertex, self.ee_edge, self.edges,
+                              self.edge_adj_start, self.edge_adj],
+                      outputs=[self.bound_normal], device=m.device)
+            self.d_side.fill_(reach)
+            self.d_ball.fill_(reach)
+        self.d_min.fill_(reach)
+        wp.copy(self.x_searched, x)
 
     def _detect_candidates(self, x, world_active, v, dt, world_self_contact) -> None:
         """One candidate triangle and side per particle (the pushes' search)."""

@@ -74,7 +74,8 @@ class SolverVBD(SolverBase):
     holds their float32 rounding): a stiff vertex's step near rest is below float32's resolution.
     A substep is three launches: the prediction, one sweep kernel for all colours of every world
     (one thread block per world, a barrier between colours) and the velocity update; with
-    self-contact, the search (every ``detect_every`` substeps) comes before the sweep.
+    self-contact, the search (every ``detect_every`` substeps; on every ``search_every``-th of
+    those a BVH search, on the others a refresh of its lists) comes before the sweep.
     """
 
     def __init__(
@@ -111,7 +112,9 @@ class SolverVBD(SolverBase):
             self_contact_options: keyword options of ``SelfContact`` (thickness, margin,
                 rest_exclusion, detect_every, bounds, bound_fraction, directional_bounds: the bound
                 as a half-space along the direction away from the nearest pair plus a ball, so
-                pressed layers may part and slide; ``SimSettings.self_contact_directional_bounds``).
+                pressed layers may part and slide; ``SimSettings.self_contact_directional_bounds``;
+                search_every and skin: BVH searches on every N-th self-contact substep of a frame,
+                the lists refreshed in between, ``SimSettings.self_contact_search_every``).
             self_contact_stiffness: penalty stiffness [N/m] holding a particle ``thickness`` off
                 its self-contact triangle (in each Newton step; 1e4 N/m: a vertex pressed by 1 mN
                 gives 0.1 um).
@@ -235,8 +238,11 @@ class SolverVBD(SolverBase):
         sc = self.self_contact
         if sc is not None:
             if substep % sc.detect_every == 0:
-                sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
-                          world_self_contact=control.world_self_contact)
+                if (substep // sc.detect_every) % sc.search_every == 0:
+                    sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
+                              world_self_contact=control.world_self_contact)
+                else:
+                    sc.refresh(state_in.particle_q, control.world_active, world_self_contact=control.world_self_contact)
         try:
             wp.launch_tiled(self._kernel, dim=[m.world_count],
                             inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
