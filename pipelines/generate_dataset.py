@@ -472,6 +472,10 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         if float(phases.get("sim_device_s", 0.0)) > 0:  # CUDA: how much of the loop the frames keep the device busy
             lines.append(f"  {'frames on the device':<26}{float(phases['sim_device_s']):>6.1f} s of the loop's "
                          f"{float(phases.get('loop_s', 0.0)):.1f} s (the rest: host work the device waits for)")
+        if int(phases.get("self_contact_substeps", 0)) > 0:  # VBD's pair lists: searched or refreshed
+            share = int(phases.get("self_contact_searches", 0)) / int(phases["self_contact_substeps"])
+            lines.append(f"  {'self-contact searches':<26}{100.0 * share:>6.1f} % of the world-substeps "
+                         f"(the rest refreshed their pair lists)")
         lines.append("  set-up: orders and routes / cloth model / bodies and simulator  "
                      + " / ".join(f"{float(phases.get(k, 0.0)):.1f}" for k in
                                   ("setup_schedules_s", "setup_model_s", "setup_simulator_s")) + " s")

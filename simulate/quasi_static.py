@@ -115,10 +115,11 @@ class SimSettings:
     along each other instead of being pinned, and still never cross (docs/benchmarks.md,
     "Directional displacement bounds")."""
     self_contact_search_every: int = 1
-    """Self-contact (VBD): the pair lists are searched with the BVHs on every this-many-th
-    self-contact substep of a frame and refreshed in between (distances and bounds of the listed
-    pairs, the rest bounded by their distance at the search less the world's largest
-    displacement since; ``SelfContact.refresh``)."""
+    """Self-contact (VBD): every world searches its pair lists with the BVHs on every this-many-th
+    self-contact substep of a frame; in between only worlds that moved farther than half
+    ``self_contact_skin`` since their last search do, and the others refresh their lists
+    (distances and bounds of the listed pairs, the rest bounded by their distance at the search
+    less the world's displacement since; ``SelfContact``'s module docstring)."""
     self_contact_skin: float = 0.0
     """Self-contact (VBD): extra distance [m] the searches list pairs at, so pairs that close
     before the next search are already listed (``SelfContact``'s ``skin``)."""

@@ -423,44 +423,59 @@ def test_bounds_match_brute_force(directional: bool) -> None:
 
 @pytest.mark.parametrize("directional", [True, False], ids=["directional", "ball"])
 def test_refreshed_bounds_are_never_wider_than_a_search(directional: bool) -> None:
-    """A refresh of the pair lists (``SelfContact.refresh``: no BVH query) bounds every particle at
-    least as tightly as a search at the same positions would: the listed pairs as the search, the
-    pairs the lists left out (one per primitive here, so most are) by their distance at the
-    search less twice the world's largest displacement since. Right after the search, a refresh
-    gives the search's ball bounds exactly. Then the folded half of the second world is pressed
-    1.5 mm down (the pairs there close by half) and both worlds jittered: a refresh without the
-    displacement term, or without the left-out pairs, would bound some particle wider than the
-    search does."""
+    """A refresh of the pair lists (``SelfContact.detect(refresh=True)``: no BVH query in worlds
+    that moved less than half the skin) bounds every particle at least as tightly as a search at
+    the same positions would: the listed pairs as the search, the pairs the lists left out (one
+    per primitive here, so most are) by their distance at the search less twice the world's
+    largest displacement since. Right after the search, a refresh gives the search's ball bounds
+    exactly. Then the folded half of the second world is pressed 1.5 mm down (the pairs there
+    close by half) and both worlds jittered, both within half the 4 mm skin: a refresh without
+    the displacement term, or without the left-out pairs, would bound some particle wider than
+    the search does. Pressed 1 mm further, the second world searches again and its bounds are
+    the search's."""
     from simulate.contact.self_contact import SelfContact
 
     model, x0 = folded_sheet_worlds(seed=7, jitter=6e-4)
     n = len(x0) // 2
     x1 = x0 + np.random.default_rng(3).normal(0.0, 2.0e-4, x0.shape).astype(np.float32)
     x1[n:][x0[n:, 1] > 0.0015, 1] -= 0.0015
+    x2 = x1.copy()
+    x2[n:][x0[n:, 1] > 0.0015, 1] -= 0.001
     active = model.control().world_active
-    opts = {"pairs": True, "directional_bounds": directional, "pairs_per_primitive": 1, "skin": 2.0e-3}
-    refreshed, searched = SelfContact(model, **opts), SelfContact(model, **opts)
-    for contact in (refreshed, searched):
+    opts = {"pairs": True, "directional_bounds": directional, "pairs_per_primitive": 1, "skin": 4.0e-3}
+
+    def searched_at_x0():
+        contact = SelfContact(model, **opts)
         for _ in range(2):  # the second search takes its bound normals from the first one's pairs
             contact.detect(wp.array(x0, dtype=wp.vec3, device="cpu"), active)
+        return contact
+
+    refreshed = searched_at_x0()
     reach = refreshed.thickness + refreshed.margin
     assert (refreshed.horizon.numpy() < reach).sum() > 20, "the lists must leave pairs within the reach out"
     if not directional:
         at_search = refreshed.d_min.numpy().copy()
-        refreshed.refresh(wp.array(x0, dtype=wp.vec3, device="cpu"), active)
+        refreshed.detect(wp.array(x0, dtype=wp.vec3, device="cpu"), active, refresh=True)
+        np.testing.assert_array_equal(refreshed.world_search.numpy(), [0, 0])
         np.testing.assert_array_equal(refreshed.d_min.numpy(), at_search)
-    refreshed.refresh(wp.array(x1, dtype=wp.vec3, device="cpu"), active)
-    searched.detect(wp.array(x1, dtype=wp.vec3, device="cpu"), active)
-    moved = refreshed.world_moved.numpy()
-    assert moved[1] > 1.4e-3 > moved[0], moved
-    if directional:
-        np.testing.assert_array_equal(refreshed.bound_normal.numpy(), searched.bound_normal.numpy())
-        r_ball, s_ball = refreshed.d_ball.numpy(), searched.d_ball.numpy()
+
+    def bounds(contact):
+        if directional:
+            return np.minimum(contact.d_side.numpy(), contact.d_ball.numpy()), contact.d_ball.numpy()
+        return contact.d_min.numpy(), contact.d_min.numpy()
+
+    for x, searching in ((x1, [0, 0]), (x2, [0, 1])):
+        refreshed.detect(wp.array(x, dtype=wp.vec3, device="cpu"), active, refresh=True)
+        searched = searched_at_x0()  # the same lists, so the same bound normals at x
+        searched.detect(wp.array(x, dtype=wp.vec3, device="cpu"), active)
+        np.testing.assert_array_equal(refreshed.world_search.numpy(), searching)
+        (r, r_ball), (s, s_ball) = bounds(refreshed), bounds(searched)
+        assert (r <= s + 1e-7).all(), f"a refreshed bound is wider than the search's by {np.max(r - s)} m"
         assert (r_ball <= s_ball + 1e-7).all(), f"a refreshed ball is wider than the search's by {np.max(r_ball - s_ball)} m"
-        r = np.minimum(refreshed.d_side.numpy(), r_ball)
-        s = np.minimum(searched.d_side.numpy(), s_ball)
-    else:
-        r, s = refreshed.d_min.numpy(), searched.d_min.numpy()
-    assert (r <= s + 1e-7).all(), f"a refreshed bound is wider than the search's by {np.max(r - s)} m"
-    assert (s < reach).sum() > n
-    assert np.median(r[:n] / s[:n]) > 0.3, "where little moved, the refresh should keep most of the search's bounds"
+        assert (s < reach).sum() > n
+        assert np.median(r[:n] / s[:n]) > 0.3, "where little moved, the refresh should keep most of the search's bounds"
+    moved = refreshed.world_moved.numpy()
+    assert 2.0e-3 > moved[0] > 5.0e-4 and moved[1] > 2.0e-3, moved
+    np.testing.assert_array_equal(r[n:], s[n:], err_msg="the world that searched again has the search's bounds")
+    detects = 5 if not directional else 4  # two searches at x0, (a refresh at x0,) x1, x2
+    np.testing.assert_array_equal(refreshed.search_counts.numpy(), [[detects, 2], [detects, 3]])

@@ -531,3 +531,22 @@ def test_a_skirt_held_by_its_waistband_stays_on_a_moving_body(anny_body):
             tops[held] += [float(f.positions[:, 1].max()) for f in frames]
     assert all(abs(t - top) < 0.02 for t in tops[True]), (top, tops)
     assert tops[False][0] < top - 0.2, (top, tops)
+
+
+def test_vbd_self_contact_refreshes_its_pair_lists_between_searches_and_counts_them(scene):
+    """VBD with self-contact searching on every 5th substep (``self_contact_search_every``) and
+    otherwise only in worlds that moved more than half the 2 mm skin: the run counts its
+    self-contact world-substeps and the searches among them (about half here: the holds are
+    short and start moving), and no frame passes through itself."""
+    from simulate.quality import QualityMeter
+
+    body, template, _, canonical, small, _ = scene
+    sim = unit_settings(iterations=3, substeps=10, tolerance=0.05, patience=2, max_frames=20, damping=20.0,
+                        self_contact_search_every=5, self_contact_skin=2.0e-3)
+    frames, stats = _run(scene, [[small, canonical], [canonical, small]], recover=True, solver="vbd",
+                         self_contact=True, sim=sim)
+    assert stats["self_contact_substeps"] == 10 * stats["world_frames"], stats
+    # every 5th substep searches; of the others, those of worlds that moved less than 1 mm refresh
+    assert stats["self_contact_substeps"] // 5 <= stats["self_contact_searches"] < 0.8 * stats["self_contact_substeps"], stats
+    meter = QualityMeter(template.faces, template.vertices, template.faces[:1], 3, device="cpu")
+    assert [meter.self_intersections(f.positions) for f in frames] == [0] * len(frames)

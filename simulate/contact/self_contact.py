@@ -37,14 +37,16 @@ form, whatever the penalty and the elastic forces do. The bounds also win over b
 (an arm lowered onto the torso), the layers stay apart and the skin, soft in reality, gives.
 
 **Refreshed lists** (``search_every``, ``skin``): the BVH queries are most of the cost, so a solver
-may search on every ``search_every``-th substep only, listing pairs up to ``skin`` beyond the reach,
-and in between *refresh*: the listed pairs' distances, certificates and bounds at the new positions,
-computed as a search computes them, without a query. A pair the lists leave out (farther than the
-list reach, or past ``pairs_per_primitive``) put its distance at the search into its particles'
-``horizon``; at a refresh it bounds them by ``horizon`` less twice the largest displacement in the
-world since the search (no pair closed by more), and, with directional bounds, by half of that in
-the ball (a certificate is at least half its pair's distance). A refresh's bounds are therefore
-never wider than a search's at the same positions.
+may have every world search on every ``search_every``-th substep only, listing pairs up to ``skin``
+beyond the reach. In between, a world searches only where one of its particles moved farther than
+half the skin since its last search; the others *refresh*: the listed pairs' distances,
+certificates and bounds at the new positions, computed as a search computes them, without a query.
+A pair the lists leave out (farther than the list reach, or past ``pairs_per_primitive``) put its
+distance at the search into its particles' ``horizon``; at a refresh it bounds them by ``horizon``
+less twice the largest displacement in the world since the search (no pair closed by more), and,
+with directional bounds, by half of that in the ball (a certificate is at least half its pair's
+distance). A refresh's bounds are therefore never wider than a search's at the same positions, and
+pairs beyond the list reach at the search stay beyond the contact reach.
 
 **Directional bounds** (``directional_bounds``): a ball of 0.45 ``d_min`` pins two layers pressed
 together (the gap and so the ball go to ``min_separation``): they can neither slide nor part, and
@@ -416,6 +418,7 @@ def vertex_triangle_pairs(
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
+    world_search: wp.array(dtype=wp.int32),
     # Out:
     pair_tri: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
@@ -432,11 +435,14 @@ def vertex_triangle_pairs(
     particle and the triangle's corners (``d_min``), else each pair's certificate into its four
     particles' ``d_side`` / ``d_ball`` (the particle's own gathered in registers; float atomic
     min). A pair within ``list_reach`` that the full list leaves out puts its distance into its
-    four particles' ``horizon`` (what a refresh of the lists cannot see)."""
+    four particles' ``horizon`` (what a refresh of the lists cannot see). Worlds with
+    ``world_search`` 0 keep their lists (``vertex_triangle_refresh``)."""
     i = wp.tid()
+    w = particle_world[i]
+    if world_search[w] == 0:
+        return
     for k in range(pair_tri.shape[1]):
         pair_tri[i, k] = -1
-    w = particle_world[i]
     if world_active[w] == 0 or world_self_contact[w] == 0:
         return
     p = x[i]
@@ -504,6 +510,7 @@ def vertex_triangle_refresh(
     pair_tri: wp.array2d(dtype=wp.int32),
     horizon: wp.array(dtype=float),
     world_moved: wp.array(dtype=float),
+    world_search: wp.array(dtype=wp.int32),
     # In/out (filled with ``reach`` by the caller):
     d_min: wp.array(dtype=float),
     d_side: wp.array(dtype=float),
@@ -513,10 +520,10 @@ def vertex_triangle_refresh(
     finds them (``vertex_triangle_pairs``), and of the pairs the lists left out: at least the
     particle's ``horizon`` less twice its world's largest displacement since the search
     (``world_moved``), into ``d_min``, or as half of that into ``d_ball`` (a left-out pair has no
-    certificate, which is at least half its distance)."""
+    certificate, which is at least half its distance). Only in worlds with ``world_search`` 0."""
     i = wp.tid()
     w = particle_world[i]
-    if world_active[w] == 0 or world_self_contact[w] == 0:
+    if world_search[w] != 0 or world_active[w] == 0 or world_self_contact[w] == 0:
         return
     p = x[i]
     if not (wp.isfinite(p[0]) and wp.isfinite(p[1]) and wp.isfinite(p[2])):
@@ -560,6 +567,39 @@ def world_displacement(x: wp.array(dtype=wp.vec3), x_listed: wp.array(dtype=wp.v
         wp.atomic_max(world_moved, particle_world[i], u)
     else:
         wp.atomic_max(world_moved, particle_world[i], 1.0e30)
+
+
+@wp.kernel
+def choose_search_worlds(world_moved: wp.array(dtype=float), world_active: wp.array(dtype=wp.int32),
+                         world_self_contact: wp.array(dtype=wp.int32), threshold: float,
+                         world_search: wp.array(dtype=wp.int32), world_listed: wp.array(dtype=wp.int32),
+                         counts: wp.array2d(dtype=wp.int32)):
+    """A world searches where a particle moved farther than ``threshold`` [m] since its last search
+    or its lists were not searched with self-contact on (inactive then: empty lists); its
+    ``world_listed`` then records whether this search lists pairs. ``counts[w]``: (self-contact
+    substeps, searches among them) of an active world with self-contact on."""
+    w = wp.tid()
+    search = int(0)
+    if world_moved[w] > threshold or world_listed[w] == 0:
+        search = 1
+    world_search[w] = search
+    on = world_active[w] != 0 and world_self_contact[w] != 0
+    if search == 1:
+        world_listed[w] = wp.where(on, 1, 0)
+    if on:
+        counts[w, 0] = counts[w, 0] + 1
+        counts[w, 1] = counts[w, 1] + search
+
+
+@wp.kernel
+def restart_lists(x: wp.array(dtype=wp.vec3), particle_world: wp.array(dtype=wp.int32),
+                  world_search: wp.array(dtype=wp.int32), list_reach: float, x_listed: wp.array(dtype=wp.vec3),
+                  horizon: wp.array(dtype=float)):
+    """In searching worlds: the lists' positions set to ``x``, ``horizon`` to the list reach."""
+    i = wp.tid()
+    if world_search[particle_world[i]] != 0:
+        x_listed[i] = x[i]
+        horizon[i] = list_reach
 
 
 @wp.kernel
@@ -776,6 +816,7 @@ def edge_edge_pairs(
     thickness: float,
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
+    world_search: wp.array(dtype=wp.int32),
     # Out:
     pair_edge: wp.array2d(dtype=wp.int32),
     pair_dist: wp.array2d(dtype=float),
@@ -790,13 +831,16 @@ def edge_edge_pairs(
     the edges' boxes), and the bounds of its pairs within ``reach``: with ``cone_cos`` 0 the
     smallest distance at both its ends (``d_min``), else its pairs' certificates (``d_side`` /
     ``d_ball``, ``edge_edge_bound``). A pair within ``list_reach`` that the full list leaves out
-    puts its distance into the edge's ends' ``horizon``."""
+    puts its distance into the edge's ends' ``horizon``. Worlds with ``world_search`` 0 keep their
+    lists (``edge_edge_refresh``)."""
     e = wp.tid()
-    for k in range(pair_edge.shape[1]):
-        pair_edge[e, k] = -1
     i0 = edges[e][0]
     i1 = edges[e][1]
     w = particle_world[i0]
+    if world_search[w] == 0:
+        return
+    for k in range(pair_edge.shape[1]):
+        pair_edge[e, k] = -1
     if world_active[w] == 0 or world_self_contact[w] == 0:
         return
     p = x[i0]
@@ -859,6 +903,7 @@ def edge_edge_refresh(
     normal: wp.array(dtype=wp.vec3),
     cone_cos: float,
     pair_edge: wp.array2d(dtype=wp.int32),
+    world_search: wp.array(dtype=wp.int32),
     # In/out:
     d_min: wp.array(dtype=float),
     d_side: wp.array(dtype=float),
@@ -866,12 +911,12 @@ def edge_edge_refresh(
 ):
     """The bounds of each edge's listed edge-edge pairs at positions ``x``, as the search finds
     them (``edge_edge_pairs``); the pairs the lists left out are in the particles' horizon
-    (``vertex_triangle_refresh``)."""
+    (``vertex_triangle_refresh``). Only in worlds with ``world_search`` 0."""
     e = wp.tid()
     i0 = edges[e][0]
     i1 = edges[e][1]
     w = particle_world[i0]
-    if world_active[w] == 0 or world_self_contact[w] == 0:
+    if world_search[w] != 0 or world_active[w] == 0 or world_self_contact[w] == 0:
         return
     p = x[i0]
     q = x[i1]
@@ -945,14 +990,15 @@ class SelfContact:
             directional_bounds: with ``pairs``, each particle's bound is a half-space along its
                 bound normal and a ball (module docstring: ``bound_normal``, ``d_side``,
                 ``d_ball``) instead of the ball of ``d_min``: pressed layers may part and slide.
-            search_every: with ``pairs``, the lists are searched (BVH queries) on every this-many-th
-                ``detect`` of a solver and refreshed in between (``refresh``: the listed pairs'
-                distances and bounds at the new positions, no BVH query), see ``skin``.
+            search_every: with ``pairs``, every world searches (BVH queries) on every this-many-th
+                ``detect`` of a solver; in between (``detect(refresh=True)``) only worlds that moved
+                farther than half the ``skin`` since their last search do, and the others refresh
+                their lists (the listed pairs' distances and bounds at the new positions, no query).
             skin: with ``pairs``, the search lists pairs up to ``thickness + margin + skin`` [m]
-                apart, so pairs that close in between are already listed. A pair the lists leave
-                out (farther, or past ``pairs_per_primitive``) still bounds its particles at a
-                refresh: by its distance at the search less twice the largest displacement in its
-                world since (``horizon``, ``world_moved``), so the bounds stay conservative.
+                apart, so pairs that close before the next search are already listed. A pair the
+                lists leave out (farther, or past ``pairs_per_primitive``) still bounds its
+                particles at a refresh: by its distance at the search less twice the largest
+                displacement in its world since (``horizon``, ``world_moved``).
         """
         self.model = model
         dev = model.device
@@ -1053,6 +1099,12 @@ class SelfContact:
             """Positions at the last search [m] (the lists' and ``horizon``'s)."""
             self.world_moved = wp.zeros(model.world_count, dtype=float, device=dev)
             """Largest particle displacement [m] per world from ``x_listed`` at the last refresh."""
+            self.world_search = wp.ones(model.world_count, dtype=wp.int32, device=dev)
+            """1 where the last ``detect`` searched the world, 0 where it refreshed its lists."""
+            self._world_listed = wp.zeros(model.world_count, dtype=wp.int32, device=dev)
+            self.search_counts = wp.zeros((model.world_count, 2), dtype=wp.int32, device=dev)
+            """Per world, cumulative (self-contact substeps, BVH searches among them) while active with
+            self-contact on: the share ``detect(refresh=True)`` still searches."""
             lowers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
             uppers = wp.zeros(n_edge, dtype=wp.vec3, device=dev)
             wp.launch(place_edge_boxes, dim=n_edge if model.particle_count else 0,
@@ -1076,80 +1128,83 @@ class SelfContact:
             """2 e + end for each edge e a particle ends (end 0: ``edges[e][0]``)."""
 
     def detect(self, x: wp.array, world_active: wp.array, v: wp.array | None = None, dt: float = 0.0, *,
-               world_self_contact: wp.array | None = None) -> None:
+               world_self_contact: wp.array | None = None, refresh: bool = False) -> None:
         """Refit the cloth BVH at positions ``x`` and find one candidate triangle per particle (the
         pushes), or with ``pairs`` or ``bounds`` the pair lists and the displacement bounds.
 
         With velocities ``v`` [m/s] and the substep ``dt`` [s], the search of each particle also
         covers its travel over the ``detect_every - 1`` substeps until the next search.
         ``world_self_contact`` (int32, (world_count,), optional): worlds with 0 get no candidates,
-        so no self-contact push until their next search (``ClothControl.world_self_contact``)."""
+        so no self-contact push until their next search (``ClothControl.world_self_contact``).
+
+        ``refresh`` (with ``pairs``): only worlds in which a particle moved farther than half the
+        ``skin`` since their last search (or whose last search listed nothing: self-contact off,
+        inactive) search; the others refresh their lists (module docstring): the listed pairs'
+        distances and certificates as a search computes them, and every pair the lists left out
+        at its ``horizon`` less twice the world's largest displacement since the search, never
+        wider than a search at ``x`` (``tests/test_contact_bounds.py``). ``world_search`` says
+        which worlds searched."""
         m = self.model
+        if refresh and not self.pairs:
+            raise ValueError("SelfContact.detect(refresh=True) needs pairs=True (the pair lists it refreshes)")
         wp.launch(place_cloth_points, dim=m.particle_count, inputs=[x, m.particle_world, self.world_offset],
                   outputs=[self.mesh.points], device=m.device)
         self.mesh.refit()
         if not self.pairs:
             self._detect_candidates(x, world_active, v, dt, world_self_contact)
-        if self.bounds or self.pairs:
-            reach = self.thickness + self.margin
-            list_reach = reach + self.skin
-            active_sc = world_active if world_self_contact is None else world_self_contact
-            self._bound_normals_and_reset(x, reach)
-            self.horizon.fill_(list_reach)
-            wp.copy(self.x_listed, x)
-            wp.launch(vertex_triangle_pairs, dim=m.particle_count,
-                      inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
-                              self.cone_cos],
-                      outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball,
-                               self.horizon],
-                      device=m.device)
-            self.tv_count.zero_()
-            self._tv_cursor.zero_()
-            wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
-                      device=m.device)
-            wp.utils.array_scan(self.tv_count, self.tv_start, inclusive=False)
-            wp.launch(scatter_triangle_pairs, dim=m.particle_count,
-                      inputs=[self.vt_tri, self.vt_radius, self.tv_start, self._tv_cursor],
-                      outputs=[self.tv_vertex, self.tv_radius], device=m.device)
-            wp.launch(sort_triangle_pairs, dim=m.tri_count, inputs=[self.tv_start, self.tv_count],
-                      outputs=[self.tv_vertex, self.tv_radius], device=m.device)
-            wp.launch(place_edge_boxes, dim=self.edges.shape[0],
-                      inputs=[self.edges, m.particle_world, self.world_offset, x],
-                      outputs=[self.edge_bvh.lowers, self.edge_bvh.uppers], device=m.device)
-            self.edge_bvh.refit()
-            wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
-                      inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
-                              self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
-                              self.cone_cos],
-                      outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball,
-                               self.horizon],
-                      device=m.device)
-
-    def refresh(self, x: wp.array, world_active: wp.array, *, world_self_contact: wp.array | None = None) -> None:
-        """The bounds at positions ``x`` from the lists of the last ``detect`` (``pairs``), without a
-        BVH query: the listed pairs' distances and certificates as a search computes them, and
-        every pair the lists left out at its ``horizon`` less twice its world's largest
-        displacement since the search. Conservative: a particle's bounds are never wider than a
-        search at ``x`` would give (``tests/test_contact_bounds.py``). The lists, the contact radii
-        and ``horizon`` stay; the bounds' centres move to ``x``."""
-        if not self.pairs:
-            raise ValueError("SelfContact.refresh needs pairs=True (the pair lists it refreshes)")
-        m = self.model
+        if not (self.bounds or self.pairs):
+            return
         reach = self.thickness + self.margin
+        list_reach = reach + self.skin
         active_sc = world_active if world_self_contact is None else world_self_contact
-        self._bound_normals_and_reset(x, reach)
         self.world_moved.zero_()
-        wp.launch(world_displacement, dim=m.particle_count, inputs=[x, self.x_listed, m.particle_world],
-                  outputs=[self.world_moved], device=m.device)
-        wp.launch(vertex_triangle_refresh, dim=m.particle_count,
-                  inputs=[m.tri_indices, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
-                          self.cone_cos, self.vt_tri, self.horizon, self.world_moved],
-                  outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
-        wp.launch(edge_edge_refresh, dim=self.edges.shape[0],
-                  inputs=[self.edges, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
-                          self.cone_cos, self.ee_edge],
-                  outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
+        if refresh:
+            wp.launch(world_displacement, dim=m.particle_count, inputs=[x, self.x_listed, m.particle_world],
+                      outputs=[self.world_moved], device=m.device)
+        wp.launch(choose_search_worlds, dim=m.world_count,
+                  inputs=[self.world_moved, world_active, active_sc, 0.5 * self.skin if refresh else -1.0],
+                  outputs=[self.world_search, self._world_listed, self.search_counts], device=m.device)
+        self._bound_normals_and_reset(x, reach)
+        wp.launch(restart_lists, dim=m.particle_count, inputs=[x, m.particle_world, self.world_search, list_reach],
+                  outputs=[self.x_listed, self.horizon], device=m.device)
+        wp.launch(vertex_triangle_pairs, dim=m.particle_count,
+                  inputs=[self.mesh.id, m.tri_indices, m.tri_world, m.particle_world, world_active, active_sc,
+                          self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
+                          self.cone_cos, self.world_search],
+                  outputs=[self.vt_tri, self._dist[0], self.vt_radius, self.d_min, self.d_side, self.d_ball,
+                           self.horizon],
+                  device=m.device)
+        if refresh:
+            wp.launch(vertex_triangle_refresh, dim=m.particle_count,
+                      inputs=[m.tri_indices, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
+                              self.cone_cos, self.vt_tri, self.horizon, self.world_moved, self.world_search],
+                      outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
+        self.tv_count.zero_()
+        self._tv_cursor.zero_()
+        wp.launch(count_triangle_pairs, dim=m.particle_count, inputs=[self.vt_tri], outputs=[self.tv_count],
+                  device=m.device)
+        wp.utils.array_scan(self.tv_count, self.tv_start, inclusive=False)
+        wp.launch(scatter_triangle_pairs, dim=m.particle_count,
+                  inputs=[self.vt_tri, self.vt_radius, self.tv_start, self._tv_cursor],
+                  outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+        wp.launch(sort_triangle_pairs, dim=m.tri_count, inputs=[self.tv_start, self.tv_count],
+                  outputs=[self.tv_vertex, self.tv_radius], device=m.device)
+        wp.launch(place_edge_boxes, dim=self.edges.shape[0],
+                  inputs=[self.edges, m.particle_world, self.world_offset, x],
+                  outputs=[self.edge_bvh.lowers, self.edge_bvh.uppers], device=m.device)
+        self.edge_bvh.refit()
+        wp.launch(edge_edge_pairs, dim=self.edges.shape[0],
+                  inputs=[self.edge_bvh.id, self.edges, m.particle_world, world_active, active_sc,
+                          self.world_offset, x, self.rest, reach, list_reach, self.thickness, self.bound_normal,
+                          self.cone_cos, self.world_search],
+                  outputs=[self.ee_edge, self._dist[1], self.ee_radius, self.d_min, self.d_side, self.d_ball,
+                           self.horizon],
+                  device=m.device)
+        if refresh:
+            wp.launch(edge_edge_refresh, dim=self.edges.shape[0],
+                      inputs=[self.edges, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
+                              self.cone_cos, self.ee_edge, self.world_search],
+                      outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
 
     def _bound_normals_and_reset(self, x: wp.array, reach: float) -> None:
         """Bound normals from the current lists at ``x`` (directional bounds), the bounds filled with

@@ -297,6 +297,9 @@ def run_sequences(
             run.publish(stats, base)
             for k, n in sim.explosion_causes.items():
                 stats[f"exploded_{k}"] = causes_before[f"exploded_{k}"] + n
+    contact = getattr(sim.solver, "self_contact", None)
+    if getattr(contact, "search_counts", None) is not None:
+        run.self_contact_substeps, run.self_contact_searches = (int(n) for n in contact.search_counts.numpy().sum(axis=0))
     run.publish(stats, base)
     return stats
 

@@ -238,11 +238,9 @@ class SolverVBD(SolverBase):
         sc = self.self_contact
         if sc is not None:
             if substep % sc.detect_every == 0:
-                if (substep // sc.detect_every) % sc.search_every == 0:
-                    sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
-                              world_self_contact=control.world_self_contact)
-                else:
-                    sc.refresh(state_in.particle_q, control.world_active, world_self_contact=control.world_self_contact)
+                sc.detect(state_in.particle_q, control.world_active, state_in.particle_qd, dt,
+                          world_self_contact=control.world_self_contact,
+                          refresh=(substep // sc.detect_every) % sc.search_every != 0)
         try:
             wp.launch_tiled(self._kernel, dim=[m.world_count],
                             inputs=[self._world_start, self._world_count, self._vertex_offsets, self._vertex_order,
