@@ -3,6 +3,7 @@ both arms lowered from the canonical pose to ``--angle`` rad (slerp'ed, ``--step
 and held to rest, for each solver / self-contact setting in one run on one device.
 
     python bench/bench_self_contact.py [--resolution 1800] [--device cpu] [--runs vbd-sc,xpbd-sc,vbd,xpbd] [--stepping 10x3]
+                                       [--to-rest --hold-frames 60]
 
 Prints one JSON line per run: crossing garment edges (``self_intersections``) and intersection
 contours after the canonical drape and after the hold, the penetration and distorted-triangle
@@ -134,6 +135,9 @@ def main() -> None:
     parser.add_argument("--angle", type=float, default=1.0, help="shoulder rotation toward the torso [rad]")
     parser.add_argument("--step", type=float, default=0.05, help="largest joint turn per frame [rad]")
     parser.add_argument("--hold-frames", type=int, default=30)
+    parser.add_argument("--to-rest", action="store_true",
+                        help="end the hold at rest (at least 2 frames, at most --hold-frames); hold_frames then "
+                             "says how many frames the garment took to come to rest")
     parser.add_argument("--friction", type=float, default=None,
                         help="0: body friction off (default: each fabric's coefficient)")
     parser.add_argument("--runs", default="vbd-sc,xpbd-sc")
@@ -154,7 +158,8 @@ def main() -> None:
     template, body = scene.template, scene.body
     meter = scene.meter(args.device)
     for run in args.runs.split(","):
-        settings = run_settings(run, max_frames=args.hold_frames, min_hold_frames=args.hold_frames, step=args.step,
+        settings = run_settings(run, max_frames=args.hold_frames, min_hold_frames=2 if args.to_rest else args.hold_frames,
+                                step=args.step,
                                 friction=args.friction, stepping=stepping)
         start, drape_s = canonical_drape(scene, settings, args.device)
         task = SequenceTask(rest_vertices=template.vertices, start_vertices=start,
