@@ -75,7 +75,8 @@ class SolverVBD(SolverBase):
     A substep is three launches: the prediction, one sweep kernel for all colours of every world
     (one thread block per world, a barrier between colours) and the velocity update; with
     self-contact, the search (every ``detect_every`` substeps; on every ``search_every``-th of
-    those a BVH search, on the others a refresh of its lists) comes before the sweep.
+    those every world's BVH search, on the others a search only in worlds that moved farther than
+    half the skin and a refresh of the others' lists) comes before the sweep.
     """
 
     def __init__(
@@ -113,8 +114,9 @@ class SolverVBD(SolverBase):
                 rest_exclusion, detect_every, bounds, bound_fraction, directional_bounds: the bound
                 as a half-space along the direction away from the nearest pair plus a ball, so
                 pressed layers may part and slide; ``SimSettings.self_contact_directional_bounds``;
-                search_every and skin: BVH searches on every N-th self-contact substep of a frame,
-                the lists refreshed in between, ``SimSettings.self_contact_search_every``).
+                search_every and skin: every world searches on every N-th self-contact substep of a
+                frame, in between only worlds that moved farther than half the skin, the others
+                refresh their lists; ``SimSettings.self_contact_search_every``).
             self_contact_stiffness: penalty stiffness [N/m] holding a particle ``thickness`` off
                 its self-contact triangle (in each Newton step; 1e4 N/m: a vertex pressed by 1 mN
                 gives 0.1 um).
