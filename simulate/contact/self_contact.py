@@ -1164,7 +1164,18 @@ class SelfContact:
         wp.launch(choose_search_worlds, dim=m.world_count,
                   inputs=[self.world_moved, world_active, active_sc, 0.5 * self.skin if refresh else -1.0],
                   outputs=[self.world_search, self._world_listed, self.search_counts], device=m.device)
-        self._bound_normals_and_reset(x, reach)
+        if self.directional_bounds:
+            # bound normals from the current lists' pairs at the new positions (empty lists at the
+            # first search: zero normals, every pair in the ball)
+            wp.launch(bound_normals, dim=m.particle_count,
+                      inputs=[x, int(m.tri_count), m.tri_indices, m.particle_adj_start, m.particle_adj_slot,
+                              self.vt_tri, self.tv_start, self.tv_count, self.tv_vertex, self.ee_edge, self.edges,
+                              self.edge_adj_start, self.edge_adj],
+                      outputs=[self.bound_normal], device=m.device)
+            self.d_side.fill_(reach)
+            self.d_ball.fill_(reach)
+        self.d_min.fill_(reach)
+        wp.copy(self.x_searched, x)
         wp.launch(restart_lists, dim=m.particle_count, inputs=[x, m.particle_world, self.world_search, list_reach],
                   outputs=[self.x_listed, self.horizon], device=m.device)
         wp.launch(vertex_triangle_pairs, dim=m.particle_count,
@@ -1205,23 +1216,6 @@ class SelfContact:
                       inputs=[self.edges, m.particle_world, world_active, active_sc, x, reach, self.bound_normal,
                               self.cone_cos, self.ee_edge, self.world_search],
                       outputs=[self.d_min, self.d_side, self.d_ball], device=m.device)
-
-    def _bound_normals_and_reset(self, x: wp.array, reach: float) -> None:
-        """Bound normals from the current lists at ``x`` (directional bounds), the bounds filled with
-        ``reach`` and their centres set to ``x``: what a search and a refresh start from."""
-        m = self.model
-        if self.directional_bounds:
-            # bound normals from the last lists' pairs at the new positions (empty lists at the
-            # first search: zero normals, every pair in the ball)
-            wp.launch(bound_normals, dim=m.particle_count,
-                      inputs=[x, int(m.tri_count), m.tri_indices, m.particle_adj_start, m.particle_adj_slot,
-                              self.vt_tri, self.tv_start, self.tv_count, self.tv_vertex, self.ee_edge, self.edges,
-                              self.edge_adj_start, self.edge_adj],
-                      outputs=[self.bound_normal], device=m.device)
-            self.d_side.fill_(reach)
-            self.d_ball.fill_(reach)
-        self.d_min.fill_(reach)
-        wp.copy(self.x_searched, x)
 
     def _detect_candidates(self, x, world_active, v, dt, world_self_contact) -> None:
         """One candidate triangle and side per particle (the pushes' search)."""
