@@ -150,6 +150,23 @@ def test_convex_fit_recovers_weights() -> None:
     np.testing.assert_allclose(convex_fit(basis, weights @ basis), weights, atol=1e-6)
 
 
+def test_convex_fit_on_the_gram_matrix_solves_the_full_problem() -> None:
+    """The Gram-matrix form reaches the same residual as NNLS on all D rows with the
+    sum-to-one row (the direct form), for a target outside the basis' hull."""
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(5)
+    basis = rng.normal(size=(6, 300)) + 2.0 * rng.normal(size=(1, 300))  # correlated, as garments are
+    target = 0.5 * basis[1] + 0.5 * basis[4] + 0.3 * rng.normal(size=300)
+    heavy = 1e3 * np.abs(basis).max() * np.sqrt(300)
+    direct, _ = nnls(np.vstack([basis.T, np.full((1, 6), heavy)]), np.concatenate([target, [heavy]]))
+    direct /= direct.sum()
+    weights = convex_fit(basis, target)
+    assert (weights >= 0).all() and abs(weights.sum() - 1.0) < 1e-12
+    residual = np.linalg.norm(weights @ basis - target)
+    assert residual <= np.linalg.norm(direct @ basis - target) * (1 + 1e-9), (residual, direct, weights)
+
+
 def test_canonical_frame_per_pair() -> None:
     pose = np.array([[0.5, 0.0], [0.1, 0.0], [0.0, 0.3], [0.9, 0.9]])
     pair = np.array([0, 0, 1, 1])

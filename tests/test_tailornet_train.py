@@ -7,6 +7,7 @@ high-frequency ripple, so both the low- and high-frequency parts have to be lear
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -468,6 +469,33 @@ def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, e
     rows = (tmp_path / "stage_loss.csv").read_text().strip().splitlines()[1:]
     assert [r.split(",")[0] for r in rows] == ["1", "2", "3", "4"], rows
     assert load_checkpoint(path)["epoch"] == 4 and (tmp_path / "stage.done").exists()
+
+
+def test_slow_checkpoints_are_spaced_by_their_own_duration(tmp_path: Path, monkeypatch) -> None:
+    """A save that takes long (the stacked HF checkpoint: GBs) pushes the next one back to
+    SAVE_SHARE_INVERSE times its duration, so saves stay a small share of the stage; the last
+    epoch is always saved. With interval 0 every epoch is still saved."""
+    import learn.tailornet.train as train
+
+    saved = []
+
+    def slow_save(payload: dict, path: Path) -> None:
+        time.sleep(0.05)
+        saved.append(payload["epoch"])
+
+    def epoch_fn(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        time.sleep(0.01)
+        return 0.0
+
+    monkeypatch.setattr(train, "atomic_save", slow_save)
+    model = low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
+    for interval_s, expected in ((1e-3, [1, 6]), (0.0, [1, 2, 3, 4, 5, 6])):
+        saved.clear()
+        hyper = {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 1, "epochs": 6, "checkpoint_interval_s": interval_s}
+        run_epochs_dir = tmp_path / f"run{interval_s}"
+        train.run_epochs("stage", model, epoch_fn, run_dir=run_epochs_dir, hyperparameters=hyper, fingerprint=None,
+                         progress=False)
+        assert saved == expected, (interval_s, saved)
 
 
 def test_evaluate_says_why_there_is_no_speed_up(tmp_path: Path) -> None:
