@@ -11,7 +11,8 @@
 # with PYTHONPATH=/tmp/site:SNAP (pack.sh's packages); COMMAND's own files go under $JOB
 # (/root/jobs/NAME/out), its output to /root/jobs/NAME/log, its exit status to /root/jobs/NAME/rc.
 #
-# The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet on one GPU beside uvimage):
+# The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet, uvimage and the data floor
+# on one GPU each, evaluated side by side):
 #   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full}; name=${2:-}
@@ -35,9 +36,11 @@ case $cmd in
     tar -czf "${OUT:?}/$name.tgz" -C /root/jobs "$name/log" "$name/out" 2>/dev/null
     ls -la "$OUT/$name.tgz" ;;
   learners-full)
-    # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then train
-    # TailorNet at the paper's epochs on GPU 0 beside uvimage on GPU 1, evaluate with --analysis;
-    # logs, run.json, loss curves and evaluation.json under $JOB
+    # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then side by
+    # side: TailorNet at the paper's epochs on GPU 0, uvimage on GPU 1 (as many epochs as fit
+    # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2; then one
+    # evaluation of the three models with --analysis and --floor. Logs, loss curves, floor.json and
+    # evaluation.json under $JOB.
     gpus=${2:-4}
     python - "$JOB/spec.yaml" "$gpus" <<'PY'
 import sys, yaml
@@ -49,15 +52,23 @@ yaml.safe_dump(spec, open(sys.argv[1], "w"))
 PY
     ds=/root/jobs/data-tshirt
     python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out $ds --executor ray --no-progress > "$JOB/generate.log" 2>&1
+    (CUDA_VISIBLE_DEVICES=2 python -m pipelines.cli report floor --data $ds --out "$JOB/floor" --device cuda:0 \
+      --train-device cuda --pairs 8 --targets 8 --no-progress > "$JOB/floor.log" 2>&1) &
+    floor=$!
+    (export CUDA_VISIBLE_DEVICES=1
+     python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv_probe" --device cuda --epochs 1 --no-progress \
+       > "$JOB/train_uvimage_probe.log" 2>&1
+     epochs=$(python -c "import csv, sys; s = float(list(csv.reader(open(sys.argv[1])))[-1][2]); \
+print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_loss.csv" "${UV_SECONDS:-400}")
+     python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv" --device cuda --epochs "$epochs" \
+       --no-progress > "$JOB/train_uvimage.log" 2>&1) &
+    uv=$!
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
-      --no-progress > "$JOB/train_tailornet.log" 2>&1 &
-    tn=$!
-    CUDA_VISIBLE_DEVICES=1 python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv" --device cuda \
-      --no-progress > "$JOB/train_uvimage.log" 2>&1 &
-    wait $tn
+      --no-progress > "$JOB/train_tailornet.log" 2>&1
+    wait $uv $floor
+    cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/"  # one run directory: the evaluation puts them side by side
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
-      > "$JOB/evaluate_tailornet.log" 2>&1
-    wait
+      --floor "$JOB/floor/floor.json" > "$JOB/evaluate.log" 2>&1
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
     ;;
   *) echo "unknown command $cmd (start, wait, collect, learners-full)" >&2; exit 2 ;;
