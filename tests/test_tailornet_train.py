@@ -208,6 +208,31 @@ def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
     assert set(timing) == {"ms_per_frame_batch_1", "ms_per_frame_batch_4"} and min(timing.values()) > 0
 
 
+def test_slow_models_are_timed_within_the_budget() -> None:
+    """A call slower than a tenth of the budget is warmed up once and timed max(3, budget / call)
+    times, and its median is still its duration; a fast model gets the full repeats."""
+    from learn.tailornet.evaluate import time_inference
+
+    class Sleeper(torch.nn.Module):
+        def __init__(self, seconds: float) -> None:
+            super().__init__()
+            self.seconds, self.calls = seconds, 0
+
+        def forward(self, pose: torch.Tensor, shape: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+            self.calls += 1
+            time.sleep(self.seconds)
+            return pose
+
+    x = np.zeros((2, 3), np.float32)
+    slow = Sleeper(0.05)
+    timing = time_inference(slow, x, x, x, batch_sizes=(1,), repeats=20, warmup=3, budget_s=0.2)
+    assert 1 + 3 <= slow.calls <= 1 + 4, slow.calls  # 0.2 s / ~0.05 s per call, at least 3
+    assert 50.0 <= timing["ms_per_frame_batch_1"] < 150.0, timing
+    fast = Sleeper(0.0)
+    time_inference(fast, x, x, x, batch_sizes=(1,), repeats=20, warmup=3, budget_s=0.2)
+    assert fast.calls == 3 + 20, fast.calls
+
+
 def test_fingerprint_helpers_and_overrides(tmp_path: Path) -> None:
     template = tube_template()
     digest = template_sha256(template)

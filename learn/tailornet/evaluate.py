@@ -24,6 +24,10 @@ from learn.common.postprocess import remove_body_penetration_batch
 from learn.tailornet.model import GarmentPoser, UnposedBody, pose_displacements
 from learn.tailornet.train import FrameArrays
 
+TIMING_BUDGET_S = 1.0
+"""Seconds of timed calls per (model, device, batch size) when one call is slow
+(:func:`time_inference`)."""
+
 # (pose (B, P), shape (B, S)) -> posed body vertices [m], (B, Vb, 3).
 PosedBodyFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -243,11 +247,15 @@ def time_inference(
     device: str = "cpu",
     repeats: int = 20,
     warmup: int = 3,
+    budget_s: float = TIMING_BUDGET_S,
 ) -> dict[str, float]:
     """Inference time [ms per frame] of the unposed prediction at each batch size.
 
     Frames are cycled from the given arrays (N >= 1); the median over ``repeats`` timed
-    calls is reported as ``ms_per_frame_batch_<b>``.
+    calls is reported as ``ms_per_frame_batch_<b>``. A call slower than a tenth of
+    ``budget_s`` [s] is warmed up once and timed ``max(3, budget_s / its duration)`` times
+    instead, so a slow model on the CPU (uvimage: ~1.3 s per batch of 32) is not timed for
+    half a minute.
     """
     if pose.shape[0] == 0:
         raise ValueError("time_inference needs at least one frame")
@@ -258,11 +266,19 @@ def time_inference(
             raise ValueError(f"batch sizes must be >= 1, got {batch}")
         index = np.arange(batch) % pose.shape[0]
         inputs = [torch.as_tensor(a[index], dtype=torch.float32, device=device) for a in (pose, shape, style)]
-        for _ in range(warmup):
-            model(*inputs)
+        started = time.perf_counter()
+        model(*inputs)
         _synchronize(device)
+        first = time.perf_counter() - started
+        count = repeats
+        if first > 0.1 * budget_s:
+            count = max(3, min(repeats, int(budget_s / first)))
+        else:
+            for _ in range(warmup - 1):
+                model(*inputs)
+            _synchronize(device)
         times = []
-        for _ in range(repeats):
+        for _ in range(count):
             started = time.perf_counter()
             model(*inputs)
             _synchronize(device)
