@@ -226,6 +226,9 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
         log("speed-up over the simulator: " + ", ".join(f"{k} {v:.0f}x" for k, v in speedups.items()))
     elif sim_ms is None:
         log(f"speed-up over the simulator: not available, {results['simulator']['missing']}")
+    phases = results.get("phase_seconds", {})
+    log(f"evaluation: {results['evaluation_seconds']:.1f} s (the splits {phases.get('splits', 0.0):.1f} s, of it the "
+        f"post-process {phases.get('postprocess', 0.0):.1f} s; inference timing {phases.get('timing', 0.0):.1f} s)")
     log(f"report: {out / 'evaluation.json'}  plot: {out / 'error_vs_time.png'}")
     return results
 

@@ -419,6 +419,9 @@ def test_predict_vertices_and_evaluate_models(trained: dict) -> None:
                              timing_batch_sizes=(1, 2))
     assert set(report["splits"]["test-test"]) == {"tailornet", "baseline"}
     assert set(report["timing"]["baseline"]["cpu"]) == {"ms_per_frame_batch_1", "ms_per_frame_batch_2"}
+    phases = report["phase_seconds"]
+    assert set(phases) == {"splits", "postprocess", "timing"} and min(phases.values()) >= 0.0, phases
+    assert phases["postprocess"] <= phases["splits"], phases
     import json
 
     json.dumps(report)  # the report must be JSON-serialisable

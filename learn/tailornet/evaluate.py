@@ -213,11 +213,13 @@ def evaluate_split(
         result["normal_error"] = float(torch.cat(normal_errors).mean())
         result["ground_truth_collision_rate"] = colliding_truth / vertex_total
     if postprocess:
+        started = time.perf_counter()
         posed_chosen, body_chosen = np.concatenate(pp_posed), np.concatenate(pp_body)
         fixed, _, after = remove_body_penetration_batch(
             posed_chosen, posing.garment_faces, body_chosen, posing.body_faces, device=collision_device,
             threshold=threshold, workers=postprocess_workers,
         )
+        result["postprocess_seconds"] = round(time.perf_counter() - started, 3)
         pp_vertex_total = posed_chosen.shape[0] * posed_chosen.shape[1]
         result["postprocess_frames_evaluated"] = int(pp_selected.sum())
         result["collision_rate_subset"] = pp_colliding / pp_vertex_total
@@ -345,10 +347,12 @@ def evaluate_models(
     (on the first split's frames). JSON-serialisable. A model with ``decoder_only()``
     (the UV-image learners: their full forward also poses the body and unskins) also
     gets ``decoder_ms_per_frame_batch_<b>``: its network alone, as seed 001 times it.
+    ``phase_seconds``: the splits' metrics (of them the post-process) and the timings [s].
     """
     if not models or not splits:
         raise ValueError(f"need at least one model and one split, got {sorted(models)} and {sorted(splits)}")
     report: dict[str, Any] = {"splits": {}, "timing": {}}
+    started = time.perf_counter()
     for split, data in splits.items():
         truth_cache: dict[str, Any] = {}  # the ground truth's collisions, counted once per split
         report["splits"][split] = {
@@ -359,6 +363,7 @@ def evaluate_models(
             )
             for name, model in models.items()
         }
+    predicted = time.perf_counter()
     first = next(iter(splits.values()))
     for name, model in models.items():
         report["timing"][name] = {
@@ -373,4 +378,8 @@ def evaluate_models(
                                          batch_sizes=timing_batch_sizes, device=timing_device)
                 report["timing"][name][timing_device].update({f"decoder_{k}": v for k, v in decoder.items()})
         model.to(device)
+    postprocess_s = sum(m.get("postprocess_seconds", 0.0) for per_model in report["splits"].values()
+                        for m in per_model.values())
+    report["phase_seconds"] = {"splits": round(predicted - started, 2), "postprocess": round(postprocess_s, 2),
+                               "timing": round(time.perf_counter() - predicted, 2)}
     return report
