@@ -69,7 +69,7 @@ records and hashes. Schema (every key optional unless marked required)::
                                         (converged stiffness); xpbd: faster, stretches stiff cloth
       device: auto|cpu|cuda[:N] = auto
       worlds: int = 64                  tasks simulated together (one world each)
-      batches: int = 1                  the plan's batches at least (style-shape pairs dealt out evenly,
+      batches: int = 1                  the plan's batches at least (tasks dealt out evenly,
                                         each batch with `worlds` worlds): a Ray run simulates one batch
                                         per GPU at once, so set it to the GPU count or a multiple;
                                         the same spec gives the same shards on any executor

@@ -516,9 +516,11 @@ def test_a_ray_gpu_worker_runs_batch_after_batch(tmp_path, monkeypatch):
 
 
 def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
-    """``simulation.batches``: pairs stay whole, every task is in exactly one batch, no batch has
-    more pairs than worlds, the batches' target poses differ by at most the largest pair's, and the
-    default (1) keeps the consecutive batches the worlds need."""
+    """``simulation.batches``: every task is in exactly one batch, no batch has more pairs than
+    worlds, the plan does not depend on the task order, and the default (1) keeps the consecutive
+    batches the worlds need. With no more pairs than worlds every pair's tasks are dealt over all
+    batches (target poses within one task of each other; equal tasks: each pair's count per batch
+    within one), else pairs stay whole (target poses within the largest pair's)."""
     from types import SimpleNamespace
 
     from pipelines.generate_dataset import plan_batches
@@ -536,17 +538,27 @@ def test_plan_batches_deals_pairs_evenly_over_the_requested_batches():
         pair_sizes[pair_of[t.task_id]] = pair_sizes.get(pair_of[t.task_id], 0) + len(t.poses)
     for worlds, batches in ((64, 4), (3, 4), (64, 11), (64, 50)):
         plan = plan_batches(tasks, worlds, batches)
-        assert len(plan) == min(11, max(batches, -(-11 // worlds)))
+        whole_pairs = len(pair_sizes) > worlds
+        expected = min(11, max(batches, -(-11 // worlds))) if whole_pairs else min(batches, len(tasks))
+        assert len(plan) == expected, (worlds, batches, len(plan))
         ids = [i for b in plan for i in b]
         assert sorted(ids) == sorted(t.task_id for t in tasks)
         owners = {}
         for n, b in enumerate(plan):
             pairs = {pair_of[i] for i in b}
             assert len(pairs) <= worlds
-            for p in pairs:
-                assert owners.setdefault(p, n) == n, "a pair is split over batches"
+            if whole_pairs:
+                for p in pairs:
+                    assert owners.setdefault(p, n) == n, "a pair is split over batches"
         loads = [sum(size_of[i] for i in b) for b in plan]
-        assert max(loads) - min(loads) <= max(pair_sizes.values())
+        assert max(loads) - min(loads) <= (max(pair_sizes.values()) if whole_pairs else max(size_of.values()))
         assert plan == plan_batches(list(reversed(tasks)), worlds, batches), "the plan depends on the task order"
+    equal = [SimpleNamespace(task_id=f"p{pair}-c{k:02d}", garment_index=pair, shape=np.zeros(2, np.float32), poses=[0] * 30)
+             for pair in range(5) for k in range(9)]
+    for b in plan_batches(equal, 256, 4):
+        assert b == sorted(b), "a batch lists its tasks pair by pair"
+    counts = np.array([[sum(i.startswith(f"p{pair}-") for i in b) for b in plan_batches(equal, 256, 4)]
+                       for pair in range(5)])
+    assert (counts.max(1) - counts.min(1) <= 1).all(), counts
     one = plan_batches(tasks, 4, 1)
     assert len(one) == 3 and [len({pair_of[i] for i in b}) for b in one] == [4, 4, 3]
