@@ -85,9 +85,14 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         raise ValueError(f"spec.garment.type is a list ({gtype}): plan each type's spec (pipelines.spec.type_specs)")
     styles = []
     profiles = bool(spec["styles"].get("limb_profiles", False))
+    # "train" for a test group: the test pairs take the train styles (shapes), so they are unseen
+    # combinations of seen styles and shapes, as TailorNet's test pairs (seed 000, section 5.3)
+    test_styles_seen, test_shapes_seen = spec["styles"]["test"] == "train", spec["shapes"]["test"] == "train"
     for k, group in enumerate(("train", "test")):
         given = spec["styles"][group]
-        if isinstance(given, list):
+        if group == "test" and test_styles_seen:
+            styles.append([])
+        elif isinstance(given, list):
             styles.append([StyleParams(gtype, s) for s in given])
         else:
             styles.append(sample_styles(gtype, int(given), seed=seed * 1000 + 11 + k, optional=profiles))
@@ -100,7 +105,9 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     shapes = []
     for k, group in enumerate(("train", "test")):
         given = spec["shapes"][group]
-        if given == "tailornet9":
+        if group == "test" and test_shapes_seen:
+            shapes.append(np.zeros((0, body.shape_size), np.float32))
+        elif given == "tailornet9":
             from simulate.garment.shapes import training_shapes
 
             shapes.append(np.asarray(training_shapes(body)[0], np.float32))
@@ -125,13 +132,18 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
 
     pairs: list[tuple[str, int, int]] = []
     for k, group in enumerate(("train", "test")):
-        s_off = 0 if group == "train" else n_train_styles
-        h_off = 0 if group == "train" else n_train_shapes
-        candidates = [(s_off + a, h_off + b) for a in range(len(styles[k])) for b in range(len(shapes[k]))]
+        seen_styles = group == "train" or test_styles_seen
+        seen_shapes = group == "train" or test_shapes_seen
+        s_off, s_count = (0, n_train_styles) if seen_styles else (n_train_styles, len(styles[1]))
+        h_off, h_count = (0, n_train_shapes) if seen_shapes else (n_train_shapes, len(shapes[1]))
+        taken = {(si, hi) for _, si, hi in pairs}  # a test pair of seen styles and shapes is no train pair
+        candidates = [(s_off + a, h_off + b) for a in range(s_count) for b in range(h_count)
+                      if (s_off + a, h_off + b) not in taken]
         want = int(spec["pairs"][group])
         if want > len(candidates):
             raise ValueError(f"spec.pairs.{group} = {want} but only {len(candidates)} {group} style-shape "
-                             f"combinations exist ({len(styles[k])} styles x {len(shapes[k])} shapes)")
+                             f"combinations exist ({s_count} styles x {h_count} shapes"
+                             + (f", less the {len(taken)} train pairs)" if taken and seen_styles and seen_shapes else ")"))
         pick = _rng(seed, 31 + k).permutation(len(candidates))[:want]
         pairs.extend((group, *candidates[i]) for i in sorted(pick))
 

@@ -26,7 +26,7 @@ records and hashes. Schema (every key optional unless marked required)::
       path: str | null                  SMPL-family file for backend smpl
     styles:                             garment style parameters (CLOTH3D-like)
       train: int | list[dict]           count to sample, or explicit {param: value} dicts
-      test:  int | list[dict]
+      test:  int | list[dict] | train   train: the train styles (test pairs of seen styles)
       space: str | null                 style-space .npz: styles are then PCA gammas
       limb_profiles: bool = false       sampled tshirt, shirt, pants and shorts styles also draw the
                                         optional sleeve/leg width profile (taper, widen_at, widen;
@@ -34,7 +34,9 @@ records and hashes. Schema (every key optional unless marked required)::
                                         it stays out of the resolved spec)
     shapes:
       train: tailornet9 | int | list[list[float]]   the 9 TailorNet shapes, a sampled count, or explicit
-      test:  int | list[list[float]]
+      test:  int | list[list[float]] | train   train: the train shapes (with styles.test: train, test
+                                        pairs are unseen combinations of seen styles and shapes, as
+                                        TailorNet's; otherwise unseen shapes)
     pairs:                              style-shape pairs (TailorNet: 20 train, 20 test)
       train: int                        drawn from styles.train x shapes.train
       test: int                         drawn from styles.test x shapes.test
@@ -340,7 +342,9 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         c.fail("body.path", "the path of an SMPL-family model file when body.backend is smpl")
     for group in ("train", "test"):
         styles = spec["styles"][group]
-        if isinstance(styles, list):
+        if group == "test" and styles == "train":
+            pass  # the train styles: test pairs are unseen combinations of seen styles and shapes
+        elif isinstance(styles, list):
             if not styles or not all(isinstance(s, dict) for s in styles):
                 c.fail(f"styles.{group}", "a count >= 1 or a non-empty list of {param: value} mappings")
             elif isinstance(gtype, list):
@@ -348,6 +352,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
                                           "belong to one type)", styles)
             elif spec["garment"].get("type") in GARMENT_TYPES:
                 _check_styles(c, f"styles.{group}", styles, spec["garment"]["type"])
+        elif group == "test" and isinstance(styles, str):
+            c.fail("styles.test", "a count >= 1, a non-empty list of {param: value} mappings or 'train'", styles)
         else:
             c.integer(f"styles.{group}", 1)
         shapes = spec["shapes"][group]
@@ -356,7 +362,9 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
                     isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in s) for s in shapes):
                 c.fail(f"shapes.{group}", "a count, 'tailornet9' (train only) or a non-empty list of shape vectors "
                                           "(lists of finite numbers)")
-        elif not (group == "train" and shapes == "tailornet9"):
+        elif group == "test" and isinstance(shapes, str) and shapes != "train":
+            c.fail("shapes.test", "a count >= 1, a non-empty list of shape vectors or 'train'", shapes)
+        elif not (group == "train" and shapes == "tailornet9") and not (group == "test" and shapes == "train"):
             c.integer(f"shapes.{group}", 1)
         c.integer(f"pairs.{group}", 0 if group == "test" else 1)
     c.choice("poses.source", ("sampled", "file", "motion"))

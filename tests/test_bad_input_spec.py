@@ -54,6 +54,10 @@ def test_unknown_keys_at_every_level_name_the_path_and_the_nearest_name(patch, e
     ({"styles": {"space": "space.npz"}}, "spec.styles.space must be null"),
     ({"shapes": {"train": [[0.5, float("nan"), 0.5, 0.5, 0.5, 0.5]]}}, "spec.shapes.train must be a count, 'tailornet9'"),
     ({"shapes": {"test": [[]]}}, "spec.shapes.test must be a count"),
+    ({"shapes": {"test": "seen"}}, "spec.shapes.test must be a count >= 1, a non-empty list of shape vectors or 'train' "
+                                   "(got 'seen')"),
+    ({"styles": {"test": "seen"}}, "spec.styles.test must be a count >= 1, a non-empty list of {param: value} mappings "
+                                   "or 'train' (got 'seen')"),
     ({"poses": {"joints": ["left_shoulder", "left_elbw"]}},
      "spec.poses.joints[1] must be a posable joint name (did you mean left_elbow?)"),
     ({"poses": {"path": 3}}, "spec.poses.path must be the path of a .npz pose file (a string) or null (got 3)"),

@@ -303,6 +303,30 @@ def test_poses_per_task_splits_a_pair_into_consecutive_tasks(anny_body):
             assert [t.task_id for t in parts] == [f"{task.task_id}-c{c:03d}" for c in range(len(parts))]
 
 
+def test_test_pairs_of_seen_styles_and_shapes_are_unseen_combinations(anny_body):
+    """styles.test and shapes.test 'train': the test pairs use the train styles and shapes
+    (TailorNet's protocol) and are never a train pair; an impossible count names pairs.test."""
+    from pipelines.dataset_plan import plan_dataset
+    from pipelines.spec import validate_spec
+
+    spec = _with(styles={"train": 3, "test": "train"}, shapes={"train": 2, "test": "train"},
+                 pairs={"train": 3, "test": 3})
+    plan = plan_dataset(validate_spec(spec), anny_body)
+    train = {(si, hi) for g, si, hi in plan.pairs if g == "train"}
+    test = {(si, hi) for g, si, hi in plan.pairs if g == "test"}
+    assert len(train) == 3 and len(test) == 3 and not train & test, (train, test)
+    assert len(plan.styles) == 3 and len(plan.shapes) == 2, "no test styles or shapes of their own"
+    assert {si for si, _ in test} <= {0, 1, 2} and {hi for _, hi in test} <= {0, 1}
+    mixed = plan_dataset(validate_spec(_with(styles={"train": 2, "test": "train"}, shapes={"train": 2, "test": 2},
+                                             pairs={"train": 2, "test": 3})), anny_body)
+    assert {si for g, si, _ in mixed.pairs if g == "test"} <= {0, 1}, "seen styles"
+    assert {hi for g, _, hi in mixed.pairs if g == "test"} <= {2, 3}, "unseen shapes"
+    with pytest.raises(ValueError, match=r"spec.pairs.test = 4 but only 3 test style-shape combinations exist "
+                                         r"\(3 styles x 2 shapes, less the 3 train pairs\)"):
+        plan_dataset(validate_spec(_with(styles={"train": 3, "test": "train"}, shapes={"train": 2, "test": "train"},
+                                         pairs={"train": 3, "test": 4})), anny_body)
+
+
 def test_min_clearance_reaches_the_plan_and_its_pruned_poses(anny_body):
     """poses.min_clearance prunes the sampled poses by skin clearance (arms to torso for a t-shirt)
     and records them with the capsule test's pruned poses."""
