@@ -138,7 +138,7 @@ def main() -> None:
         sys.setswitchinterval(args.switch_interval)
 
     from pipelines.generate_dataset import generate
-    from pipelines.spec import load_spec
+    from pipelines.spec import OPTIONAL_KEYS, load_spec
 
     full = load_spec(args.spec)
     full_targets = 0
@@ -169,9 +169,13 @@ def main() -> None:
             table = spec[section]
             for name in parents:
                 table = table.get(name) if isinstance(table, dict) else None
-            if not isinstance(table, dict) or key not in table or not value:
-                known = sorted(table) if isinstance(table, dict) else sorted(spec[section])
+            optional = OPTIONAL_KEYS.get(section, ()) if not parents else ()
+            if not isinstance(table, dict) or (key not in table and key not in optional) or not value:
+                known = sorted(set(table) | set(optional)) if isinstance(table, dict) else sorted(spec[section])
                 raise SystemExit(f"{flag} {item!r}: expected KEY=VALUE with KEY one of {known}")
+            if key not in table:  # an optional key (simulation.targets_from_home): YAML's value
+                table[key] = yaml.safe_load(value)
+                continue
             old = table[key]
             if isinstance(old, bool):
                 table[key] = value.lower() in ("1", "true", "yes")

@@ -124,7 +124,8 @@ def sequence_settings(spec: dict):
     sim = SimSettings(frame_dt=float(s["frame_dt"]), substeps=int(s["substeps"]), iterations=int(s["iterations"]),
                       tolerance=float(s["tolerance"]), max_frames=int(s["max_relax_frames"]))
     return SequenceSettings(sim=sim, solver=s["solver"], interpolation_threshold=float(s["interpolation_threshold"]),
-                            self_contact=bool(s["contact"]["self_contact"]))
+                            self_contact=bool(s["contact"]["self_contact"]),
+                            targets_from_home=bool(s.get("targets_from_home", False)))
 
 
 def build_context(spec: dict, out_dir: Path, *, device: str | None = None, log: Callable[[str], None] = print,
@@ -495,6 +496,9 @@ def _summary_table(manifest, seconds: float, frames_simulated_keys: int) -> str:
         lines.append(f"  {'    of them restarted':<26}{int(phases.get('restarts', 0)):>6}  (from the canonical drape)")
         lines.append(f"  {'  restarts after rejects':<26}{int(phases.get('restarts_after_rejects', 0)):>6}  "
                      f"(worlds sent back to the canonical drape after dropped frames)")
+        if int(phases.get("targets_from_home", 0)):
+            lines.append(f"  {'  targets from home':<26}{int(phases['targets_from_home']):>6}  "
+                         f"(worlds sent back after kept frames, simulation.targets_from_home)")
         lines.append(f"  {'  tasks of other pairs':<26}{int(phases.get('group_switches', 0)):>6}  "
                      f"(worlds that took a task of another style-shape pair, cross_group_tasks)")
     return "\n".join(lines)

@@ -85,6 +85,10 @@ records and hashes. Schema (every key optional unless marked required)::
       poses_per_task: int | null = null split a pair's visiting order into tasks of at most this
                                         many poses (each its own world and shard, starting from the
                                         canonical drape), so long pose lists fill the GPU's worlds
+      targets_from_home: bool = false   every target pose is reached from the settled canonical
+                                        drape, not from the pose before it, so its rest does not
+                                        depend on the visiting order (optional key: absent, it stays
+                                        out of the resolved spec)
       contact:
         self_contact: bool = false      cloth-cloth contact: more frames come to rest without the
                                         garment passing through itself, at a higher cost per frame
@@ -175,7 +179,8 @@ REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)
 """Keys a spec must give (they have no default), by section path ("" = top level)."""
 
 OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",), "styles": ("limb_profiles",),
-                                             "poses": ("regularization_count",)}
+                                             "poses": ("regularization_count",),
+                                             "simulation": ("targets_from_home",)}
 """Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
 
 LIBRARY_SETTINGS: dict[str, tuple[str, str]] = {
@@ -419,6 +424,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
     c.number(f"{sim}.interpolation_threshold", 0.0, 3.2, lo_open=True)
     if spec[sim]["poses_per_task"] is not None:
         c.integer(f"{sim}.poses_per_task", 1)
+    if not isinstance(spec[sim].get("targets_from_home", False), bool):
+        c.fail(f"{sim}.targets_from_home", "true or false")
     for flag in ("self_contact", "primary_bodies"):
         if not isinstance(spec[sim]["contact"][flag], bool):
             c.fail(f"{sim}.contact.{flag}", "true or false")

@@ -61,6 +61,7 @@ def test_unknown_keys_at_every_level_name_the_path_and_the_nearest_name(patch, e
     ({"poses": {"joints": ["left_shoulder", "left_elbw"]}},
      "spec.poses.joints[1] must be a posable joint name (did you mean left_elbow?)"),
     ({"poses": {"path": 3}}, "spec.poses.path must be the path of a .npz pose file (a string) or null (got 3)"),
+    ({"simulation": {"targets_from_home": "yes"}}, "spec.simulation.targets_from_home must be true or false (got 'yes')"),
     ({"seed": -1}, "spec.seed must be an integer >= 0 (got -1)"),
     ({"seed": True}, "spec.seed must be an integer >= 0 (got True)"),
     ({"name": ""}, "spec.name must be a non-empty string (got '')"),

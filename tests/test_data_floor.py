@@ -63,6 +63,21 @@ def test_history_floor_is_zero_for_one_sequence_and_positive_for_two(context) ->
     assert different["posed_mm"] < 50.0, different
 
 
+def test_targets_from_home_make_the_rest_independent_of_the_poses_before(context) -> None:
+    """With targets_from_home every target is reached from the settled canonical drape, so two
+    histories that differ only before the last target rest identically (the history floor is 0)."""
+    import dataclasses
+
+    ctx, settings, poses = context
+    shape = np.asarray(ctx.body.shape_default, np.float32)
+    home = dataclasses.replace(settings, targets_from_home=True)
+    probe = Probe(0, shape, np.stack([poses["near"], poses["target"]]), np.stack([poses["far"], poses["target"]]))
+    floor = history_floor(ctx, [probe], settings=home)
+    row = floor["probes"][0]
+    assert floor["used"] == 1 and WorldStatus.EXPLODED.name not in (row["status_a"], row["status_b"]), floor
+    assert floor["posed_mm"] == 0.0 and floor["unposed_mm"] == 0.0, floor
+
+
 def test_probes_share_the_last_pose_and_differ_before_it() -> None:
     rng = np.random.default_rng(0)
     poses = rng.normal(size=(6, 9)).astype(np.float32)

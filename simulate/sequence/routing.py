@@ -384,7 +384,8 @@ class Worlds:
 
     def route(self, worlds: list[int | None], verdicts: list[bool]) -> None:
         """Worlds whose target frames were handed over move on by the answers: home after
-        ``restart_after_rejects`` rejections in a row, else to their next entry (None: a motion
+        ``restart_after_rejects`` rejections in a row or after every target
+        (``targets_from_home``), else to their next entry (None: a motion
         frame, whose world has moved on already)."""
         s = self.settings
         for w, accepted in zip(worlds, verdicts):
@@ -397,6 +398,9 @@ class Worlds:
             if s.restart_after_rejects > 0 and self.rejects[w] >= s.restart_after_rejects and more:
                 self.rejects[w] = 0
                 self.stats.restarts_after_rejects += 1
+                self.go_home(w, next_key)
+            elif s.targets_from_home and more:
+                self.stats.targets_from_home += 1
                 self.go_home(w, next_key)
             else:
                 self.advance(w)

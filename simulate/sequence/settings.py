@@ -76,6 +76,13 @@ class SequenceSettings:
     along a slerp from the canonical pose. Without it a tangle is carried along the rest of the
     sequence (self-intersection and distortion grow with the position in the sequence, not with
     any joint angle). 1: home after every rejected frame. 0 = never."""
+    targets_from_home: bool = False
+    """Every target pose of a task is reached from home (the settled canonical drape on the task's
+    shape, along a slerp from the canonical pose), as after a rejected frame, not from the pose
+    before it: a target's rest then does not depend on the poses before it. Rests reached along
+    two different sequences lie 15-18 mm apart on average (``drape report floor``, XPBD and VBD
+    alike), which no quasi-static learner can fit; from home, ~25 % more world-frames per
+    target (longer transitions; docs/benchmarks.md)."""
     body_lookahead: int = 8
     """Schedule entries per world posed ahead; whenever a world runs out, every world short of
     entries is topped up in the same batched body-model call (one call per frame costs more than

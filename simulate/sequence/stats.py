@@ -42,6 +42,7 @@ class SequenceStats:
     task_switches: int = 0  # a world taking a queued task
     restarts: int = 0  # explosion recoveries that started over from home or the canonical drape
     restarts_after_rejects: int = 0  # worlds sent back after ``restart_after_rejects`` rejected frames
+    targets_from_home: int = 0  # worlds sent home after a kept target (``targets_from_home``)
     self_contact_substeps: int = 0  # world-substeps whose self-contact pair lists were searched or refreshed (VBD)
     self_contact_searches: int = 0  # ... of them with a BVH search (the others refreshed their lists)
 
