@@ -333,9 +333,7 @@ def run_epochs(
     ``<run_dir>/<stage>.pt`` after an epoch when ``checkpoint_interval_s`` seconds have
     passed since the last save (0: after every epoch), or, with a positive interval,
     :data:`SAVE_SHARE_INVERSE` times the last save's duration if longer (saves then take at most
-    ~5 % of the stage), and always
-    after the last epoch;
-    then ``<stage>.done`` (JSON) is written. Saving every epoch would dominate short
+    ~5 % of the stage), and always after the last epoch; then ``<stage>.done`` (JSON) is written. Saving every epoch would dominate short
     epochs: the stacked HF checkpoint of a 7.7k-vertex garment (K = 20) is about 6 GB
     with Adam's moments. An existing checkpoint is resumed after checking the
     fingerprint and the model configuration. ``after_epoch(model, epoch)`` (epoch counted
