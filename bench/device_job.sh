@@ -11,8 +11,8 @@
 # with PYTHONPATH=/tmp/site:SNAP (pack.sh's packages); COMMAND's own files go under $JOB
 # (/root/jobs/NAME/out), its output to /root/jobs/NAME/log, its exit status to /root/jobs/NAME/rc.
 #
-# The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet, uvimage and the data floor
-# on one GPU each, evaluated side by side):
+# The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet, uvimage, the data floor and
+# collision_aware on one GPU each, evaluated side by side):
 #   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full}; name=${2:-}
@@ -38,8 +38,8 @@ case $cmd in
   learners-full)
     # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then side by
     # side: TailorNet at the paper's epochs on GPU 0, uvimage on GPU 1 (as many epochs as fit
-    # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2; then one
-    # evaluation of the three models with --analysis and --floor. Logs, loss curves, floor.json and
+    # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2, collision_aware on
+    # GPU 3; then one evaluation of the models with --analysis and --floor. Logs, loss curves, floor.json and
     # evaluation.json under $JOB.
     gpus=${2:-4}
     python - "$JOB/spec.yaml" "$gpus" <<'PY'
@@ -55,6 +55,10 @@ PY
     (CUDA_VISIBLE_DEVICES=2 python -m pipelines.cli report floor --data $ds --out "$JOB/floor" --device cuda:0 \
       --train-device cuda --pairs 8 --targets 8 --no-progress > "$JOB/floor.log" 2>&1) &
     floor=$!
+    # collision_aware (seed 002) on GPU 3, CA_EPOCHS per stage, stopped after CA_SECONDS (no model then)
+    (CUDA_VISIBLE_DEVICES=3 timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware --data $ds \
+      --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --no-progress > "$JOB/train_collision_aware.log" 2>&1) &
+    ca=$!
     (export CUDA_VISIBLE_DEVICES=1
      python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv_probe" --device cuda --epochs 1 --no-progress \
        > "$JOB/train_uvimage_probe.log" 2>&1
@@ -65,8 +69,10 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     uv=$!
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
       --no-progress > "$JOB/train_tailornet.log" 2>&1
-    wait $uv $floor
-    cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/"  # one run directory: the evaluation puts them side by side
+    wait $uv $floor $ca
+    # one run directory: the evaluation puts them side by side
+    cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/"
+    cp "$JOB/ca/collision_aware_model.pt" "$JOB/tn/" 2>/dev/null || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       --floor "$JOB/floor/floor.json" > "$JOB/evaluate.log" 2>&1
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
