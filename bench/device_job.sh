@@ -33,7 +33,9 @@ case $cmd in
     tail -n 15 "$root/log"
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader 2>/dev/null || true ;;
   collect)
-    tar -czf "${OUT:?}/$name.tgz" -C /root/jobs "$name/log" "$name/out" 2>/dev/null
+    # checkpoints stay behind (GBs at full scale: over what a call brings back), so a collect made
+    # while a job still trains returns its logs
+    tar -czf "${OUT:?}/$name.tgz" --exclude='*.pt' -C /root/jobs "$name/log" "$name/out" 2>/dev/null
     ls -la "$OUT/$name.tgz" ;;
   learners-full)
     # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then side by
