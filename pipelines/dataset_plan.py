@@ -21,6 +21,9 @@ SPLIT_SOURCES = {"train_train": ("train", "train"), "train_test": ("train", "tes
 #: Seed 001's regularization split (``poses.regularization_count``): train pairs x the regularization
 #: pose set, every pose of it.
 REGULARIZATION_SPLIT = "regularization"
+#: The canonical-pose split (``splits.canonical: all``): one frame of every style-shape combination in
+#: the body's canonical pose, TailorNet's A-pose drapes (seed 000, Sec. 4.4 and 5.3).
+CANONICAL_SPLIT = "canonical"
 
 
 @dataclass
@@ -51,7 +54,7 @@ class Plan:
     style_vectors: np.ndarray  # (n_styles, G)
     shapes: np.ndarray  # (n_shapes, S), train shapes first
     pairs: list[tuple[str, int, int]]  # (group, style index, shape index)
-    poses: dict[str, np.ndarray]  # "train"/"test" (and "regularization") pose sets (N, 60)
+    poses: dict[str, np.ndarray]  # "train"/"test" (and "regularization", "canonical") pose sets (N, 60)
     pruned_poses: np.ndarray
     pruned_reasons: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))  # (M,) why each went
     tasks: list[Task] = field(default_factory=list)
@@ -144,7 +147,10 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
             raise ValueError(f"spec.pairs.{group} = {want} but only {len(candidates)} {group} style-shape "
                              f"combinations exist ({s_count} styles x {h_count} shapes"
                              + (f", less the {len(taken)} train pairs)" if taken and seen_styles and seen_shapes else ")"))
-        pick = _rng(seed, 31 + k).permutation(len(candidates))[:want]
+        if group == "train" and spec["pairs"].get("cover", False):
+            pick = covering_pick(candidates, s_count, h_count, want, _rng(seed, 31 + k))
+        else:
+            pick = _rng(seed, 31 + k).permutation(len(candidates))[:want]
         pairs.extend((group, *candidates[i]) for i in sorted(pick))
 
     if spec["poses"]["source"] == "motion":
@@ -211,7 +217,40 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
                 part = ids[start:start + chunk]
                 plan.tasks.append(Task(f"{split}-p{p:03d}-c{c:03d}", split, p, si, all_shapes[hi], style_vectors[si],
                                        part, pose_sets[pose_group][part]))
+    if spec["splits"].get("canonical", 0) == "all":
+        add_canonical_tasks(plan, np.asarray(body.canonical_pose, np.float32))
     return attach_garments(spec, body, plan)
+
+
+def covering_pick(candidates: list[tuple[int, int]], s_count: int, h_count: int, want: int,
+                  rng: np.random.Generator) -> np.ndarray:
+    """``want`` indices into ``candidates`` (every (style, shape) of ``s_count`` styles x ``h_count``
+    shapes, style-major, offsets aside) such that every style and every shape is in one of them
+    where ``want >= max(s_count, h_count)`` (else as many as ``want`` reach): the k-th of the first
+    max(s_count, h_count) pairs takes the k-th style and the k-th shape of two seeded permutations
+    (each cycled), the rest are drawn at random from the combinations left (``pairs.cover``)."""
+    styles, shapes = rng.permutation(s_count), rng.permutation(h_count)
+    first = [int(styles[k % s_count]) * h_count + int(shapes[k % h_count])
+             for k in range(min(want, max(s_count, h_count)))]
+    rest = np.setdiff1d(np.arange(len(candidates)), first)
+    return np.concatenate([np.asarray(first, np.int64), rng.permutation(rest)[:want - len(first)]]).astype(np.int64)
+
+
+def add_canonical_tasks(plan: Plan, canonical_pose: np.ndarray) -> None:
+    """Split ``canonical`` (``splits.canonical: all``): one task per combination of the plan's styles
+    and shapes, its one target the canonical pose (P,). A combination that is a train or test pair
+    keeps that pair's index; the others become pairs of group ``canonical``, appended after them, so
+    the train and test tasks (and their seeded draws) are those of the spec without the split."""
+    index = {(si, hi): p for p, (_, si, hi) in enumerate(plan.pairs)}
+    plan.poses[CANONICAL_SPLIT] = canonical_pose[None].copy()
+    for si in range(len(plan.styles)):
+        for hi in range(len(plan.shapes)):
+            if (si, hi) not in index:
+                index[si, hi] = len(plan.pairs)
+                plan.pairs.append((CANONICAL_SPLIT, si, hi))
+            p = index[si, hi]
+            plan.tasks.append(Task(f"{CANONICAL_SPLIT}-p{p:03d}", CANONICAL_SPLIT, p, si, plan.shapes[hi],
+                                   plan.style_vectors[si], np.zeros(1, np.int64), canonical_pose[None].copy()))
 
 
 def attach_garments(spec: dict, body: BodyModel, plan: Plan) -> Plan:

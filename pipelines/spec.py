@@ -40,6 +40,12 @@ records and hashes. Schema (every key optional unless marked required)::
     pairs:                              style-shape pairs (TailorNet: 20 train, 20 test)
       train: int                        drawn from styles.train x shapes.train
       test: int                         drawn from styles.test x shapes.test
+      cover: bool = false               true: the train pairs wear every train style and every train
+                                        shape at least once (as far as pairs.train allows), the rest
+                                        drawn at random; false: all drawn at random, so some styles
+                                        may be in no train pair (a test pair wearing one is then an
+                                        unseen style to a learner); optional key: absent (false), it
+                                        stays out of the resolved spec
     poses:
       source: sampled|file|motion = sampled   motion: sequences at a fixed frame rate (the motion
                                         section; docs/motion.md): the rest of poses and splits are not read
@@ -61,6 +67,12 @@ records and hashes. Schema (every key optional unless marked required)::
       train_test: int | all = all       train pairs x unseen poses
       test_train: int                   test pairs x a subset of train poses
       test_test: int                    test pairs x a subset of unseen poses
+      canonical: all | 0                one frame in the body's canonical pose for every combination
+                                        of the dataset's styles and shapes (train and test): split
+                                        ``canonical``, the canonical-pose drapes TailorNet's g and
+                                        prototype choice learn from (seed 000 Sec. 5.3 simulates all
+                                        225 in A-pose); optional key: absent (0), it stays out of the
+                                        resolved spec
     simulation:                         what a run changes; the rest of the stepping (damping, explosion
                                         limits, convergence outliers and limit cycles, contact thickness
                                         and detection rates, shape transition, restarts, ...) is the
@@ -179,7 +191,8 @@ REQUIRED_KEYS: dict[str, tuple[str, ...]] = {"": ("name",), "garment": ("type",)
 """Keys a spec must give (they have no default), by section path ("" = top level)."""
 
 OPTIONAL_KEYS: dict[str, tuple[str, ...]] = {"garment": ("tightness",), "styles": ("limb_profiles",),
-                                             "poses": ("regularization_count",),
+                                             "pairs": ("cover",), "poses": ("regularization_count",),
+                                             "splits": ("canonical",),
                                              "simulation": ("targets_from_home",)}
 """Keys a spec may give that have no default: absent, they stay out of the resolved spec (and its hash)."""
 
@@ -372,6 +385,8 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
         elif not (group == "train" and shapes == "tailornet9") and not (group == "test" and shapes == "train"):
             c.integer(f"shapes.{group}", 1)
         c.integer(f"pairs.{group}", 0 if group == "test" else 1)
+    if not isinstance(spec["pairs"].get("cover", False), bool):
+        c.fail("pairs.cover", "true (every train style and shape in a train pair) or false")
     c.choice("poses.source", ("sampled", "file", "motion"))
     if spec["poses"]["source"] == "file" and not spec["poses"].get("path"):
         c.fail("poses.path", "a .npz pose file when poses.source is file")
@@ -409,6 +424,12 @@ def validate_spec(raw: Any, *, source: str = "<spec>") -> dict[str, Any]:
                                                  "style-shape pair)")
     for split in SPLITS:
         c.integer(f"splits.{split}", 0, allow=("all",))
+    if "canonical" in spec["splits"]:
+        if spec["splits"]["canonical"] not in ("all", 0) or isinstance(spec["splits"]["canonical"], bool):
+            c.fail("splits.canonical", "all (one canonical-pose frame per style-shape combination) or 0")
+        elif spec["splits"]["canonical"] == "all" and spec["poses"]["source"] == "motion":
+            c.fail("splits.canonical", "absent or 0 when poses.source is motion (motion datasets split by "
+                                       "style-shape pair)")
     sim = "simulation"
     c.choice(f"{sim}.solver", ("vbd", "xpbd", "mass_spring"))
     device = spec[sim]["device"]
