@@ -214,6 +214,7 @@ def _run(args: argparse.Namespace, entry) -> int:
         dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
         data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
+    canonical = load_canonical_split(reader, args.data, args.learner, model_hyper)
     hyper.setdefault("model", {})
     # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
     # phenotype vector and our style the CLOTH3D-like parameters, where no prefix is "the most
@@ -237,13 +238,15 @@ def _run(args: argparse.Namespace, entry) -> int:
         tn_stages = None if stages is None else [s for s in stages if s != "baseline"]
         if tn_stages is None or tn_stages or rank == 0:
             fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0,
-                          hf_parts=hf_parts_for(world, hyper) if world > 1 else 1, **common)
+                          hf_parts=hf_parts_for(world, hyper) if world > 1 else 1, canonical=canonical, **common)
         if stages is None or "baseline" in stages:
-            fit_baseline(data, template["faces"], **common)
+            fit_baseline(data, template["faces"], canonical=canonical, **common)
     else:
         extra = {} if entry.context is None else entry.context(
             reader=reader, dataset=dataset, body=body, body_spec={"backend": body.name, "path": body_spec.get("path")},
             template=template)
+        if canonical is not None:
+            extra["canonical"] = canonical
         entry.fit(data, template["faces"], **common, **extra)
     if rank == 0:
         info = {"learner": args.learner, "data": str(Path(args.data).resolve()), "train_split": split, "data_mode": mode,
@@ -255,6 +258,30 @@ def _run(args: argparse.Namespace, entry) -> int:
         (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
         print(f"trained {args.learner} on {data.frame_count} frames of {split} ({pairs} pairs) in {info['seconds']} s -> {out}")
     return 0
+
+
+def load_canonical_split(reader, data: str | os.PathLike, learner: str, model_hyper: dict):
+    """The dataset's ``canonical`` split (every style-shape combination in the canonical pose,
+    ``splits.canonical``) as FrameArrays for TailorNet and the baseline, with a line saying what
+    they do with it; None for other learners, without the split, or with
+    ``model.use_canonical_split`` false."""
+    from learn.data import DrapeDataset
+    from learn.tailornet.train import frame_arrays_from_dataset
+    from pipelines.dataset_plan import CANONICAL_SPLIT
+
+    if learner not in ("tailornet", "baseline") or not model_hyper["use_canonical_split"] \
+            or CANONICAL_SPLIT not in reader.splits or reader.num_frames(CANONICAL_SPLIT) == 0:
+        return None
+    loaded = DrapeDataset(data, CANONICAL_SPLIT, frequencies=False)
+    canonical = frame_arrays_from_dataset(loaded)
+    loaded.reader.close()  # no HDF5 handle open when a loader forks its workers
+    repeat = int(model_hyper["canonical_repeat"])
+    uses = ["g and the prototype choice learn from them"] if learner == "tailornet" else []
+    uses.append(f"{'LF' if learner == 'tailornet' else 'the baseline'} trains on them "
+                + (f"{repeat} times (model.canonical_repeat)" if repeat else "not (model.canonical_repeat 0)"))
+    print(f"canonical split: {canonical.frame_count} style-shape combinations in the canonical pose "
+          f"({'; '.join(uses)})")
+    return canonical
 
 
 def _data_mode(mode: str, reader, split: str, entry) -> str:

@@ -94,6 +94,13 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "smoothing_iterations": 80,
         "smoothing_lambda": 0.15,
         "checkpoint_interval_s": DEFAULT_CHECKPOINT_INTERVAL_S,
+        # each frame of the dataset's canonical split (every style-shape combination in the
+        # canonical pose) joins LF's and the baseline's training frames this many times (0: the
+        # split trains g and picks the prototypes only, as TailorNet's paper)
+        "canonical_repeat": 0,
+        # false: g and the prototype choice learn from each training pair's frame closest to the
+        # canonical pose even where the dataset has a canonical split (the ablation)
+        "use_canonical_split": True,
     },
 }
 
@@ -244,6 +251,69 @@ def add_low_frequency(
         out[start : start + chunk] = low.cpu().numpy()
     data.low_frequency = out
     return data
+
+
+def concat_frames(parts: Sequence[FrameArrays]) -> FrameArrays:
+    """The frames of ``parts`` one after another (pose, shape, style, displacements, pair_id and
+    low_frequency where every part has it; the optional per-frame fields are dropped)."""
+    def cat(name: str) -> np.ndarray:
+        return np.concatenate([np.asarray(getattr(f, name)) for f in parts])
+
+    low = cat("low_frequency") if all(f.low_frequency is not None for f in parts) else None
+    return FrameArrays(pose=cat("pose"), shape=cat("shape"), style=cat("style"),
+                       displacements=cat("displacements").astype(parts[0].displacements.dtype, copy=False),
+                       pair_id=cat("pair_id"), low_frequency=low)
+
+
+def _pair_keys(shape: np.ndarray, style: np.ndarray) -> list[bytes]:
+    both = np.concatenate([np.asarray(shape, np.float32), np.asarray(style, np.float32)], axis=1)
+    return [row.tobytes() for row in np.ascontiguousarray(both)]
+
+
+def canonical_training_frames(
+    data: FrameArrays, canonical: FrameArrays | None, canonical_pose: np.ndarray | None = None,
+) -> tuple[FrameArrays, FrameArrays]:
+    """(pair_frames, g_frames) for g and the prototype choice.
+
+    pair_frames: one canonical-pose frame per training pair, in pair-id order (X frames): the
+    ``canonical`` split's frame of the pair's (shape, style) where it has one, else the pair's frame
+    whose pose is closest to ``canonical_pose``. g_frames: those, and every frame of ``canonical``
+    of a style-shape combination that is no training pair (TailorNet's g learns from all its
+    A-pose drapes, seed 000 Sec. 4.4)."""
+    nearest = data.subset(canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose))
+    if canonical is None or canonical.frame_count == 0:
+        return nearest, nearest
+    lookup = {key: i for i, key in enumerate(_pair_keys(canonical.shape, canonical.style))}
+    found = [lookup.get(key) for key in _pair_keys(nearest.shape, nearest.style)]
+    displacements = nearest.displacements.copy()
+    pose = nearest.pose.copy()
+    for pair, row in enumerate(found):
+        if row is not None:
+            displacements[pair] = canonical.displacements[row]
+            pose[pair] = canonical.pose[row]
+    pair_frames = FrameArrays(pose=pose, shape=nearest.shape, style=nearest.style, displacements=displacements,
+                              pair_id=np.arange(nearest.frame_count, dtype=np.int64))
+    others = np.setdiff1d(np.arange(canonical.frame_count), [r for r in found if r is not None])
+    extra = canonical.subset(others)
+    extra = FrameArrays(pose=extra.pose, shape=extra.shape, style=extra.style, displacements=extra.displacements,
+                        pair_id=nearest.frame_count + np.arange(extra.frame_count, dtype=np.int64))
+    return pair_frames, concat_frames([pair_frames, extra])
+
+
+def with_canonical_frames(data: FrameArrays, canonical: FrameArrays | None, repeat: int, faces: np.ndarray,
+                          hyper: Mapping[str, Mapping[str, Any]], device: str = "cpu") -> FrameArrays:
+    """``data`` followed by ``repeat`` copies of the ``canonical`` split's frames (their low-frequency
+    part computed when ``data`` has one): LF's and the baseline's training frames
+    (``model.canonical_repeat``). ``data`` itself when there is nothing to add."""
+    if canonical is None or canonical.frame_count == 0 or repeat <= 0:
+        return data
+    extra = FrameArrays(pose=canonical.pose, shape=canonical.shape, style=canonical.style,
+                        displacements=canonical.displacements,
+                        pair_id=int(data.pair_id.max()) + 1 + np.arange(canonical.frame_count, dtype=np.int64))
+    if data.low_frequency is not None:
+        add_low_frequency(extra, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
+                          iterations=int(hyper["model"]["smoothing_iterations"]), device=device)
+    return concat_frames([data] + [extra] * int(repeat))
 
 
 def merged_hyperparameters(
@@ -621,14 +691,17 @@ def train_shape_style(
     hyperparameters: Mapping[str, Mapping[str, Any]] | None = None,
     fingerprint: DatasetFingerprint | None = None,
     canonical_pose: np.ndarray | None = None,
+    canonical: FrameArrays | None = None,
     device: str = "cpu",
     seed: int = 0,
     progress: bool = True,
 ) -> ShapeStyleModel:
-    """Train g(shape, style) on each pair's frame closest to ``canonical_pose`` (default 0)."""
+    """Train g(shape, style) on the canonical-pose drapes: every frame of the dataset's ``canonical``
+    split, and for a training pair without one its frame closest to ``canonical_pose`` (default 0)
+    (:func:`canonical_training_frames`)."""
     hyper = merged_hyperparameters(hyperparameters)
     shape_components, style_components = _components(data, hyper["model"])
-    canonical = data.subset(canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose))
+    canonical = canonical_training_frames(data, canonical, canonical_pose)[1]
     torch.manual_seed(seed)  # deterministic initial weights
     model = ShapeStyleModel(
         data.vertex_count,
@@ -906,6 +979,7 @@ def fit_tailornet(
     stages: Collection[str] | None = None,
     wait_timeout_s: float = 0.0,
     hf_parts: int = 1,
+    canonical: FrameArrays | None = None,
 ) -> TailorNet | None:
     """Train TailorNet's stages on the training split and save ``tailornet_model.pt``.
 
@@ -925,6 +999,10 @@ def fit_tailornet(
             returned and a later call (e.g. by rank 0) assembles it.
         hf_parts: hf is trained as this many parts ``hf_<i>of<P>`` (:func:`train_hf`'s
             ``part``); ``stages`` may name parts, and ``hf`` then means all of them.
+        canonical: the dataset's ``canonical`` split (every style-shape combination in the
+            canonical pose), or None: g learns from all of it and the prototypes are chosen on
+            its drapes of the training pairs (:func:`canonical_training_frames`); with
+            ``model.canonical_repeat`` its frames also join LF's training frames.
     Prototypes: the K = min(model.prototype_count, pairs) training pairs chosen greedily
     on their canonical-pose garments (written to ``prototypes.json`` with errors vs K).
 
@@ -955,12 +1033,16 @@ def fit_tailornet(
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
         pose_indices = np.arange(data.pose.shape[1])
-    canonical_frames = canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose)
-    pair_count = canonical_frames.shape[0]
+    pair_frames = canonical_training_frames(data, canonical, canonical_pose)[0]
+    pair_count = pair_frames.frame_count
     prototype_count = min(int(hyper["model"]["prototype_count"]), pair_count)
     if hf_parts > prototype_count:
         raise ValueError(f"hf_parts={hf_parts} but the model has {prototype_count} prototypes")
-    choice = choose_prototypes(data.subset(canonical_frames).displacements, prototype_count)
+    repeat = int(hyper["model"]["canonical_repeat"])
+    if repeat and is_streamed(data) and canonical is not None and canonical.frame_count:
+        raise ValueError("model.canonical_repeat > 0 needs the training split in memory (--data-mode memory); "
+                         "a streamed split trains LF on its own frames")
+    choice = choose_prototypes(pair_frames.displacements, prototype_count)
     (run_dir / "prototypes.json").write_text(
         json.dumps(
             {
@@ -977,7 +1059,7 @@ def fit_tailornet(
 
     def train(stage: str) -> torch.nn.Module:
         if stage == "shape_style":
-            return train_shape_style(data, canonical_pose=canonical_pose, seed=seed, **common)
+            return train_shape_style(data, canonical_pose=canonical_pose, canonical=canonical, seed=seed, **common)
         if is_streamed(data):
             if not data.low_frequency_ready:
                 data.prepare_low_frequency(device)
@@ -987,7 +1069,8 @@ def fit_tailornet(
                 iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
             )
         if stage == "lf":
-            return train_lf(data, pose_indices, seed=seed + 1000, **common)
+            lf_data = data if is_streamed(data) else with_canonical_frames(data, canonical, repeat, faces, hyper, device)
+            return train_lf(lf_data, pose_indices, seed=seed + 1000, **common)
         part = None if stage == "hf" else (parts.index(stage), hf_parts)
         return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, part=part, **common)
 
@@ -1012,10 +1095,9 @@ def fit_tailornet(
     modules = {unit: trained[unit] if unit in trained else train(unit) for unit in units}
     if parts:
         modules["hf"] = HighFrequencyPrototypes.cat([modules[q] for q in parts]).eval()
-    prototype_frames = canonical_frames[choice.indices]
     model = TailorNet(
         modules["lf"], modules["hf"], modules["shape_style"],
-        torch.as_tensor(data.shape[prototype_frames]), torch.as_tensor(data.style[prototype_frames]),
+        torch.as_tensor(pair_frames.shape[choice.indices]), torch.as_tensor(pair_frames.style[choice.indices]),
         sigma=float(hyper["model"]["sigma"]),
     ).to(device).eval()
     save_learner(
@@ -1037,12 +1119,21 @@ def fit_baseline(
     device: str = "cpu",
     seed: int = 0,
     progress: bool = True,
+    canonical: FrameArrays | None = None,
 ) -> DisplacementMLP:
-    """Registry-shaped wrapper of :func:`train_baseline` (the baseline needs neither
-    ``faces`` nor ``canonical_pose``; they are accepted so every learner fits alike)."""
-    del faces, canonical_pose
+    """Registry-shaped wrapper of :func:`train_baseline` (the baseline does not need
+    ``canonical_pose``; it is accepted so every learner fits alike). ``canonical``: the dataset's
+    canonical split, whose frames join the training frames ``model.canonical_repeat`` times, as
+    they join TailorNet's LF (``faces`` gives their low-frequency part where ``data`` has one)."""
+    del canonical_pose
     if pose_indices is None:
         pose_indices = np.arange(data.pose.shape[1])
+    hyper = merged_hyperparameters(hyperparameters)
+    repeat = int(hyper["model"]["canonical_repeat"])
+    if repeat and canonical is not None and canonical.frame_count:
+        if is_streamed(data):
+            raise ValueError("model.canonical_repeat > 0 needs the training split in memory (--data-mode memory)")
+        data = with_canonical_frames(data, canonical, repeat, faces, hyper, device)
     return train_baseline(
         data, pose_indices, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
         device=device, seed=seed, progress=progress,
