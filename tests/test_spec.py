@@ -10,9 +10,10 @@ def test_shipped_specs_validate():
     quick = load_spec("quickstart")
     assert quick["garment"]["type"] == "tshirt" and quick["simulation"]["solver"] == "xpbd"
     full = load_spec("tailornet-tshirt")
-    assert full["pairs"] == {"train": 20, "test": 20} and full["poses"]["train_count"] == 2600
-    frames = 20 * 2600 + 20 * 179 + 20 * full["splits"]["test_train"] + 20 * full["splits"]["test_test"]
-    assert frames == 58_900
+    assert full["pairs"] == {"train": 20, "test": 20, "cover": True} and full["poses"]["train_count"] == 2600
+    assert full["splits"]["canonical"] == "all"  # 20 styles x 9 shapes in the canonical pose
+    frames = 20 * 2600 + 20 * 179 + 20 * full["splits"]["test_train"] + 20 * full["splits"]["test_test"] + 20 * 9
+    assert frames == 59_080
 
 
 @pytest.mark.parametrize("patch, path", [
