@@ -19,7 +19,8 @@ from data_manifest.reader import DatasetReader
 from data_manifest.synthetic import tube_template, write_synthetic_dataset
 from learn.common.mesh import grid_mesh
 from learn.registry import LEARNERS, get_learner
-from learn.tailornet.evaluate import PosingContext, evaluate_split, predict_displacements, time_inference
+from learn.tailornet.evaluate import (PosingContext, evaluate_split, evaluate_split_models, predict_displacements,
+                                      time_inference)
 from learn.tailornet.hf import HighFrequencyPrototypes
 from learn.tailornet.lf import low_frequency_model
 from learn.tailornet.model import TailorNet
@@ -206,6 +207,14 @@ def test_evaluate_posed_metrics_with_synthetic_body(trained: dict) -> None:
     assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 1e-3, metrics
     timing = time_inference(trained["tailornet"], test.pose, test.shape, test.style, batch_sizes=(1, 4), repeats=3)
     assert set(timing) == {"ms_per_frame_batch_1", "ms_per_frame_batch_4"} and min(timing.values()) > 0
+    # Both models at once (each batch's body posed and its BVHs built once, shared), in batches of
+    # 4 frames, give each model's metrics alone.
+    both = evaluate_split_models({"tailornet": trained["tailornet"], "baseline": trained["baseline"]}, test,
+                                 posing=posing, batch_size=4, postprocess_frames=2)
+    for name in ("tailornet", "baseline"):
+        alone = evaluate_split(trained[name], test, posing=posing, batch_size=4, postprocess_frames=2)
+        for key, value in alone.items():
+            assert both[name][key] == pytest.approx(value, rel=1e-6, abs=1e-9) or key == "postprocess_seconds", key
 
 
 def test_slow_models_are_timed_within_the_budget() -> None:

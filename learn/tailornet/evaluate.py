@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from learn.common.collision import COLLISION_THRESHOLD_M, collision_mask
+from learn.common.collision import COLLISION_THRESHOLD_M, BodyMeshes, collision_mask
 from learn.common.losses import per_vertex_error_mm
 from learn.common.normals import normal_error
 from learn.common.postprocess import remove_body_penetration_batch
@@ -105,35 +105,17 @@ def evaluate_split(
     truth_cache: dict[str, Any] | None = None,
     per_frame: bool = False,
 ) -> dict[str, Any]:
-    """Metrics of ``model`` on the frames of one split.
+    """Metrics of ``model`` on the frames of one split: :func:`evaluate_split_models` of it alone."""
+    return evaluate_split_models(
+        {"model": model}, data, posing=posing, postprocess=postprocess, batch_size=batch_size, device=device,
+        collision_device=collision_device, threshold=threshold, postprocess_frames=postprocess_frames,
+        postprocess_workers=postprocess_workers, truth_cache=truth_cache, per_frame=per_frame,
+    )["model"]
 
-    Returns a dict with ``frames``, ``unposed_error_mm`` (mean over frames of the mean
-    per-vertex error), and with ``posing`` given: ``posed_error_mm`` and
-    ``normal_error`` (mean 1 - cos of predicted and true vertex normals, seed 001) when
-    ``data.posed_vertices`` is set, ``collision_rate`` of predictions and of the ground
-    truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
-    ``postprocessed_posed_error_mm``. ``data.translation`` (when set) is added to the
-    posed garment and body. The post-process (a sparse solve per frame on the CPU, about
-    a second for 10k vertices, spread over ``postprocess_workers`` processes) runs on at
-    most ``postprocess_frames`` evenly spaced frames when given;
-    ``postprocess_frames_evaluated`` reports how many, and the post-processed rates and
-    errors refer to those frames (``collision_rate_subset`` and ``posed_error_mm_subset``
-    give the raw values on the same frames, for a like-for-like comparison).
 
-    A model with ``recurrent`` true (the collision-aware learner's GRU regressor) predicts with
-    ``model.predict_frames``: every sequence of the split run in frame order, the root joint
-    (plus ``data.translation``) feeding its root motion.
-    Prediction, posing and errors run on ``device`` in batches of ``batch_size`` frames; the
-    collision queries (Warp, ``collision_device``) get one host copy of each batch. The
-    ground truth's collision count depends on the split only: pass the same
-    ``truth_cache`` dict for every model evaluated on a split to count it once.
-    ``per_frame``: also return ``unposed_error_mm_per_frame`` (N,) as a numpy array (for the
-    error analysis; not JSON).
-    """
-    if postprocess_frames is not None and postprocess_frames < 1:
-        raise ValueError(f"postprocess_frames must be >= 1 or None, got {postprocess_frames}")
-    if data.frame_count == 0:
-        raise ValueError("evaluate_split: the split has no frames")
+def _predict_split(model: torch.nn.Module, data: FrameArrays, batch_size: int, device: str) -> torch.Tensor:
+    """Unposed displacements of every frame of ``data`` on ``device``, (N, V, 3); a recurrent model
+    runs the split's sequences in frame order."""
     if getattr(model, "recurrent", False):  # each sequence through in frame order, state carried across frames
         if data.sequence is None or data.frame_index is None:
             raise ValueError("a recurrent model needs each frame's sequence and frame_index (FrameArrays.sequence, "
@@ -149,88 +131,155 @@ def evaluate_split(
         raise ValueError(
             f"model predicts {predicted.shape[1]} vertices but the data has {data.vertex_count}"
         )
-    errors = torch.cat([
-        per_vertex_error_mm(predicted[start:start + batch_size],
-                            torch.as_tensor(data.displacements[start:start + batch_size]).to(device))
-        for start in range(0, data.frame_count, batch_size)
-    ])
-    result: dict[str, Any] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
-    if per_frame:
-        result["unposed_error_mm_per_frame"] = errors.cpu().numpy()
+    return predicted
+
+
+def evaluate_split_models(
+    models: dict[str, torch.nn.Module],
+    data: FrameArrays,
+    *,
+    posing: PosingContext | None = None,
+    postprocess: bool = True,
+    batch_size: int = 256,
+    device: str = "cpu",
+    collision_device: str | None = None,
+    threshold: float = COLLISION_THRESHOLD_M,
+    postprocess_frames: int | None = None,
+    postprocess_workers: int = 1,
+    truth_cache: dict[str, Any] | None = None,
+    per_frame: bool = False,
+) -> dict[str, dict[str, Any]]:
+    """Metrics of each of ``models`` (name -> model) on the frames of one split, by name.
+
+    Each result has ``frames``, ``unposed_error_mm`` (mean over frames of the mean
+    per-vertex error), and with ``posing`` given: ``posed_error_mm`` and
+    ``normal_error`` (mean 1 - cos of predicted and true vertex normals, seed 001) when
+    ``data.posed_vertices`` is set, ``collision_rate`` of predictions and of the ground
+    truth, and with ``postprocess`` ``collision_rate_postprocessed`` and
+    ``postprocessed_posed_error_mm``. ``data.translation`` (when set) is added to the
+    posed garment and body. The post-process (a sparse solve per frame on the CPU, about
+    a second for 10k vertices, spread over ``postprocess_workers`` processes) runs on at
+    most ``postprocess_frames`` evenly spaced frames when given;
+    ``postprocess_frames_evaluated`` reports how many, and the post-processed rates and
+    errors refer to those frames (``collision_rate_subset`` and ``posed_error_mm_subset``
+    give the raw values on the same frames, for a like-for-like comparison).
+
+    A model with ``recurrent`` true (the collision-aware learner's GRU regressor) predicts with
+    ``model.predict_frames``: every sequence of the split run in frame order, the root joint
+    (plus ``data.translation``) feeding its root motion.
+    Prediction, posing and errors run on ``device`` in batches of ``batch_size`` frames. Each
+    batch's body is posed once and its BVHs built once (:class:`learn.common.collision.BodyMeshes`,
+    on ``collision_device``) for the ground truth and every model; the collision queries get one
+    host copy of each batch. The ground truth's collision count depends on the split only: pass the
+    same ``truth_cache`` dict for every call on a split to count it once.
+    ``per_frame``: also return ``unposed_error_mm_per_frame`` (N,) as a numpy array (for the
+    error analysis; not JSON).
+    """
+    if postprocess_frames is not None and postprocess_frames < 1:
+        raise ValueError(f"postprocess_frames must be >= 1 or None, got {postprocess_frames}")
+    if data.frame_count == 0:
+        raise ValueError("evaluate_split: the split has no frames")
+    if not models:
+        raise ValueError("evaluate_split_models: no models")
+    predicted = {name: _predict_split(model, data, batch_size, device) for name, model in models.items()}
+    results: dict[str, dict[str, Any]] = {}
+    for name, prediction in predicted.items():
+        errors = torch.cat([
+            per_vertex_error_mm(prediction[start:start + batch_size],
+                                torch.as_tensor(data.displacements[start:start + batch_size]).to(device))
+            for start in range(0, data.frame_count, batch_size)
+        ])
+        results[name] = {"frames": data.frame_count, "unposed_error_mm": float(errors.mean())}
+        if per_frame:
+            results[name]["unposed_error_mm_per_frame"] = errors.cpu().numpy()
     if posing is None:
-        return result
-    posed_errors, normal_errors = [], []
-    colliding = colliding_truth = 0
-    vertex_total = 0
+        return results
+    names = list(models)
+    posed_errors: dict[str, list] = {n: [] for n in names}
+    normal_errors: dict[str, list] = {n: [] for n in names}
+    colliding = dict.fromkeys(names, 0)
+    pp_posed: dict[str, list] = {n: [] for n in names}
+    pp_colliding = dict.fromkeys(names, 0)
+    colliding_truth = vertex_total = 0
     if postprocess_frames is None or postprocess_frames >= data.frame_count:
         pp_selected = np.ones(data.frame_count, dtype=bool)
     else:
         pp_selected = np.zeros(data.frame_count, dtype=bool)
         pp_selected[np.linspace(0, data.frame_count - 1, postprocess_frames).round().astype(np.int64)] = True
     count_truth = data.posed_vertices is not None and (truth_cache is None or "colliding" not in truth_cache)
-    pp_posed, pp_body, pp_truth, pp_colliding = [], [], [], 0
+    pp_body, pp_truth = [], []
     with torch.no_grad():
         for start in range(0, data.frame_count, batch_size):
             stop = start + batch_size
             pose = torch.as_tensor(data.pose[start:stop], dtype=torch.float32).to(device)
             shape = torch.as_tensor(data.shape[start:stop], dtype=torch.float32).to(device)
-            posed_t = pose_displacements(
-                predicted[start:stop], pose, shape, garment_poser=posing.garment_poser, unposed_body=posing.unposed_body
-            )
-            body_t = posing.posed_body(pose, shape).to(posed_t.device)
+            body_t = posing.posed_body(pose, shape).to(device)
+            shift = None
             if data.translation is not None:
                 # A root translation moves body and garment rigidly, after skinning.
-                shift = torch.as_tensor(data.translation[start:stop, None, :]).to(posed_t.device)
-                posed_t, body_t = posed_t + shift, body_t + shift
-            posed, body = posed_t.cpu().numpy(), body_t.cpu().numpy()
-            mask = collision_mask(posed, body, posing.body_faces, threshold=threshold, device=collision_device)
-            colliding += int(mask.sum())
-            vertex_total += posed.shape[0] * posed.shape[1]
+                shift = torch.as_tensor(data.translation[start:stop, None, :]).to(device)
+                body_t = body_t + shift
+            body = body_t.cpu().numpy()
+            meshes = BodyMeshes(body, posing.body_faces, device=collision_device)
+            vertex_total += body.shape[0] * data.vertex_count
+            chosen = np.flatnonzero(pp_selected[start:stop])
+            truth = truth_t = None
             if data.posed_vertices is not None:
                 truth = data.posed_vertices[start:stop]
-                truth_t = torch.as_tensor(truth).to(posed_t.device)
-                posed_errors.append(per_vertex_error_mm(posed_t, truth_t))
-                normal_errors.append(normal_error(posed_t, truth_t, posing.garment_faces))
+                truth_t = torch.as_tensor(truth).to(device)
                 if count_truth:
-                    colliding_truth += int(
-                        collision_mask(truth, body, posing.body_faces, threshold=threshold,
-                                       device=collision_device).sum()
-                    )
-            chosen = np.flatnonzero(pp_selected[start:stop])
+                    colliding_truth += int(collision_mask(truth, None, posing.body_faces, threshold=threshold,
+                                                          meshes=meshes).sum())
             if postprocess and chosen.size:
-                pp_posed.append(posed[chosen])
                 pp_body.append(body[chosen])
-                pp_colliding += int(mask[chosen].sum())
-                if data.posed_vertices is not None:
-                    pp_truth.append(data.posed_vertices[start:stop][chosen])
-    result["collision_rate"] = colliding / vertex_total
+                if truth is not None:
+                    pp_truth.append(truth[chosen])
+            for name in names:
+                posed_t = pose_displacements(predicted[name][start:stop], pose, shape,
+                                             garment_poser=posing.garment_poser, unposed_body=posing.unposed_body)
+                if shift is not None:
+                    posed_t = posed_t + shift
+                posed = posed_t.cpu().numpy()
+                mask = collision_mask(posed, None, posing.body_faces, threshold=threshold, meshes=meshes)
+                colliding[name] += int(mask.sum())
+                if truth_t is not None:
+                    posed_errors[name].append(per_vertex_error_mm(posed_t, truth_t))
+                    normal_errors[name].append(normal_error(posed_t, truth_t, posing.garment_faces))
+                if postprocess and chosen.size:
+                    pp_posed[name].append(posed[chosen])
+                    pp_colliding[name] += int(mask[chosen].sum())
+            del meshes
     if data.posed_vertices is not None:
         if count_truth and truth_cache is not None:
             truth_cache["colliding"] = colliding_truth
         if truth_cache is not None:
             colliding_truth = truth_cache["colliding"]
-        result["posed_error_mm"] = float(torch.cat(posed_errors).mean())
-        result["normal_error"] = float(torch.cat(normal_errors).mean())
-        result["ground_truth_collision_rate"] = colliding_truth / vertex_total
-    if postprocess:
-        started = time.perf_counter()
-        posed_chosen, body_chosen = np.concatenate(pp_posed), np.concatenate(pp_body)
-        fixed, _, after = remove_body_penetration_batch(
-            posed_chosen, posing.garment_faces, body_chosen, posing.body_faces, device=collision_device,
-            threshold=threshold, workers=postprocess_workers,
-        )
-        result["postprocess_seconds"] = round(time.perf_counter() - started, 3)
-        pp_vertex_total = posed_chosen.shape[0] * posed_chosen.shape[1]
-        result["postprocess_frames_evaluated"] = int(pp_selected.sum())
-        result["collision_rate_subset"] = pp_colliding / pp_vertex_total
-        result["collision_rate_postprocessed"] = int(after.sum()) / pp_vertex_total
-        if pp_truth:
-            truth_chosen = torch.from_numpy(np.concatenate(pp_truth))
-            result["posed_error_mm_subset"] = float(per_vertex_error_mm(torch.from_numpy(posed_chosen),
-                                                                        truth_chosen).mean())
-            result["postprocessed_posed_error_mm"] = float(per_vertex_error_mm(torch.from_numpy(fixed),
-                                                                               truth_chosen).mean())
-    return result
+    for name in names:
+        result = results[name]
+        result["collision_rate"] = colliding[name] / vertex_total
+        if data.posed_vertices is not None:
+            result["posed_error_mm"] = float(torch.cat(posed_errors[name]).mean())
+            result["normal_error"] = float(torch.cat(normal_errors[name]).mean())
+            result["ground_truth_collision_rate"] = colliding_truth / vertex_total
+        if postprocess:
+            started = time.perf_counter()
+            posed_chosen, body_chosen = np.concatenate(pp_posed[name]), np.concatenate(pp_body)
+            fixed, _, after = remove_body_penetration_batch(
+                posed_chosen, posing.garment_faces, body_chosen, posing.body_faces, device=collision_device,
+                threshold=threshold, workers=postprocess_workers,
+            )
+            result["postprocess_seconds"] = round(time.perf_counter() - started, 3)
+            pp_vertex_total = posed_chosen.shape[0] * posed_chosen.shape[1]
+            result["postprocess_frames_evaluated"] = int(pp_selected.sum())
+            result["collision_rate_subset"] = pp_colliding[name] / pp_vertex_total
+            result["collision_rate_postprocessed"] = int(after.sum()) / pp_vertex_total
+            if pp_truth:
+                truth_chosen = torch.from_numpy(np.concatenate(pp_truth))
+                result["posed_error_mm_subset"] = float(per_vertex_error_mm(torch.from_numpy(posed_chosen),
+                                                                            truth_chosen).mean())
+                result["postprocessed_posed_error_mm"] = float(per_vertex_error_mm(torch.from_numpy(fixed),
+                                                                                   truth_chosen).mean())
+    return results
 
 
 def _synchronize(device: str) -> None:
@@ -353,16 +402,11 @@ def evaluate_models(
         raise ValueError(f"need at least one model and one split, got {sorted(models)} and {sorted(splits)}")
     report: dict[str, Any] = {"splits": {}, "timing": {}}
     started = time.perf_counter()
-    for split, data in splits.items():
-        truth_cache: dict[str, Any] = {}  # the ground truth's collisions, counted once per split
-        report["splits"][split] = {
-            name: evaluate_split(
-                model, data, posing=posing, postprocess=postprocess, postprocess_frames=postprocess_frames,
-                device=device, collision_device=collision_device, postprocess_workers=postprocess_workers,
-                truth_cache=truth_cache,
-            )
-            for name, model in models.items()
-        }
+    for split, data in splits.items():  # every model at once: a batch's body is posed and its BVHs built once
+        report["splits"][split] = evaluate_split_models(
+            models, data, posing=posing, postprocess=postprocess, postprocess_frames=postprocess_frames,
+            device=device, collision_device=collision_device, postprocess_workers=postprocess_workers,
+        )
     predicted = time.perf_counter()
     first = next(iter(splits.values()))
     for name, model in models.items():
