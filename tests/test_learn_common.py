@@ -199,8 +199,9 @@ def test_postprocess_removes_collisions_and_keeps_laplacian(device: str) -> None
 
 def test_postprocess_batch_in_worker_processes_equals_in_process() -> None:
     """Frames spread over worker processes come back in order with the in-process result."""
-    from learn.common.postprocess import remove_body_penetration_batch
+    from learn.common.postprocess import remove_body_penetration_batch, warm_pool
 
+    warm_pool(2)  # started ahead, as drape evaluate does while its models predict
     body_vertices, body_faces = _sphere()
     grid, faces = grid_mesh(8, 8, spacing=0.01)
     grid = grid - grid.mean(axis=0)

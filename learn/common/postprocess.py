@@ -185,6 +185,22 @@ def _pool(workers: int):
     return _POOL[workers]
 
 
+def _warm() -> None:
+    import warp as wp
+
+    wp.init()
+
+
+def warm_pool(workers: int) -> None:
+    """Start the ``workers`` post-process processes now (they import torch and Warp, seconds each)
+    without waiting, so that they are ready by the time :func:`remove_body_penetration_batch`
+    needs them; nothing for ``workers`` 1."""
+    if workers > 1:
+        pool = _pool(workers)
+        for _ in range(workers):
+            pool.submit(_warm)
+
+
 def remove_body_penetration_batch(
     garment_vertices: np.ndarray,
     garment_faces: np.ndarray,

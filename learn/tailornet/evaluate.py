@@ -20,7 +20,7 @@ import torch
 from learn.common.collision import COLLISION_THRESHOLD_M, BodyMeshes, collision_mask
 from learn.common.losses import per_vertex_error_mm
 from learn.common.normals import normal_error
-from learn.common.postprocess import remove_body_penetration_batch
+from learn.common.postprocess import remove_body_penetration_batch, warm_pool
 from learn.tailornet.model import GarmentPoser, UnposedBody, pose_displacements
 from learn.tailornet.train import FrameArrays
 
@@ -181,6 +181,8 @@ def evaluate_split_models(
         raise ValueError("evaluate_split: the split has no frames")
     if not models:
         raise ValueError("evaluate_split_models: no models")
+    if posing is not None and postprocess:
+        warm_pool(postprocess_workers)  # the workers start while the models predict
     predicted = {name: _predict_split(model, data, batch_size, device) for name, model in models.items()}
     results: dict[str, dict[str, Any]] = {}
     for name, prediction in predicted.items():
