@@ -12,7 +12,7 @@
 # (/root/jobs/NAME/out), its output to /root/jobs/NAME/log, its exit status to /root/jobs/NAME/rc.
 #
 # The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet, uvimage, the data floor and
-# collision_aware on one GPU each, evaluated side by side):
+# collision_aware, or with TN2_CONFIG a second TailorNet, on one GPU each, evaluated side by side):
 #   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full}; name=${2:-}
@@ -40,9 +40,10 @@ case $cmd in
   learners-full)
     # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then side by
     # side: TailorNet at the paper's epochs on GPU 0, uvimage on GPU 1 (as many epochs as fit
-    # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2, collision_aware on
-    # GPU 3; then one evaluation of the models with --analysis and --floor. Logs, loss curves, floor.json and
-    # evaluation.json under $JOB.
+    # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2, collision_aware (or
+    # with TN2_CONFIG a second TailorNet) on GPU 3; then one evaluation of the models with --analysis
+    # and --floor (and one of the second TailorNet). Logs, loss curves, floor.json and evaluation.json
+    # under $JOB.
     gpus=${2:-4}
     python - "$JOB/spec.yaml" "$gpus" <<'PY'
 import sys, yaml
@@ -57,9 +58,17 @@ PY
     (CUDA_VISIBLE_DEVICES=2 python -m pipelines.cli report floor --data $ds --out "$JOB/floor" --device cuda:0 \
       --train-device cuda --pairs 8 --targets 8 --no-progress > "$JOB/floor.log" 2>&1) &
     floor=$!
-    # collision_aware (seed 002) on GPU 3, CA_EPOCHS per stage, stopped after CA_SECONDS (no model then)
-    (CUDA_VISIBLE_DEVICES=3 timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware --data $ds \
-      --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --no-progress > "$JOB/train_collision_aware.log" 2>&1) &
+    if [ -n "${TN2_CONFIG:-}" ]; then
+      # GPU 3: a second TailorNet with the --config settings TN2_CONFIG gives as YAML (e.g.
+      # "model: {canonical_repeat: 10}"), evaluated on its own at the end
+      echo "$TN2_CONFIG" > "$JOB/tn2.yaml"
+      (CUDA_VISIBLE_DEVICES=3 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn2" --device cuda \
+        --config "$JOB/tn2.yaml" --no-progress > "$JOB/train_tailornet2.log" 2>&1) &
+    else
+      # collision_aware (seed 002) on GPU 3, CA_EPOCHS per stage, stopped after CA_SECONDS (no model then)
+      (CUDA_VISIBLE_DEVICES=3 timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware --data $ds \
+        --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --no-progress > "$JOB/train_collision_aware.log" 2>&1) &
+    fi
     ca=$!
     (export CUDA_VISIBLE_DEVICES=1
      python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv_probe" --device cuda --epochs 1 --no-progress \
@@ -77,6 +86,10 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     cp "$JOB/ca/collision_aware_model.pt" "$JOB/tn/" 2>/dev/null || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       --floor "$JOB/floor/floor.json" > "$JOB/evaluate.log" 2>&1
+    if [ -n "${TN2_CONFIG:-}" ]; then
+      CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn2" --data $ds --device cuda --analysis \
+        > "$JOB/evaluate_tn2.log" 2>&1
+    fi
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
     ;;
   *) echo "unknown command $cmd (start, wait, collect, learners-full)" >&2; exit 2 ;;
