@@ -81,7 +81,7 @@ def _check_config(hyper: Any, path: Path, learner: str = "tailornet") -> dict:
                 if not isinstance(value, bool):
                     raise UsageError(f"{where} must be true or false (got {value!r})")
             elif isinstance(default, int):
-                minimum = 0 if key in ("epochs", "smoothing_iterations") else 1
+                minimum = 0 if key in ("epochs", "smoothing_iterations", "canonical_repeat") else 1
                 check_number(value, where, minimum=minimum, integer=True)
             elif isinstance(default, float):
                 minimum = 0.0

@@ -92,6 +92,8 @@ def test_device_cuda_without_cuda(tmp_path, capsys, dataset, command):
     ("lf: {lr: .nan}\n", "lf.lr must be a finite number > 0 (got nan)"),
     ("hf: {epochs: 2.5}\n", "hf.epochs must be an integer >= 0 (got 2.5)"),
     ("hf: {stacked: 1}\n", "hf.stacked must be true or false (got 1)"),
+    ("model: {canonical_repeat: -1}\n", "model.canonical_repeat must be an integer >= 0 (got -1)"),
+    ("model: {use_canonical_split: 0}\n", "model.use_canonical_split must be true or false (got 0)"),
     ("lf: 3\n", "lf must be a mapping of settings"),
 ])
 def test_train_config_errors_name_the_file_and_field(tmp_path, capsys, dataset, config, expected):
