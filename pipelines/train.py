@@ -214,7 +214,7 @@ def _run(args: argparse.Namespace, entry) -> int:
         dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
         data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
-    canonical = load_canonical_split(reader, args.data, args.learner, model_hyper)
+    canonical = load_canonical_split(reader, args.data, args.learner, model_hyper, streamed=mode == "stream")
     hyper.setdefault("model", {})
     # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
     # phenotype vector and our style the CLOTH3D-like parameters, where no prefix is "the most
@@ -260,11 +260,13 @@ def _run(args: argparse.Namespace, entry) -> int:
     return 0
 
 
-def load_canonical_split(reader, data: str | os.PathLike, learner: str, model_hyper: dict):
+def load_canonical_split(reader, data: str | os.PathLike, learner: str, model_hyper: dict, *,
+                         streamed: bool = False):
     """The dataset's ``canonical`` split (every style-shape combination in the canonical pose,
     ``splits.canonical``) as FrameArrays for TailorNet and the baseline, with a line saying what
     they do with it; None for other learners, without the split, or with
-    ``model.use_canonical_split`` false."""
+    ``model.use_canonical_split`` false. ``streamed``: the training split is streamed, so LF and
+    the baseline train on its own frames only."""
     from learn.data import DrapeDataset
     from learn.tailornet.train import frame_arrays_from_dataset
     from pipelines.dataset_plan import CANONICAL_SPLIT
@@ -278,7 +280,8 @@ def load_canonical_split(reader, data: str | os.PathLike, learner: str, model_hy
     repeat = int(model_hyper["canonical_repeat"])
     uses = ["g and the prototype choice learn from them"] if learner == "tailornet" else []
     uses.append(f"{'LF' if learner == 'tailornet' else 'the baseline'} trains on them "
-                + (f"{repeat} times (model.canonical_repeat)" if repeat else "not (model.canonical_repeat 0)"))
+                + ("not (a streamed split)" if streamed else
+                   f"{repeat} times (model.canonical_repeat)" if repeat else "not (model.canonical_repeat 0)"))
     print(f"canonical split: {canonical.frame_count} style-shape combinations in the canonical pose "
           f"({'; '.join(uses)})")
     return canonical

@@ -159,6 +159,8 @@ def test_drape_train_reads_the_canonical_split(tmp_path, capsys):
             "from them; LF trains on them 2 times (model.canonical_repeat))") in capsys.readouterr().out
     assert load_canonical_split(reader, data, "baseline", {**hyper, "canonical_repeat": 0}) is not None
     assert "the baseline trains on them not (model.canonical_repeat 0)" in capsys.readouterr().out
+    assert load_canonical_split(reader, data, "tailornet", hyper, streamed=True) is not None
+    assert "LF trains on them not (a streamed split)" in capsys.readouterr().out
     assert load_canonical_split(reader, data, "uvimage", hyper) is None
     assert load_canonical_split(reader, data, "tailornet", {**hyper, "use_canonical_split": False}) is None
     write_synthetic_dataset(tmp_path / "plain", splits={"train": 1}, frames_per_task=2)
