@@ -60,7 +60,7 @@ PY
     floor=$!
     if [ -n "${TN2_CONFIG:-}" ]; then
       # GPU 3: a second TailorNet with the --config settings TN2_CONFIG gives as YAML (e.g.
-      # "model: {canonical_repeat: 10}"), evaluated on its own at the end
+      # "model: {canonical_repeat: 0}", the paper's protocol), evaluated on its own at the end
       echo "$TN2_CONFIG" > "$JOB/tn2.yaml"
       (CUDA_VISIBLE_DEVICES=3 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn2" --device cuda \
         --config "$JOB/tn2.yaml" --no-progress > "$JOB/train_tailornet2.log" 2>&1) &
