@@ -590,3 +590,18 @@ def test_error_analysis_splits_the_error_by_pair_and_pose_distance(trained: dict
     distance = nearest_pose_distance(np.concatenate([train.pose[:2], shifted]), train.pose, np.arange(POSE_SIZE))
     assert distance[:2].tolist() == [0.0, 0.0] and (distance[2:] <= 0.5 + 1e-6).all()
     assert "nearest training pose" in format_analysis(report)
+    # coverage: a frame whose style (shape) no training frame has counts in that group
+    assert set(report["splits"]["test"]["coverage"]) == {"style_and_shape_in_training"}
+    other = test.subset(np.arange(8))
+    other.style = other.style.copy()
+    other.shape = other.shape.copy()
+    other.style[:3] += 0.5  # frames 0-2: an unworn style; frames 2-3: an unseen shape
+    other.shape[2:4] += 0.5
+    from learn.tailornet.analysis import coverage_groups
+
+    assert coverage_groups(train, other).tolist() == [1, 1, 3, 2, 0, 0, 0, 0]
+    groups = error_analysis(models, train, {"other": other}, bins=2)["splits"]["other"]["coverage"]
+    assert {k: v["frames"] for k, v in groups.items()} == {
+        "style_and_shape_in_training": 4, "style_not_in_training": 2, "shape_not_in_training": 1,
+        "neither_in_training": 1}
+    assert "style not in training" in format_analysis(error_analysis(models, train, {"other": other}, bins=2))

@@ -1,5 +1,6 @@
 """Where a learner's error comes from: training against test error, error per style-shape pair,
-and error against the distance to the nearest training pose.
+error against the distance to the nearest training pose, and error by whether the training
+pairs wear the test pair's style and shape.
 
 Pose distance: the Euclidean norm [rad] of the axis-angle difference over the pose entries the
 model reads (``pose_indices`` of its networks; all entries when it has none), so joints a
@@ -53,6 +54,26 @@ def _pair_table(errors: np.ndarray, data: FrameArrays) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: -r["error_mm"])
 
 
+#: The groups of :func:`coverage_groups`, in report order.
+COVERAGE_GROUPS = ("style_and_shape_in_training", "style_not_in_training", "shape_not_in_training",
+                   "neither_in_training")
+
+
+def _rows(values: np.ndarray) -> set[bytes]:
+    return {row.tobytes() for row in np.ascontiguousarray(np.asarray(values, np.float32))}
+
+
+def coverage_groups(train: FrameArrays, data: FrameArrays) -> np.ndarray:
+    """For each frame of ``data``, (N,), the index into :data:`COVERAGE_GROUPS` of whether a
+    training frame wears its style and whether one has its shape (each compared exactly): a test
+    pair of seen styles and shapes can still wear a style that no training pair wears, and a
+    learner then meets that style for the first time."""
+    styles, shapes = _rows(train.style), _rows(train.shape)
+    style_seen = np.array([row.tobytes() in styles for row in np.ascontiguousarray(np.asarray(data.style, np.float32))])
+    shape_seen = np.array([row.tobytes() in shapes for row in np.ascontiguousarray(np.asarray(data.shape, np.float32))])
+    return np.where(style_seen, np.where(shape_seen, 0, 2), np.where(shape_seen, 1, 3)).astype(np.int64)
+
+
 def error_analysis(
     models: dict[str, torch.nn.Module],
     train: FrameArrays,
@@ -72,7 +93,9 @@ def error_analysis(
         bins: distance bins per split (quantiles of the split's nearest-pose distances).
     Returns ``{"train": {model: error_mm}, "splits": {split: {"models": {model: {"error_mm",
     "generalisation_gap_mm", "per_pair"}}, "distance_bins": [{"lower_rad", "upper_rad", "frames",
-    "error_mm": {model: mm}}]}}}``; the gap is the split's error minus the training error.
+    "error_mm": {model: mm}}], "coverage": {group: {"frames", "pairs", "error_mm": {model: mm}}}}}}``;
+    the gap is the split's error minus the training error; ``coverage`` splits the frames by whether
+    a training frame wears their style and has their shape (:func:`coverage_groups`).
     """
     if bins < 1:
         raise ValueError(f"bins must be >= 1, got {bins}")
@@ -103,7 +126,14 @@ def error_analysis(
             table.append({"lower_rad": float(edges[b]), "upper_rad": float(edges[min(b + 1, len(edges) - 1)]),
                           "frames": int(mine.sum()),
                           "error_mm": {name: float(e[mine].mean()) for name, e in per_frame.items()}})
-        report["splits"][split] = {"models": per_model, "distance_bins": table,
+        group = coverage_groups(train, data)
+        coverage = {}
+        for g, label in enumerate(COVERAGE_GROUPS):
+            mine = group == g
+            if mine.any():
+                coverage[label] = {"frames": int(mine.sum()), "pairs": int(np.unique(data.pair_id[mine]).size),
+                                   "error_mm": {name: float(e[mine].mean()) for name, e in per_frame.items()}}
+        report["splits"][split] = {"models": per_model, "distance_bins": table, "coverage": coverage,
                                    "median_nearest_pose_rad": float(np.median(distance))}
     return report
 
@@ -119,4 +149,7 @@ def format_analysis(report: dict[str, Any]) -> str:
         for row in part["distance_bins"]:
             lines.append(f"  nearest training pose {row['lower_rad']:.3f}-{row['upper_rad']:.3f} rad, "
                          f"{row['frames']} frames: " + ", ".join(f"{n} {e:.2f}" for n, e in row["error_mm"].items()))
+        for label, row in part.get("coverage", {}).items():
+            lines.append(f"  {label.replace('_', ' ')}: {row['pairs']} pairs, {row['frames']} frames: "
+                         + ", ".join(f"{n} {e:.2f}" for n, e in row["error_mm"].items()))
     return "\n".join(lines)
