@@ -214,6 +214,8 @@ def _run(args: argparse.Namespace, entry) -> int:
         dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device)
         data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
+    read_s = time.perf_counter() - t0
+    print(f"read {split}: {data.frame_count} frames of {pairs} pairs in {read_s:.1f} s ({mode})")
     canonical = load_canonical_split(reader, args.data, args.learner, model_hyper, streamed=mode == "stream")
     hyper.setdefault("model", {})
     # TailorNet keeps the first 2 components of PCA shape/style spaces; our shape is anny's
@@ -253,7 +255,7 @@ def _run(args: argparse.Namespace, entry) -> int:
                 "frames": data.frame_count,
                 "pairs": pairs, "dataset_manifest_sha256": fingerprint.dataset_manifest_sha256,
                 "template_sha256": fingerprint.template_sha256, "hyperparameters": hyper, "device": args.device,
-                "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2),
+                "seed": args.seed, "seconds": round(time.perf_counter() - t0, 2), "read_seconds": round(read_s, 2),
                 "body": {"backend": body.name, "path": body_spec.get("path")}}
         (out / "run.json").write_text(json.dumps(info, indent=2, default=str))
         print(f"trained {args.learner} on {data.frame_count} frames of {split} ({pairs} pairs) in {info['seconds']} s -> {out}")
