@@ -90,27 +90,10 @@ def predict_displacements(
     return predict_on_device(model, pose, shape, style, batch_size=batch_size, device=device).cpu().numpy()
 
 
-def evaluate_split(
-    model: torch.nn.Module,
-    data: FrameArrays,
-    *,
-    posing: PosingContext | None = None,
-    postprocess: bool = True,
-    batch_size: int = 256,
-    device: str = "cpu",
-    collision_device: str | None = None,
-    threshold: float = COLLISION_THRESHOLD_M,
-    postprocess_frames: int | None = None,
-    postprocess_workers: int = 1,
-    truth_cache: dict[str, Any] | None = None,
-    per_frame: bool = False,
-) -> dict[str, Any]:
-    """Metrics of ``model`` on the frames of one split: :func:`evaluate_split_models` of it alone."""
-    return evaluate_split_models(
-        {"model": model}, data, posing=posing, postprocess=postprocess, batch_size=batch_size, device=device,
-        collision_device=collision_device, threshold=threshold, postprocess_frames=postprocess_frames,
-        postprocess_workers=postprocess_workers, truth_cache=truth_cache, per_frame=per_frame,
-    )["model"]
+def evaluate_split(model: torch.nn.Module, data: FrameArrays, **options: Any) -> dict[str, Any]:
+    """Metrics of ``model`` on the frames of one split: :func:`evaluate_split_models` of it alone,
+    with the same keyword options."""
+    return evaluate_split_models({"model": model}, data, **options)["model"]
 
 
 def _predict_split(model: torch.nn.Module, data: FrameArrays, batch_size: int, device: str) -> torch.Tensor:
