@@ -1042,12 +1042,10 @@ def fit_tailornet(
     if hf_parts > prototype_count:
         raise ValueError(f"hf_parts={hf_parts} but the model has {prototype_count} prototypes")
     repeat = int(hyper["model"]["canonical_repeat"])  # a streamed split trains LF on its own frames
-    started = time.perf_counter()
     choice = choose_prototypes(pair_frames.displacements, prototype_count)
     (run_dir / "prototypes.json").write_text(
         json.dumps(
             {
-                "seconds": round(time.perf_counter() - started, 3),
                 "pair_ids": choice.indices.tolist(),
                 "mean_error_mm_vs_k": [None if np.isnan(e) else e for e in choice.mean_error_mm.tolist()],
                 "max_error_mm_vs_k": [None if np.isnan(e) else e for e in choice.max_error_mm.tolist()],
