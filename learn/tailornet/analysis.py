@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from learn.tailornet.evaluate import evaluate_split
-from learn.tailornet.train import FrameArrays
+from learn.tailornet.train import FrameArrays, row_keys
 
 
 def model_pose_indices(model: torch.nn.Module, pose_size: int) -> np.ndarray:
@@ -59,18 +59,14 @@ COVERAGE_GROUPS = ("style_and_shape_in_training", "style_not_in_training", "shap
                    "neither_in_training")
 
 
-def _rows(values: np.ndarray) -> set[bytes]:
-    return {row.tobytes() for row in np.ascontiguousarray(np.asarray(values, np.float32))}
-
-
 def coverage_groups(train: FrameArrays, data: FrameArrays) -> np.ndarray:
     """For each frame of ``data``, (N,), the index into :data:`COVERAGE_GROUPS` of whether a
     training frame wears its style and whether one has its shape (each compared exactly): a test
     pair of seen styles and shapes can still wear a style that no training pair wears, and a
     learner then meets that style for the first time."""
-    styles, shapes = _rows(train.style), _rows(train.shape)
-    style_seen = np.array([row.tobytes() in styles for row in np.ascontiguousarray(np.asarray(data.style, np.float32))])
-    shape_seen = np.array([row.tobytes() in shapes for row in np.ascontiguousarray(np.asarray(data.shape, np.float32))])
+    styles, shapes = set(row_keys(train.style)), set(row_keys(train.shape))
+    style_seen = np.array([key in styles for key in row_keys(data.style)], dtype=bool)
+    shape_seen = np.array([key in shapes for key in row_keys(data.shape)], dtype=bool)
     return np.where(style_seen, np.where(shape_seen, 0, 2), np.where(shape_seen, 1, 3)).astype(np.int64)
 
 

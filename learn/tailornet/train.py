@@ -267,8 +267,10 @@ def concat_frames(parts: Sequence[FrameArrays]) -> FrameArrays:
                        pair_id=cat("pair_id"), low_frequency=low)
 
 
-def _pair_keys(shape: np.ndarray, style: np.ndarray) -> list[bytes]:
-    both = np.concatenate([np.asarray(shape, np.float32), np.asarray(style, np.float32)], axis=1)
+def row_keys(*columns: np.ndarray) -> list[bytes]:
+    """One exact key per row of the (N, *) arrays ``columns`` side by side, as float32 bytes: the
+    same (shape, style) of two splits gives the same key."""
+    both = np.concatenate([np.asarray(c, np.float32).reshape(len(c), -1) for c in columns], axis=1)
     return [row.tobytes() for row in np.ascontiguousarray(both)]
 
 
@@ -285,8 +287,8 @@ def canonical_training_frames(
     nearest = data.subset(canonical_frame_per_pair(data.pose, data.pair_id, canonical_pose=canonical_pose))
     if canonical is None or canonical.frame_count == 0:
         return nearest, nearest
-    lookup = {key: i for i, key in enumerate(_pair_keys(canonical.shape, canonical.style))}
-    found = [lookup.get(key) for key in _pair_keys(nearest.shape, nearest.style)]
+    lookup = {key: i for i, key in enumerate(row_keys(canonical.shape, canonical.style))}
+    found = [lookup.get(key) for key in row_keys(nearest.shape, nearest.style)]
     displacements = nearest.displacements.copy()
     pose = nearest.pose.copy()
     for pair, row in enumerate(found):
@@ -303,16 +305,18 @@ def canonical_training_frames(
 
 
 def with_canonical_frames(data: FrameArrays, canonical: FrameArrays | None, repeat: int, faces: np.ndarray,
-                          hyper: Mapping[str, Mapping[str, Any]], device: str = "cpu") -> FrameArrays:
-    """``data`` followed by ``repeat`` copies of the ``canonical`` split's frames (their low-frequency
-    part computed when ``data`` has one): LF's and the baseline's training frames
-    (``model.canonical_repeat``). ``data`` itself when there is nothing to add."""
+                          hyper: Mapping[str, Mapping[str, Any]], device: str = "cpu", *,
+                          low_frequency: bool = True) -> FrameArrays:
+    """``data`` followed by ``repeat`` copies of the ``canonical`` split's frames: LF's and the
+    baseline's training frames (``model.canonical_repeat``). With ``low_frequency`` (LF) and
+    ``data.low_frequency`` set, the added frames get theirs; otherwise the result has none (the
+    baseline trains on the displacements). ``data`` itself when there is nothing to add."""
     if canonical is None or canonical.frame_count == 0 or repeat <= 0:
         return data
     extra = FrameArrays(pose=canonical.pose, shape=canonical.shape, style=canonical.style,
                         displacements=canonical.displacements,
                         pair_id=int(data.pair_id.max()) + 1 + np.arange(canonical.frame_count, dtype=np.int64))
-    if data.low_frequency is not None:
+    if low_frequency and data.low_frequency is not None:
         add_low_frequency(extra, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
                           iterations=int(hyper["model"]["smoothing_iterations"]), device=device)
     return concat_frames([data] + [extra] * int(repeat))
@@ -1124,14 +1128,14 @@ def fit_baseline(
     """Registry-shaped wrapper of :func:`train_baseline` (the baseline does not need
     ``canonical_pose``; it is accepted so every learner fits alike). ``canonical``: the dataset's
     canonical split, whose frames join the training frames ``model.canonical_repeat`` times, as
-    they join TailorNet's LF (``faces`` gives their low-frequency part where ``data`` has one); not
-    for a streamed split."""
+    they join TailorNet's LF; not for a streamed split."""
     del canonical_pose
     if pose_indices is None:
         pose_indices = np.arange(data.pose.shape[1])
     hyper = merged_hyperparameters(hyperparameters)
     if not is_streamed(data):  # a streamed split trains on its own frames
-        data = with_canonical_frames(data, canonical, int(hyper["model"]["canonical_repeat"]), faces, hyper, device)
+        data = with_canonical_frames(data, canonical, int(hyper["model"]["canonical_repeat"]), faces, hyper, device,
+                                     low_frequency=False)
     return train_baseline(
         data, pose_indices, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
         device=device, seed=seed, progress=progress,
