@@ -38,7 +38,7 @@ import torch
 
 from learn import distributed
 from learn.collision_aware.fields import DiffusedBody
-from learn.collision_aware.garment_model import pose_garment, unpose_garment
+from learn.collision_aware.garment_model import pose_garment, shape_garment, unpose_garment
 from learn.collision_aware.sdf import BodySDF, collision_penalty
 
 
@@ -107,9 +107,9 @@ def projection_terms(canonical: torch.Tensor, target: torch.Tensor, shape: torch
                      settings: ProjectionSettings) -> dict[str, torch.Tensor]:
     """Per-frame terms (B,) of the objective: ``reconstruction`` [m^2], ``strain`` (dimensionless),
     ``collision`` [m^2] and their weighted sum ``objective``."""
-    posed = pose_garment(fields, canonical, shape, transforms)
+    shaped = shape_garment(fields, canonical, shape)
+    posed = pose_garment(fields, canonical, shape, transforms, shaped=shaped)
     reconstruction = ((posed - target) ** 2).sum(-1).mean(-1)
-    shaped = canonical + fields.shape_offset(canonical, shape)
     strain = green_lagrange_energy(shaped, faces, *reference)
     collision = (collision_penalty(sdf(canonical), settings.epsilon_m) ** 2).mean(-1)
     objective = reconstruction + settings.strain_weight * strain + settings.collision_weight * collision

@@ -19,12 +19,20 @@ from learn.collision_aware.fields import DiffusedBody
 from simulate.body.kinematics import inverse_lbs, lbs
 
 
+def shape_garment(fields: DiffusedBody, canonical: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+    """T_G = X + B~s(X, beta): canonical vertices [m] (B, V, 3), shape (B, S) -> [m] (B, V, 3)."""
+    return canonical + fields.shape_offset(canonical, shape)
+
+
 def pose_garment(fields: DiffusedBody, canonical: torch.Tensor, shape: torch.Tensor,
-                 transforms: torch.Tensor) -> torch.Tensor:
+                 transforms: torch.Tensor, *, shaped: torch.Tensor | None = None) -> torch.Tensor:
     """M_G(X, beta, theta): canonical vertices [m] (B, V, 3), shape (B, S), skinning transforms
-    (B, J, 4, 4) -> posed vertices [m] (B, V, 3). Differentiable in X and in the fields."""
+    (B, J, 4, 4) -> posed vertices [m] (B, V, 3). Differentiable in X and in the fields.
+    ``shaped``: T_G of :func:`shape_garment` where the caller has it (one evaluation of the shape
+    field instead of two)."""
     weights = fields.skinning_weights(canonical)  # (B, V, J)
-    shaped = canonical + fields.shape_offset(canonical, shape)  # (B, V, 3)
+    if shaped is None:
+        shaped = shape_garment(fields, canonical, shape)
     return lbs(shaped, weights, transforms)
 
 
