@@ -41,9 +41,9 @@ case $cmd in
     # (inside a job) generate the shipped t-shirt spec on N GPUs with Ray (audit off), then side by
     # side: TailorNet at the paper's epochs on GPU 0, uvimage on GPU 1 (as many epochs as fit
     # UV_SECONDS, default 400, after a one-epoch probe), the data floor on GPU 2, collision_aware (or
-    # with TN2_CONFIG a second TailorNet) on GPU 3; then one evaluation of the models with --analysis
-    # and --floor (and one of the second TailorNet). Logs, loss curves, floor.json and evaluation.json
-    # under $JOB.
+    # with TN2_CONFIG a second TailorNet) on GPU 3; UV_SECONDS=0 skips uvimage, and with TN2_CONFIG
+    # puts collision_aware on GPU 1. Then one evaluation of the models with --analysis and --floor
+    # (and one of the second TailorNet). Logs, loss curves, floor.json and evaluation.json under $JOB.
     gpus=${2:-4}
     python - "$JOB/spec.yaml" "$gpus" <<'PY'
 import sys, yaml
@@ -64,25 +64,35 @@ PY
       echo "$TN2_CONFIG" > "$JOB/tn2.yaml"
       (CUDA_VISIBLE_DEVICES=3 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn2" --device cuda \
         --config "$JOB/tn2.yaml" --no-progress > "$JOB/train_tailornet2.log" 2>&1) &
+      ca_gpu=1  # with UV_SECONDS=0 (no uvimage)
     else
-      # collision_aware (seed 002) on GPU 3, CA_EPOCHS per stage, stopped after CA_SECONDS (no model then)
-      (CUDA_VISIBLE_DEVICES=3 timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware --data $ds \
-        --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --no-progress > "$JOB/train_collision_aware.log" 2>&1) &
+      ca_gpu=3
     fi
-    ca=$!
-    (export CUDA_VISIBLE_DEVICES=1
+    uv_seconds=${UV_SECONDS:-400}
+    ca=
+    if [ -z "${TN2_CONFIG:-}" ] || [ "$uv_seconds" = 0 ]; then
+      # collision_aware (seed 002): CA_EPOCHS per stage, CA_CONFIG as YAML overrides, stopped after
+      # CA_SECONDS (no model then); its progress lines are stamped with the clock time
+      echo "${CA_CONFIG:-{}}" > "$JOB/ca.yaml"
+      (CUDA_VISIBLE_DEVICES=$ca_gpu timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware \
+        --data $ds --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 \
+        | while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done > "$JOB/train_collision_aware.log") &
+      ca=$!
+    fi
+    uv=
+    [ "$uv_seconds" = 0 ] || (export CUDA_VISIBLE_DEVICES=1
      python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv_probe" --device cuda --epochs 1 --no-progress \
        > "$JOB/train_uvimage_probe.log" 2>&1
      epochs=$(python -c "import csv, sys; s = float(list(csv.reader(open(sys.argv[1])))[-1][2]); \
-print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_loss.csv" "${UV_SECONDS:-400}")
+print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_loss.csv" "$uv_seconds")
      python -m pipelines.cli train uvimage --data $ds --out "$JOB/uv" --device cuda --epochs "$epochs" \
        --no-progress > "$JOB/train_uvimage.log" 2>&1) &
-    uv=$!
+    [ "$uv_seconds" = 0 ] || uv=$!
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
       --no-progress > "$JOB/train_tailornet.log" 2>&1
     wait $uv $floor $ca
     # one run directory: the evaluation puts them side by side
-    cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/"
+    cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/" 2>/dev/null || echo "uvimage: not trained (UV_SECONDS=0)"
     cp "$JOB/ca/collision_aware_model.pt" "$JOB/tn/" 2>/dev/null || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       --floor "$JOB/floor/floor.json" > "$JOB/evaluate.log" 2>&1
