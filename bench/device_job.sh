@@ -73,7 +73,7 @@ PY
     if [ -z "${TN2_CONFIG:-}" ] || [ "$uv_seconds" = 0 ]; then
       # collision_aware (seed 002): CA_EPOCHS per stage, CA_CONFIG as YAML overrides, stopped after
       # CA_SECONDS (no model then); its progress lines are stamped with the clock time
-      echo "${CA_CONFIG:-{}}" > "$JOB/ca.yaml"
+      echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
       (CUDA_VISIBLE_DEVICES=$ca_gpu timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware \
         --data $ds --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 \
         | while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done > "$JOB/train_collision_aware.log") &
