@@ -15,7 +15,8 @@
 # collision_aware, or with TN2_CONFIG a second TailorNet, on one GPU each, evaluated side by side):
 #   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|ca-small}; name=${2:-}
+stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 root=/root/jobs/$name
 case $cmd in
   start)
@@ -76,7 +77,7 @@ PY
       echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
       (CUDA_VISIBLE_DEVICES=$ca_gpu timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware \
         --data $ds --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 \
-        | while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done > "$JOB/train_collision_aware.log") &
+        | stamp > "$JOB/train_collision_aware.log") &
       ca=$!
     fi
     uv=
@@ -102,5 +103,42 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     fi
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
     ;;
-  *) echo "unknown command $cmd (start, wait, collect, learners-full)" >&2; exit 2 ;;
+  ca-small)
+    # (inside a job) collision_aware alone on a reduced t-shirt spec: CA_POSES train poses per train
+    # pair (default 150), 40 test poses (fewer with fewer train poses), the garment at CA_RESOLUTION vertices (default the spec's),
+    # on CA_DEVICE (default cuda), into CA_DATA (default /root/jobs/data-ca-small, outside $JOB; with
+    # CA_SKIP_GENERATE=1 CA_DATA is an existing dataset);
+    # CA_EPOCHS per stage (default 30) and CA_CONFIG overrides; then `drape evaluate`. The stage times are the clock stamps of train_collision_aware.log; the log
+    # gets the summary lines.
+    dev=${CA_DEVICE:-cuda}
+    python - "$JOB/spec.yaml" "${CA_POSES:-150}" "${CA_RESOLUTION:-0}" "$dev" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec("tailornet-tshirt")
+spec["audit"]["samples"] = 0
+poses = int(sys.argv[2])
+spec["poses"].update(train_count=poses, test_count=min(40, 2 * poses))
+spec["splits"].update(test_train=min(20, poses), test_test=min(40, 2 * poses))
+if int(sys.argv[3]):
+    spec["garment"]["resolution"] = int(sys.argv[3])
+spec["simulation"]["device"] = sys.argv[4]
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+    ds=/root/jobs/data-ca-small
+    [ -n "${CA_DATA:-}" ] && ds=$CA_DATA
+    echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
+    if [ -z "${CA_SKIP_GENERATE:-}" ]; then
+      echo "$(date +%T) generating"
+      python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out "$ds" --no-progress > "$JOB/generate.log" 2>&1
+      grep -E "frames kept|this run|total wall" "$JOB/generate.log"
+    fi
+    echo "$(date +%T) training collision_aware"
+    python -m pipelines.cli train collision_aware --data "$ds" --out "$JOB/ca" --device "$dev" \
+      --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+    grep -vi "warn\|sparse_coo" "$JOB/train_collision_aware.log" | tail -n 4
+    echo "$(date +%T) evaluating"
+    python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
+    grep -E "collision_aware|evaluation:" "$JOB/evaluate.log"
+    ;;
+  *) echo "unknown command $cmd (start, wait, collect, learners-full, ca-small)" >&2; exit 2 ;;
 esac
