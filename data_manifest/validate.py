@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -334,6 +335,7 @@ def info(root: str | os.PathLike[str], *, with_problems: bool = False) -> str | 
     if position_rows:
         lines.append("")
         lines.append(format_table(["position in sequence", "frames", "kept", "most dropped for"], position_rows))
+    lines.extend(_keep_by_pair(Path(root), shards, sound))
     text = "\n".join(lines).rstrip() + "\n"
     return (text, problems) if with_problems else text
 
@@ -377,6 +379,62 @@ def _keep_by_position(root: Path, shards: list[dict]) -> list[list[Any]]:
         label = str(first) if first == last else (f"{first}-{last}" if last is not None else f"{first}+")
         rows.append([label, k + d, f"{100.0 * k / (k + d):.1f} %", worst])
     return rows
+
+
+#: Task ids of a style-shape pair's posed frames: ``<train|test>_<train|test>-p<pair>[-c<chunk>]``
+#: (the canonical split's tasks number their combinations apart and are left out).
+_PAIR_TASK = re.compile(r"^(train|test)_(?:train|test)-p(\d+)(?:-c\d+)?$")
+
+
+def _keep_by_pair(root: Path, shards: list[dict], sound: list[dict], worst: int = 5) -> list[str]:
+    """Lines for ``info``: the kept share per style-shape pair (its shards' kept frames over kept
+    plus dropped, from the manifest) and the ``worst`` pairs keeping least, each with its style
+    index and body shape (read from one sound shard of the pair) and the reason
+    most of its frames were dropped for. Empty for fewer than two pairs. Drops that cluster on a
+    few pairs leave holes in the (style, shape) space a learner cannot fill."""
+    pairs: dict[tuple[str, int], dict[str, Any]] = {}
+    for entry in shards:
+        match = _PAIR_TASK.match(entry["task_id"])
+        if match is None:
+            continue
+        key = (match.group(1), int(match.group(2)))
+        pair = pairs.setdefault(key, {"kept": 0, "dropped": {}, "shards": []})
+        pair["kept"] += int(entry["frame_count"])
+        for reason, count in entry["filter_stats"].items():
+            pair["dropped"][reason] = pair["dropped"].get(reason, 0) + int(count)
+        pair["shards"].append(entry)
+    if len(pairs) < 2:
+        return []
+    readable = {entry["task_id"] for entry in sound}
+
+    def targets(pair: dict) -> int:
+        return pair["kept"] + sum(pair["dropped"].values())
+
+    shares = {key: pair["kept"] / max(1, targets(pair)) for key, pair in pairs.items()}
+    rows = []
+    for key in sorted(pairs, key=lambda k: (shares[k], k))[:worst]:
+        pair = pairs[key]
+        style, shape = "-", "-"
+        for entry in pair["shards"]:
+            if entry["task_id"] in readable:
+                try:
+                    with h5py.File(root / entry["path"], "r") as handle:
+                        style = json.loads(handle.attrs["task_json"]).get("style_index", "-")
+                        shape = " ".join(f"{v:.2f}" for v in np.asarray(handle["shape"][()], np.float64).ravel())
+                except (OSError, KeyError, TypeError, ValueError, IndexError):
+                    continue
+                break
+        total = targets(pair)
+        reason = "-"
+        if pair["dropped"]:
+            name, count = max(pair["dropped"].items(), key=lambda item: item[1])
+            reason = f"{name} ({100.0 * count / max(1, total):.0f} %)"
+        rows.append([f"{key[0]} p{key[1]:03d}", style, shape, total, f"{100.0 * shares[key]:.1f} %", reason])
+    values = np.array(list(shares.values()))
+    return ["", f"style-shape pairs: {len(pairs)}, kept share median {100.0 * np.median(values):.1f} % "
+                f"(lowest {100.0 * values.min():.1f} %, highest {100.0 * values.max():.1f} %); "
+                f"the {len(rows)} keeping least:",
+            format_table(["pair", "style", "shape", "targets", "kept", "most dropped for"], rows)]
 
 
 def _audit_lines(audit: dict) -> list[str]:

@@ -160,3 +160,47 @@ def test_cli_exit_codes_and_output(dataset, capsys):
     assert cli_main(["dataset", "validate", str(dataset / "nope")]) == 2  # bad input: no such directory
     assert cli_main(["dataset", "info", str(dataset / "nope")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+def test_info_lists_the_pairs_keeping_least(tmp_path):
+    """Pairs are read off the task ids (a train pair's train_train and train_test shards count
+    together, the canonical split's apart); the pair that drops most comes first with its style,
+    body shape and main drop reason."""
+    from data_manifest.manifest import Manifest, collect_provenance
+    from data_manifest.schema import template_sha256
+
+    template = tube_template()
+    rng = np.random.default_rng(0)
+    # task id -> (style index, height, kept, distortion drops)
+    tasks = {"train_train-p000": (0, 0.5, 4, 0), "train_test-p000": (0, 0.5, 2, 0),
+             "train_train-p001-c000": (3, 0.875, 1, 3), "train_train-p001-c001": (3, 0.875, 0, 2),
+             "test_test-p002": (1, 0.125, 3, 1), "canonical-p000": (3, 0.875, 0, 1)}
+    splits: dict[str, list[str]] = {}
+    for task_id in tasks:
+        splits.setdefault(task_id.split("-")[0], []).append(task_id)
+    manifest = Manifest.create(tmp_path, name="pairs", spec={}, template_sha256=template_sha256(template),
+                               precision="float32", provenance=collect_provenance(device="cpu", seeds={}),
+                               splits=splits)
+    for task_id, (style, height, kept, dropped) in tasks.items():
+        shape = np.full(6, 0.5)
+        shape[4] = height
+        task = {"task_id": task_id, "garment": "tube", "splits": [task_id.split("-")[0]], "seed": 0,
+                "shape": shape, "style": np.zeros(4), "style_index": style}
+        with ShardWriter(shard_path(tmp_path, task_id), template=template, task=task) as writer:
+            for frame in range(kept):
+                writer.write_frame(**synthetic_frame(template, rng, translation_m=np.zeros(3)), frame_index=frame)
+            pose = synthetic_frame(template, rng, translation_m=np.zeros(3))["pose"]
+            for frame in range(dropped):
+                writer.record_dropped("distortion", frame_index=kept + frame, pose=pose)
+        manifest.add_shard(writer.record)
+    manifest.save()
+    manifest.finish()
+
+    text = info(tmp_path)
+    assert "style-shape pairs: 3, kept share median 75.0 % (lowest 16.7 %, highest 100.0 %)" in text, text
+    table = text.split("the 3 keeping least:")[1].splitlines()[3:]
+    rows = [line.split() for line in table if line.strip()]
+    assert rows[0] == ["train", "p001", "3", "0.50", "0.50", "0.50", "0.50", "0.88", "0.50", "6", "16.7", "%",
+                       "distortion", "(83", "%)"], rows[0]
+    assert rows[1][:3] == ["test", "p002", "1"] and rows[1][9:12] == ["4", "75.0", "%"], rows[1]
+    assert rows[2][:2] == ["train", "p000"] and rows[2][9:] == ["6", "100.0", "%", "-"], rows[2]
