@@ -45,6 +45,7 @@ case $cmd in
     # with TN2_CONFIG a second TailorNet) on GPU 3; UV_SECONDS=0 skips uvimage, and with TN2_CONFIG
     # puts collision_aware on GPU 1. Then one evaluation of the models with --analysis and --floor
     # (and one of the second TailorNet). Logs, loss curves, floor.json and evaluation.json under $JOB.
+    # LEARN_DATA=DIR trains on an existing dataset instead (e.g. bench_scale_out.py's OUT/ray4).
     gpus=${2:-4}
     python - "$JOB/spec.yaml" "$gpus" <<'PY'
 import sys, yaml
@@ -54,8 +55,10 @@ spec["audit"]["samples"] = 0
 spec["simulation"]["batches"] = int(sys.argv[2])
 yaml.safe_dump(spec, open(sys.argv[1], "w"))
 PY
-    ds=/root/jobs/data-tshirt
-    python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out $ds --executor ray --no-progress > "$JOB/generate.log" 2>&1
+    ds=${LEARN_DATA:-/root/jobs/data-tshirt}
+    if [ -z "${LEARN_DATA:-}" ]; then
+      python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out $ds --executor ray --no-progress > "$JOB/generate.log" 2>&1
+    fi
     (CUDA_VISIBLE_DEVICES=2 python -m pipelines.cli report floor --data $ds --out "$JOB/floor" --device cuda:0 \
       --train-device cuda --pairs 8 --targets 8 --no-progress > "$JOB/floor.log" 2>&1) &
     floor=$!
