@@ -14,6 +14,12 @@
 # The learners at full scale on 4 GPUs (the t-shirt spec, then TailorNet, uvimage, the data floor and
 # collision_aware, or with TN2_CONFIG a second TailorNet, on one GPU each, evaluated side by side):
 #   bash bench/device_job.sh start learn bash bench/device_job.sh learners-full 4
+# The 1-vs-4 GPU generation ratio, then the learners on the 4-GPU dataset, in one job:
+#   bash bench/device_job.sh start learn bash -c "python bench/bench_scale_out.py --gpus 4 --local-batches 1 \
+#     --skip-train --out /root/jobs/scale > \$JOB/scale.json; LEARN_DATA=/root/jobs/scale/ray4 \
+#     bash bench/device_job.sh learners-full 4"
+# collision_aware alone on a reduced t-shirt spec (one GPU):
+#   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full|ca-small}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
