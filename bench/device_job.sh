@@ -23,6 +23,12 @@
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full|ca-small}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
+train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS per stage (default 30),
+  # CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped
+  echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
+  timeout "${3:-0}" python -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
+    --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+}
 root=/root/jobs/$name
 case $cmd in
   start)
@@ -74,19 +80,14 @@ PY
       echo "$TN2_CONFIG" > "$JOB/tn2.yaml"
       (CUDA_VISIBLE_DEVICES=3 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn2" --device cuda \
         --config "$JOB/tn2.yaml" --no-progress > "$JOB/train_tailornet2.log" 2>&1) &
-      ca_gpu=1  # with UV_SECONDS=0 (no uvimage)
-    else
-      ca_gpu=3
     fi
     uv_seconds=${UV_SECONDS:-400}
+    # collision_aware (seed 002) on GPU 3, or beside a second TailorNet on GPU 1 when uvimage leaves it free
+    ca_gpu=3
+    [ -n "${TN2_CONFIG:-}" ] && { ca_gpu=; [ "$uv_seconds" = 0 ] && ca_gpu=1; }
     ca=
-    if [ -z "${TN2_CONFIG:-}" ] || [ "$uv_seconds" = 0 ]; then
-      # collision_aware (seed 002): CA_EPOCHS per stage, CA_CONFIG as YAML overrides, stopped after
-      # CA_SECONDS (no model then); its progress lines are stamped with the clock time
-      echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
-      (CUDA_VISIBLE_DEVICES=$ca_gpu timeout "${CA_SECONDS:-900}" python -m pipelines.cli train collision_aware \
-        --data $ds --out "$JOB/ca" --device cuda --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 \
-        | stamp > "$JOB/train_collision_aware.log") &
+    if [ -n "$ca_gpu" ]; then
+      (CUDA_VISIBLE_DEVICES=$ca_gpu train_ca $ds cuda "${CA_SECONDS:-900}") &
       ca=$!
     fi
     uv=
@@ -114,11 +115,11 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     ;;
   ca-small)
     # (inside a job) collision_aware alone on a reduced t-shirt spec: CA_POSES train poses per train
-    # pair (default 150), 40 test poses (fewer with fewer train poses), the garment at CA_RESOLUTION vertices (default the spec's),
-    # on CA_DEVICE (default cuda), into CA_DATA (default /root/jobs/data-ca-small, outside $JOB; with
-    # CA_SKIP_GENERATE=1 CA_DATA is an existing dataset);
-    # CA_EPOCHS per stage (default 30) and CA_CONFIG overrides; then `drape evaluate`. The stage times are the clock stamps of train_collision_aware.log; the log
-    # gets the summary lines.
+    # pair (default 150), 40 test poses (fewer with fewer train poses), the garment at CA_RESOLUTION
+    # vertices (default the spec's), on CA_DEVICE (default cuda), generated into
+    # /root/jobs/data-ca-small (CA_DATA=DIR: an existing dataset instead); CA_EPOCHS and CA_CONFIG as
+    # in train_ca; then `drape evaluate`. The stage times are the clock stamps of
+    # train_collision_aware.log; the log gets the summary lines.
     dev=${CA_DEVICE:-cuda}
     python - "$JOB/spec.yaml" "${CA_POSES:-150}" "${CA_RESOLUTION:-0}" "$dev" <<'PY'
 import sys, yaml
@@ -133,17 +134,14 @@ if int(sys.argv[3]):
 spec["simulation"]["device"] = sys.argv[4]
 yaml.safe_dump(spec, open(sys.argv[1], "w"))
 PY
-    ds=/root/jobs/data-ca-small
-    [ -n "${CA_DATA:-}" ] && ds=$CA_DATA
-    echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
-    if [ -z "${CA_SKIP_GENERATE:-}" ]; then
+    ds=${CA_DATA:-/root/jobs/data-ca-small}
+    if [ -z "${CA_DATA:-}" ]; then
       echo "$(date +%T) generating"
       python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out "$ds" --no-progress > "$JOB/generate.log" 2>&1
       grep -E "frames kept|this run|total wall" "$JOB/generate.log"
     fi
     echo "$(date +%T) training collision_aware"
-    python -m pipelines.cli train collision_aware --data "$ds" --out "$JOB/ca" --device "$dev" \
-      --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+    train_ca "$ds" "$dev"
     grep -vi "warn\|sparse_coo" "$JOB/train_collision_aware.log" | tail -n 4
     echo "$(date +%T) evaluating"
     python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
