@@ -18,16 +18,33 @@
 #   bash bench/device_job.sh start learn bash -c "python bench/bench_scale_out.py --gpus 4 --local-batches 1 \
 #     --skip-train --out /root/jobs/scale > \$JOB/scale.json; LEARN_DATA=/root/jobs/scale/ray4 \
 #     bash bench/device_job.sh learners-full 4"
+# TailorNet on GPU 0 beside collision_aware over GPUs 1-3 (torchrun), on the t-shirt spec made on 4 GPUs:
+#   CA_SECONDS=660 bash bench/device_job.sh start learn bash bench/device_job.sh learners-ca 4
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full|ca-small}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS per stage (default 30),
-  # CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped
+  # CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
+  # with several GPUs in CUDA_VISIBLE_DEVICES, one torchrun process on each
   echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
-  timeout "${3:-0}" python -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
+  local visible=${CUDA_VISIBLE_DEVICES:-0} launch=(python)
+  local n=$(( $(printf %s "$visible" | tr -cd , | wc -c) + 1 ))
+  [ "$2" != cuda ] || [ "$n" = 1 ] || launch=(python -m torch.distributed.run --standalone --nproc-per-node "$n")
+  timeout "${3:-0}" "${launch[@]}" -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
     --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+}
+generate_full() {  # GPUS DATA: the shipped t-shirt spec (audit off) on GPUS GPUs with Ray into DATA
+  python - "$JOB/spec.yaml" "$1" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec("tailornet-tshirt")
+spec["audit"]["samples"] = 0
+spec["simulation"]["batches"] = int(sys.argv[2])
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+  python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out "$2" --executor ray --no-progress > "$JOB/generate.log" 2>&1
 }
 root=/root/jobs/$name
 case $cmd in
@@ -59,18 +76,8 @@ case $cmd in
     # (and one of the second TailorNet). Logs, loss curves, floor.json and evaluation.json under $JOB.
     # LEARN_DATA=DIR trains on an existing dataset instead (e.g. bench_scale_out.py's OUT/ray4).
     gpus=${2:-4}
-    python - "$JOB/spec.yaml" "$gpus" <<'PY'
-import sys, yaml
-from pipelines.spec import load_spec
-spec = load_spec("tailornet-tshirt")
-spec["audit"]["samples"] = 0
-spec["simulation"]["batches"] = int(sys.argv[2])
-yaml.safe_dump(spec, open(sys.argv[1], "w"))
-PY
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
-    if [ -z "${LEARN_DATA:-}" ]; then
-      python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out $ds --executor ray --no-progress > "$JOB/generate.log" 2>&1
-    fi
+    [ -n "${LEARN_DATA:-}" ] || generate_full "$gpus" $ds
     (CUDA_VISIBLE_DEVICES=2 python -m pipelines.cli report floor --data $ds --out "$JOB/floor" --device cuda:0 \
       --train-device cuda --pairs 8 --targets 8 --no-progress > "$JOB/floor.log" 2>&1) &
     floor=$!
@@ -113,6 +120,43 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     fi
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
     ;;
+  learners-ca)
+    # (inside a job) the shipped t-shirt spec on N GPUs with Ray (audit off; LEARN_DATA=DIR: an
+    # existing dataset instead), while bench/bench_projection.py times the projection step on GPU 0;
+    # then TailorNet at the paper's epochs on GPU 0 beside collision_aware over GPUs 1..N-1 with
+    # torchrun (stopped after CA_SECONDS, default 900; CA_EPOCHS, CA_CONFIG as in train_ca); then one
+    # evaluation of both with --analysis.
+    gpus=${2:-4}
+    ds=${LEARN_DATA:-/root/jobs/data-tshirt}
+    if [ -z "${LEARN_DATA:-}" ]; then
+      generate_full "$gpus" $ds &
+      gen=$!
+      CUDA_VISIBLE_DEVICES=0 python bench/bench_projection.py --gpus $((gpus - 1)) > "$JOB/projection_bench.json" \
+        2> "$JOB/projection_bench.err"
+      cat "$JOB/projection_bench.json"
+      wait $gen
+    fi
+    # a call made while the data generates may still change CA_CONFIG, CA_SECONDS, CA_GPUS (e.g.
+    # 0,1,2,3) or TN=0 (no TailorNet) by writing them to $JOB/plan.sh, once the step's time is known
+    CA_GPUS=$(seq -s, 1 $((gpus - 1)))
+    TN=1
+    [ -f "$JOB/plan.sh" ] && { . "$JOB/plan.sh"; cat "$JOB/plan.sh"; }
+    echo "$(date +%T) training"
+    (CUDA_VISIBLE_DEVICES=$CA_GPUS train_ca $ds cuda "${CA_SECONDS:-900}") &
+    ca=$!
+    if [ "$TN" = 1 ]; then
+      CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
+        --no-progress > "$JOB/train_tailornet.log" 2>&1
+    fi
+    wait $ca
+    echo "$(date +%T) evaluating"
+    mkdir -p "$JOB/tn"
+    cp "$JOB/ca/collision_aware_model.pt" "$JOB/ca/template.npz" "$JOB/tn/" 2>/dev/null \
+      || echo "collision_aware: no model (see its log)"
+    CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
+      > "$JOB/evaluate.log" 2>&1
+    find "$JOB" -name "*.pt" -delete
+    ;;
   ca-small)
     # (inside a job) collision_aware alone on a reduced t-shirt spec: CA_POSES train poses per train
     # pair (default 150), 40 test poses (fewer with fewer train poses), the garment at CA_RESOLUTION
@@ -147,5 +191,5 @@ PY
     python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
     grep -E "collision_aware|evaluation:" "$JOB/evaluate.log"
     ;;
-  *) echo "unknown command $cmd (start, wait, collect, learners-full, ca-small)" >&2; exit 2 ;;
+  *) echo "unknown command $cmd (start, wait, collect, learners-full, learners-ca, ca-small)" >&2; exit 2 ;;
 esac
