@@ -20,6 +20,7 @@
 #     bash bench/device_job.sh learners-full 4"
 # TailorNet on GPU 0 beside collision_aware over GPUs 1-3 (torchrun), on the t-shirt spec made on 4 GPUs:
 #   CA_SECONDS=660 bash bench/device_job.sh start learn bash bench/device_job.sh learners-ca 4
+# (SPEC_POSES=800: 800 train poses per pair, a third of the targets)
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 set -uo pipefail
@@ -35,13 +36,17 @@ train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS p
   timeout "${3:-0}" "${launch[@]}" -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
     --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
 }
-generate_full() {  # GPUS DATA: the shipped t-shirt spec (audit off) on GPUS GPUs with Ray into DATA
-  python - "$JOB/spec.yaml" "$1" <<'PY'
+generate_full() {  # GPUS DATA: the shipped t-shirt spec (audit off) on GPUS GPUs with Ray into DATA; with
+  # SPEC_POSES=P, P train poses per pair and 60 test poses (20 of them on the test pairs' test_train)
+  python - "$JOB/spec.yaml" "$1" "${SPEC_POSES:-0}" <<'PY'
 import sys, yaml
 from pipelines.spec import load_spec
 spec = load_spec("tailornet-tshirt")
 spec["audit"]["samples"] = 0
 spec["simulation"]["batches"] = int(sys.argv[2])
+if int(sys.argv[3]):
+    spec["poses"].update(train_count=int(sys.argv[3]), test_count=60)
+    spec["splits"].update(test_train=20, test_test=60)
 yaml.safe_dump(spec, open(sys.argv[1], "w"))
 PY
   python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out "$2" --executor ray --no-progress > "$JOB/generate.log" 2>&1
@@ -121,8 +126,8 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     find "$JOB" -name "*.pt" -delete  # checkpoints stay off the way back (GBs at full scale)
     ;;
   learners-ca)
-    # (inside a job) the shipped t-shirt spec on N GPUs with Ray (audit off; LEARN_DATA=DIR: an
-    # existing dataset instead), while bench/bench_projection.py times the projection step on GPU 0;
+    # (inside a job) the shipped t-shirt spec on N GPUs with Ray (audit off; SPEC_POSES as in
+    # generate_full; LEARN_DATA=DIR: an existing dataset instead), while bench/bench_projection.py times the projection step on GPU 0;
     # then TailorNet at the paper's epochs on GPU 0 beside collision_aware over GPUs 1..N-1 with
     # torchrun (stopped after CA_SECONDS, default 900; CA_EPOCHS, CA_CONFIG as in train_ca); then one
     # evaluation of both with --analysis.
