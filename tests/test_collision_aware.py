@@ -204,7 +204,8 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     for key in ("unposed_error_mm", "posed_error_mm", "collision_rate", "collision_rate_postprocessed"):
         assert np.isfinite(metrics[key]), (key, metrics)
     assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 0.5 * metrics["unposed_error_mm"] + 1.0, metrics
-    assert report["timing"]["collision_aware"]["cpu"]["ms_per_frame_batch_1"] > 0
+    timing = report["timing"]["collision_aware"]["cpu"]
+    assert timing["ms_per_frame_batch_1"] > 0 and timing["decoder_ms_per_frame_batch_1"] > 0
     out = tmp_path / "pred.obj"
     assert main(["predict", str(run), "--learner", "collision_aware", "--style", "0.1,0.2", "--out", str(out)]) == 0
     with np.load(run / "template.npz") as template:

@@ -111,6 +111,12 @@ class CollisionAwareModel(nn.Module):
         base = torch.where((index < 0)[None, :, None], self.template_rest, under)
         return inverse_lbs(posed, self.template_weights, transforms) - base
 
+    def decoder_only(self) -> nn.Module:
+        """The regressor and the VAE's decoder alone, ``(pose, shape, style) -> canonical garment
+        [m] (B, V, 3)``: what seed 002 times (Table 2), without the body posing and the diffused
+        skinning that put the garment on the body."""
+        return _CanonicalOnly(self)
+
     @torch.no_grad()
     def sequence_latents(self, pose: np.ndarray, shape: np.ndarray, style: np.ndarray, sequence: np.ndarray,
                          frame_index: np.ndarray, root: np.ndarray | None = None,
@@ -149,3 +155,12 @@ class CollisionAwareModel(nn.Module):
         inputs = [torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (pose, shape, style)]
         return torch.cat([self(*(x[b:b + batch_size] for x in inputs), latent=latent[b:b + batch_size]).float()
                           for b in range(0, latent.shape[0], batch_size)], dim=0)
+
+
+class _CanonicalOnly(nn.Module):
+    def __init__(self, model: CollisionAwareModel) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, pose: torch.Tensor, shape: torch.Tensor, style: torch.Tensor) -> torch.Tensor:
+        return self.model.canonical(pose, shape, style)
