@@ -9,7 +9,7 @@ import pytest
 import torch
 import trimesh
 
-from learn.collision_aware.canonicalize import ProjectionSettings, project_frames
+from learn.collision_aware.canonicalize import ProjectionSettings, project_frames, projection_quality
 from learn.collision_aware.diffusion import closest_surface_points, diffusion_operator, interpolation_matrix
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import pose_garment, unpose_garment
@@ -93,6 +93,37 @@ def test_canonical_posed_canonical_round_trip() -> None:
     assert (posed - canonical).abs().max() > 0.01, "the test transforms should move the garment"
 
 
+class _FoldedWeights:
+    """Two joints, joint 1 shifted +0.5 m in x, its weight 1 where |x| > 0.3 m and 0 between: a
+    point M near the origin is reached both from X = M (weight 0) and from X = M - 0.5 m (weight
+    1), the fold LBS has where diffused weights change over a short distance."""
+
+    shift = 0.5
+
+    def skinning_weights(self, x: torch.Tensor) -> torch.Tensor:
+        far = (x[..., 0].abs() > 0.3).to(x.dtype)
+        return torch.stack([1.0 - far, far], dim=-1)
+
+    def shape_offset(self, x: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(x)
+
+
+def test_unposing_keeps_a_vertex_on_its_neighbours_branch_of_a_fold() -> None:
+    grid, faces = grid_mesh(5, 5, spacing=0.01)
+    truth = torch.as_tensor(grid, dtype=torch.float32)[None]  # weight 0 everywhere: posed == canonical
+    transforms = torch.eye(4).repeat(1, 2, 1, 1)
+    transforms[0, 1, 0, 3] = _FoldedWeights.shift
+    start = truth.clone()
+    start[0, 12, 0] += 0.35  # the centre vertex starts on the other side of the fold
+    kwargs = dict(initial=start, iterations=5)
+    stray = unpose_garment(_FoldedWeights(), truth, torch.zeros(1, 1), transforms, **kwargs)
+    # the plain fixed point converges to the other, exact, solution: 0.5 m from its neighbours
+    assert abs(float(stray[0, 12, 0] - truth[0, 12, 0]) + _FoldedWeights.shift) < 1e-5
+    kept = unpose_garment(_FoldedWeights(), truth, torch.zeros(1, 1), transforms,
+                          faces=torch.as_tensor(faces, dtype=torch.int64), **kwargs)
+    assert (kept - truth).abs().max() < 1e-6, (kept - truth).abs().max()
+
+
 def _patch_on_sphere(radius: float, offsets: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
     """A 10 x 10 grid patch over the sphere's +z cap at ``radius + offsets`` [m] (B, 100)."""
     grid, faces = grid_mesh(10, 10, spacing=0.025)
@@ -122,6 +153,45 @@ def test_projection_reduces_its_objective_and_clears_the_body() -> None:
     assert inside == 0.0, f"{100 * inside:.1f} % of projected vertices are more than 1 mm inside the body"
     rms = info["reconstruction"].sqrt().max().item()
     assert rms < 0.004, f"projection reconstructs the frames only to {rms * 1000:.2f} mm rms"
+
+
+class _FixedPoses:
+    """A body whose skinning transforms for frame k (pose[:, 0] == k) are ``transforms[k]``."""
+
+    def __init__(self, transforms: torch.Tensor) -> None:
+        self.transforms = transforms
+
+    def on_device(self, device):
+        return self
+
+    def pose_torch(self, shape, pose):
+        return type("Posed", (), {"skinning_transforms": self.transforms[pose[:, 0].long()]})()
+
+
+def test_projection_quality_names_the_one_failed_frame() -> None:
+    """Exact projections score ~0 mm; one frame moved 1 m shows as a 1 m frame in the maximum and
+    the count over 50 mm, and leaves the other frames' scores as they were."""
+    from types import SimpleNamespace
+
+    truth, faces = _patch_on_sphere(0.2, np.full((4, 100), 0.01))
+    fields = _small_fields(5)
+    shape = torch.full((4, 1), 0.5)
+    transforms = _rotations(4, 3, 0.3, seed=6)
+    with torch.no_grad():
+        target = pose_garment(fields, truth, shape, transforms)
+    frames = SimpleNamespace(posed_vertices=target.numpy(), translation=None, shape=shape.numpy(),
+                             pose=np.arange(4, dtype=np.float32)[:, None])
+    kwargs = dict(body=_FixedPoses(transforms), fields=fields, sdf=SphereSDF(0.2), faces=faces, batch_size=3)
+    exact = projection_quality(truth.numpy(), frames, **kwargs)
+    assert exact["frames"] == 4 and exact["reconstruction_rms_mm"]["max"] < 1e-3, exact
+    failed = truth.numpy().copy()
+    failed[2] += np.array([0.0, 1.0, 0.0], np.float32)
+    report = projection_quality(failed, frames, **kwargs)
+    per_frame = report["per_frame_reconstruction_rms_mm"]
+    assert report["frames_over_50mm"] == 1 and report["frames_over_10mm"] == 1, report
+    assert per_frame.argmax() == 2 and 700.0 < per_frame[2] < 1300.0, per_frame
+    np.testing.assert_array_equal(np.delete(per_frame, 2), np.delete(exact["per_frame_reconstruction_rms_mm"], 2))
+    assert report["reconstruction_rms_mm"]["median"] < 1e-3
 
 
 def test_self_supervised_term_pushes_random_samples_out_of_the_body() -> None:

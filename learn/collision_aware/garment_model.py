@@ -37,15 +37,42 @@ def pose_garment(fields: DiffusedBody, canonical: torch.Tensor, shape: torch.Ten
 
 
 def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor, *,
-                   initial: torch.Tensor, iterations: int = 5) -> torch.Tensor:
+                   initial: torch.Tensor, iterations: int = 5, faces: torch.Tensor | None = None,
+                   max_edge_ratio: float = 3.0) -> torch.Tensor:
     """Canonical X with M_G(X) = ``posed``, by ``iterations`` fixed-point steps from ``initial``.
 
     posed, initial: [m] (B, V, 3); shape (B, S); transforms (B, J, 4, 4). Returns (B, V, 3).
+
+    Where the diffused weights fold (the armpit: arm and torso weights blend over a few cm), LBS
+    maps distant canonical points to the same posed point, and a vertex's step can land on the
+    wrong one, tens of cm from its neighbours while still reproducing ``posed``. With ``faces``
+    (F, 3) such a step is caught by its edges: a proposed vertex with an edge longer than
+    ``max_edge_ratio`` times that edge in ``posed`` (lengths the unposing should nearly keep)
+    takes its mesh neighbours' mean weights instead of its own for that step, which keeps it on
+    the branch its neighbours are on.
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
+    edges = None
+    if faces is not None:
+        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values.unique(dim=0)
+        reference = torch.linalg.vector_norm(posed[:, edges[:, 1]] - posed[:, edges[:, 0]], dim=-1)  # (B, E)
+        degree = torch.zeros(posed.shape[1], dtype=posed.dtype, device=posed.device).index_add_(
+            0, edges.reshape(-1), torch.ones(edges.numel(), dtype=posed.dtype, device=posed.device))
     x = initial
     for _ in range(iterations):
-        shaped = inverse_lbs(posed, fields.skinning_weights(x), transforms)  # (B, V, 3)
-        x = shaped - fields.shape_offset(x, shape)
+        weights = fields.skinning_weights(x)  # (B, V, J)
+        offset = fields.shape_offset(x, shape)
+        proposal = inverse_lbs(posed, weights, transforms) - offset
+        if edges is not None:
+            length = torch.linalg.vector_norm(proposal[:, edges[:, 1]] - proposal[:, edges[:, 0]], dim=-1)
+            long = (length > max_edge_ratio * reference.clamp_min(1e-6)).to(posed.dtype)  # (B, E)
+            strayed = torch.zeros_like(posed[..., 0]).index_add_(1, edges[:, 0], long).index_add_(1, edges[:, 1], long)
+            if bool((strayed > 0).any()):
+                summed = torch.zeros_like(weights).index_add_(1, edges[:, 0], weights[:, edges[:, 1]]).index_add_(
+                    1, edges[:, 1], weights[:, edges[:, 0]])
+                neighbours = summed / degree.clamp_min(1.0)[None, :, None]
+                weights = torch.where((strayed > 0)[..., None], neighbours, weights)
+                proposal = inverse_lbs(posed, weights, transforms) - offset
+        x = proposal
     return x

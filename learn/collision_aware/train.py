@@ -30,7 +30,8 @@ import torch
 
 from learn import distributed
 from learn.batches import is_streamed
-from learn.collision_aware.canonicalize import ProjectionSettings, project_sequences, project_split
+from learn.collision_aware.canonicalize import (ProjectionSettings, project_sequences, project_split,
+                                               projection_quality)
 from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
 from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_times, sequence_rows
@@ -349,18 +350,26 @@ def fit_collision_aware(
     if dataset is not None:
         canonical, info = project_split(dataset.reader, dataset.split, data, body=body, fields=fields, sdf=sdf,
                                         template=template, settings=settings, batch_sequences=batch_sequences,
-                                        device=device, log=log if progress else None)
+                                        device=device, warm_start=motion_fps is not None,
+                                        log=log if progress else None)
     else:
         groups = [np.flatnonzero(data.pair_id == p) for p in np.unique(data.pair_id)]
         sequences = [{"target": data.posed_vertices[g] - (0.0 if data.translation is None else data.translation[g][:, None]),
                       "pose": data.pose[g], "shape": data.shape[g[0]]} for g in groups]
         results, info = project_sequences(sequences, body=body, fields=fields, sdf=sdf, faces=template["faces"],
-                                          template=template["rest_vertices"], settings=settings, device=device)
+                                          template=template["rest_vertices"], settings=settings, device=device,
+                                          warm_start=motion_fps is not None)
         canonical = np.empty(data.displacements.shape, np.float32)
         for g, x in zip(groups, results):
             canonical[g] = x
-    if info and distributed.writes_files():
-        (run_dir / "projection.json").write_text(json.dumps(info, indent=2))
+    if distributed.writes_files():
+        quality = projection_quality(canonical, data, body=body, fields=fields, sdf=sdf, faces=template["faces"],
+                                     settings=settings, device=device)
+        quality.pop("per_frame_reconstruction_rms_mm")
+        rms = quality["reconstruction_rms_mm"]
+        log(f"projection: reconstruction rms median {rms['median']:.1f} mm, p90 {rms['p90']:.1f} mm, "
+            f"max {rms['max']:.1f} mm; {quality['frames_over_50mm']} of {quality['frames']} frames over 50 mm")
+        (run_dir / "projection.json").write_text(json.dumps({**info, "quality": quality}, indent=2))
 
     vae = train_vae(canonical, faces, sdf, hyperparameters=hyper["vae"], seed=seed + 2, checkpoint_interval_s=interval,
                     **common)
