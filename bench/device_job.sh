@@ -20,6 +20,7 @@
 #     bash bench/device_job.sh learners-full 4"
 # TailorNet on GPU 0 beside collision_aware over GPUs 1-3 (torchrun), on the t-shirt spec made on 4 GPUs:
 #   CA_SECONDS=660 bash bench/device_job.sh start learn bash bench/device_job.sh learners-ca 4
+# (CA_VARIANTS="vae: {hidden_size: 1024}; vae: {kl: 1.0e-5}": then VAE and regressor variants on its projections)
 # (SPEC_POSES=800: 800 train poses per pair, a third of the targets)
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
@@ -35,6 +36,30 @@ train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS p
   [ "$2" != cuda ] || [ "$n" = 1 ] || launch=(python -m torch.distributed.run --standalone --nproc-per-node "$n")
   timeout "${3:-0}" "${launch[@]}" -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
     --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+}
+ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides of CA_CONFIG, e.g.
+  # "vae: {hidden_size: 1024}; vae: {kl: 1.0e-5}") retrains the VAE and the regressor in $JOB/variantK
+  # on $JOB/ca's fields and SDF (and so its cached projections), one variant per GPU at a time, each
+  # then evaluated; train_variants.log gets a summary line per variant
+  local k=0 pids=() variant
+  IFS=';' read -ra variants <<< "$CA_VARIANTS"
+  for variant in "${variants[@]}"; do
+    local dir="$JOB/variant$k"
+    mkdir -p "$dir" && cp "$JOB"/ca/fields.* "$JOB"/ca/sdf.* "$dir/"
+    python -c "import sys, yaml; base = yaml.safe_load(sys.argv[1]) or {}; over = yaml.safe_load(sys.argv[2]) or {}
+for stage, values in over.items(): base.setdefault(stage, {}).update(values)
+yaml.safe_dump(base, open(sys.argv[3], 'w'))" "${CA_CONFIG:-"{}"}" "$variant" "$dir/config.yaml"
+    (export CUDA_VISIBLE_DEVICES=$((k % $1))
+     python -m pipelines.cli train collision_aware --data "$2" --out "$dir" --device cuda --epochs "${CA_EPOCHS:-30}" \
+       --config "$dir/config.yaml" --no-progress > "$dir/train.log" 2>&1
+     python -m pipelines.cli evaluate "$dir" --data "$2" --device cuda --renders 0 > "$dir/evaluate.log" 2>&1
+     echo "variant$k ($variant): $(grep -E '^(train_test|test_train|test_test) ' \
+       "$dir/evaluate.log" | awk '{printf "%s %s mm %s %%; ", $1, $3, $6}')" >> "$JOB/train_variants.log") &
+    pids+=($!)
+    k=$((k + 1))
+    if [ $((k % $1)) = 0 ]; then wait "${pids[@]}"; pids=(); fi
+  done
+  wait "${pids[@]}"
 }
 generate_full() {  # GPUS DATA: the shipped t-shirt spec (audit off) on GPUS GPUs with Ray into DATA; with
   # SPEC_POSES=P, P train poses per pair and 60 test poses (20 of them on the test pairs' test_train)
@@ -130,7 +155,7 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     # generate_full; LEARN_DATA=DIR: an existing dataset instead), while bench/bench_projection.py times the projection step on GPU 0;
     # then TailorNet at the paper's epochs on GPU 0 beside collision_aware over GPUs 1..N-1 with
     # torchrun (stopped after CA_SECONDS, default 900; CA_EPOCHS, CA_CONFIG as in train_ca); then one
-    # evaluation of both with --analysis.
+    # evaluation of both with --analysis; then, with CA_VARIANTS, ca_variants on the same projections.
     gpus=${2:-4}
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
     if [ -z "${LEARN_DATA:-}" ]; then
@@ -160,6 +185,7 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
       || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       > "$JOB/evaluate.log" 2>&1
+    [ -z "${CA_VARIANTS:-}" ] || ca_variants "$gpus" $ds
     find "$JOB" -name "*.pt" -delete
     ;;
   ca-small)
