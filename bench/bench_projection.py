@@ -2,11 +2,11 @@
 the projection time of a whole training split they imply, printed as one JSON line.
 
     python bench/bench_projection.py [--device cuda] [--vertices 7744] [--batches 64,128,256]
-        [--shards 1740] [--frames-per-shard 30] [--gpus 1]
+        [--shards 1740] [--frames-per-shard 30] [--gpus 1] [--sdf grid|mlp]
 
 A step is one evaluation of the objective (reconstruction, Green-Lagrange strain, collision) and
-its backward pass over B frames of V garment vertices, with the default field and SDF networks
-(learn/collision_aware/train.py). Its cost depends on B, V and the networks' sizes, not on their
+its backward pass over B frames of V garment vertices, with the default fields network and SDF
+(learn/collision_aware/train.py; ``--sdf mlp``: the SDF network instead of the grid). Its cost depends on B, V and the networks' sizes, not on their
 weights or the garment's shape, so the garment is a grid of V vertices wrapped around the
 canonical torso and the networks are untrained. A split of S shards of F frames, projected in
 batches of B shards over G GPUs, takes ceil(S / G / B) x F x (steps + fixed-point iterations)
@@ -52,11 +52,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--shards", type=int, default=1740, help="training shards of the split to project")
     parser.add_argument("--frames-per-shard", type=int, default=30)
     parser.add_argument("--gpus", type=int, default=1, help="processes the split's shards are dealt over")
+    parser.add_argument("--sdf", choices=("grid", "mlp"), default="grid", help="the body SDF's kind (sdf.kind)")
     args = parser.parse_args(argv)
 
     from learn.collision_aware.canonicalize import ProjectionSettings, projection_terms, triangle_reference
     from learn.collision_aware.fields import canonical_body, new_diffused_body
-    from learn.collision_aware.sdf import new_body_sdf
+    from learn.collision_aware.sdf import grid_sdf, new_body_sdf
     from learn.collision_aware.train import DEFAULT_HYPERPARAMETERS
     from simulate.body import load_body_model
 
@@ -65,8 +66,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(0)
     fields = new_diffused_body(body, hidden_size=hf["hidden_size"], layers=hf["layers"],
                                frequencies=hf["frequencies"]).to(args.device).requires_grad_(False)
-    sdf = new_body_sdf(canonical_body(body), hidden_size=hs["hidden_size"], layers=hs["layers"],
-                       frequencies=hs["frequencies"]).to(args.device).requires_grad_(False)
+    if args.sdf == "grid":
+        sdf = grid_sdf(canonical_body(body), body.faces, voxel_m=hs["voxel_m"], margin_m=hs["margin_m"],
+                       warp_device=args.device if args.device.startswith("cuda") else "cpu")
+    else:
+        sdf = new_body_sdf(canonical_body(body), hidden_size=hs["hidden_size"], layers=hs["layers"],
+                           frequencies=hs["frequencies"])
+    sdf = sdf.to(args.device).requires_grad_(False)
     garment, faces = wrapped_grid(body, args.vertices)
     faces_t = torch.as_tensor(faces, dtype=torch.int64, device=args.device)
     settings = ProjectionSettings()
@@ -110,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"device": torch.cuda.get_device_name() if args.device.startswith("cuda") else "cpu",
                       "vertices": int(garment.shape[0]), "faces": int(faces.shape[0]), "shards": args.shards,
                       "frames_per_shard": args.frames_per_shard, "gpus": args.gpus,
-                      "steps_per_frame": settings.steps, "fixed_point_iterations": settings.fixed_point_iterations,
+                      "sdf": args.sdf, "steps_per_frame": settings.steps, "fixed_point_iterations": settings.fixed_point_iterations,
                       "rows": rows}))
     return 0
 

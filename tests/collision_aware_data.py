@@ -125,7 +125,7 @@ def write_tiny_config(path: Path, **regressor) -> str:
     small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
     Path(path).write_text(yaml.safe_dump({
         "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
-        "sdf": {**small, "points": 1000},
+        "sdf": {**small, "points": 1000, "voxel_m": 0.03},  # a grid SDF (the default kind) of 3 cm voxels
         "projection": {"steps": 3},
         "vae": {"hidden_size": 16, "batch_size": 4},
         "regressor": {"hidden_size": 16, "batch_size": 4, **regressor},

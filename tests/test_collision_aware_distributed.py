@@ -61,14 +61,17 @@ def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body):
     from collision_aware_data import write_band_dataset, write_tiny_config
 
     from learn.collision_aware.canonicalize import ProjectionSettings, project_split
-    from learn.collision_aware.fields import canonical_body, new_diffused_body
-    from learn.collision_aware.sdf import new_body_sdf
+    from learn.collision_aware.fields import new_diffused_body
+    from learn.collision_aware.sdf import sdf_from_config
     from learn.data import DrapeDataset
-    from learn.tailornet.train import frame_arrays_from_dataset
+    from learn.tailornet.train import frame_arrays_from_dataset, load_checkpoint
 
     data, run = tmp_path / "data", tmp_path / "run"
     write_band_dataset(data, anny_body, splits={"train": SHARDS, "test_test": 1}, frames_per_task=2)
     config = write_tiny_config(tmp_path / "tiny.yaml")
+    tiny = yaml.safe_load(Path(config).read_text())
+    tiny["sdf"]["kind"] = "mlp"  # the SDF network trains data-parallel over the ranks too
+    Path(config).write_text(yaml.safe_dump(tiny))
     run.mkdir()
     context = torch.multiprocessing.start_processes(
         _rank, args=(2, _free_port(), str(data), str(run), config), nprocs=2, join=False, start_method="spawn")
@@ -84,12 +87,10 @@ def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body):
     assert len(cached) == SHARDS, f"expected one cached projection per training shard, got {cached}"
 
     # every shard again in one process, from the run's fields and SDF, into a fresh cache
-    tiny = yaml.safe_load(Path(config).read_text())
     fields = _stage(new_diffused_body(anny_body, hidden_size=tiny["fields"]["hidden_size"],
                                       layers=tiny["fields"]["layers"], frequencies=tiny["fields"]["frequencies"]),
                     run / "fields.pt")
-    sdf = _stage(new_body_sdf(canonical_body(anny_body), hidden_size=tiny["sdf"]["hidden_size"],
-                              layers=tiny["sdf"]["layers"], frequencies=tiny["sdf"]["frequencies"]), run / "sdf.pt")
+    sdf = _stage(sdf_from_config(load_checkpoint(run / "sdf.pt")["model_config"]), run / "sdf.pt")
     with np.load(run / "template.npz") as loaded:
         template = {k: loaded[k] for k in loaded.files}
     dataset = DrapeDataset(data, "train", frequencies=False)

@@ -225,3 +225,10 @@ def test_gru_asked_for_a_quasi_static_dataset_exits_2_naming_the_option(tmp_path
     assert not (run / "fields.pt").exists(), "no stage should run before the regressor kind is checked"
     assert main(["train", "baseline", "--data", str(data), "--out", str(tmp_path / "b"), "--regressor", "mlp"]) == 2
     assert "--regressor applies to collision_aware only" in capsys.readouterr().err
+    config = tmp_path / "voxel.yaml"
+    config.write_text("sdf: {kind: voxel}\n")
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
+                 "--epochs", "1", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "sdf.kind must be grid or mlp, got 'voxel'" in err and "Traceback" not in err, err
+    assert not (run / "fields.pt").exists(), "no stage should run before the SDF kind is checked"

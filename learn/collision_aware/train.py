@@ -38,7 +38,7 @@ from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_t
 from learn.collision_aware.recurrent_regressor import (RecurrentLatentRegressor, sequence_loss, sequence_windows)
 from learn.collision_aware.recurrent_regressor import input_normalisation as sequence_normalisation
 from learn.collision_aware.regressor import LatentRegressor, input_normalisation
-from learn.collision_aware.sdf import fit_body_sdf, new_body_sdf, sdf_targets
+from learn.collision_aware.sdf import fit_body_sdf, grid_sdf, new_body_sdf, sdf_from_config, sdf_targets
 from learn.collision_aware.vae import LATENT_SIZE, GarmentVAE, vae_loss
 from learn.common.mesh import uniform_laplacian_torch
 from learn.tailornet.train import (
@@ -61,7 +61,10 @@ _PROJECTION_DEFAULTS = {f.name: f.default for f in dataclass_fields(ProjectionSe
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "fields": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
                "frequencies": 4, "points": 50000, "shapes": 32, "samples": 64, "spread": 1.0},
-    "sdf": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
+    # kind: grid (the exact signed distance on voxel_m voxels, margin_m past the body) | mlp (the
+    # seed's network; the other settings are its)
+    "sdf": {"kind": "grid", "voxel_m": 0.005, "margin_m": 0.05,
+            "lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
             "frequencies": 6, "points": 100000, "near_weight": 4.0},
     "projection": {**_PROJECTION_DEFAULTS, "batch_sequences": 64},
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
@@ -94,6 +97,46 @@ def _finished(module: torch.nn.Module, run_dir: Path, stage: str, fingerprint: D
     module.load_state_dict(checkpoint["model_state"])
     module.to(device).eval()
     return True
+
+
+def body_sdf(rest: np.ndarray, faces: np.ndarray, settings: Mapping[str, Any], *, run_dir: Path,
+             fingerprint: DatasetFingerprint | None, device: str, seed: int, extra_points: np.ndarray | None = None,
+             checkpoint_interval_s: float = 60.0, progress: bool = False) -> torch.nn.Module:
+    """The canonical body's SDF (stage ``sdf``, frozen, on ``device``) for ``settings`` (``kind``
+    grid or mlp): loaded when finished in ``run_dir``, else computed (grid) or trained (mlp).
+    rest: canonical body vertices [m] (Vb, 3); faces (F, 3); extra_points [m]: the MLP's
+    additional training points (the garment template)."""
+    kind = str(settings.get("kind", "grid"))
+    if kind not in ("grid", "mlp"):
+        raise ValueError(f"sdf.kind must be grid or mlp, got {kind!r}")
+    if kind == "grid":
+        checkpoint = run_dir / "sdf.pt"
+        if (run_dir / "sdf.done").is_file() and checkpoint.is_file():
+            stored = load_checkpoint(checkpoint, map_location=device)
+            check_fingerprint(stored.get("fingerprint"), fingerprint, source=str(checkpoint))
+            config = stored["model_config"]
+            if config.get("kind") != "grid" or config["voxel_m"] != float(settings["voxel_m"]):
+                described = f"a grid at {config['voxel_m']} m" if config.get("kind") == "grid" else "an MLP"
+                raise ValueError(f"{checkpoint} holds {described}, not a grid at {settings['voxel_m']} m: "
+                                 f"use a new run directory for a new configuration")
+            sdf = sdf_from_config(stored["model_config"])
+            sdf.load_state_dict(stored["model_state"])
+        else:
+            sdf = grid_sdf(rest, faces, voxel_m=float(settings["voxel_m"]), margin_m=float(settings["margin_m"]),
+                           warp_device=device if str(device).startswith("cuda") else "cpu")
+            if distributed.writes_files():
+                save_learner(sdf, "sdf", checkpoint, fingerprint=fingerprint)
+                (run_dir / "sdf.done").write_text(json.dumps({"stage": "sdf", "kind": "grid"}))
+        return _frozen(sdf.to(device))
+    torch.manual_seed(seed)
+    sdf = new_body_sdf(rest, hidden_size=int(settings["hidden_size"]), layers=int(settings["layers"]),
+                       frequencies=int(settings["frequencies"]))
+    if not _finished(sdf, run_dir, "sdf", fingerprint, device):
+        points, distance = sdf_targets(rest, faces, int(settings["points"]), seed=seed, extra_points=extra_points)
+        mlp_settings = {k: v for k, v in settings.items() if k not in ("kind", "voxel_m", "margin_m")}
+        sdf = fit_body_sdf(sdf, points, distance, run_dir=run_dir, fingerprint=fingerprint, device=device, seed=seed,
+                           progress=progress, hyperparameters={**mlp_settings, "checkpoint_interval_s": checkpoint_interval_s})
+    return _frozen(sdf.to(device))
 
 
 def _frozen(module: torch.nn.Module) -> torch.nn.Module:
@@ -313,6 +356,8 @@ def fit_collision_aware(
     hyper = merged_hyperparameters(hyperparameters, DEFAULT_HYPERPARAMETERS)
     kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
     hyper["regressor"]["kind"] = kind
+    if str(hyper["sdf"]["kind"]) not in ("grid", "mlp"):  # also before any stage
+        raise ValueError(f"sdf.kind must be grid or mlp, got {hyper['sdf']['kind']!r}")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
@@ -334,15 +379,8 @@ def fit_collision_aware(
     fields = _frozen(fields.to(device))
 
     hs = hyper["sdf"]
-    torch.manual_seed(seed + 1)
-    sdf = new_body_sdf(rest, hidden_size=int(hs["hidden_size"]), layers=int(hs["layers"]),
-                       frequencies=int(hs["frequencies"]))
-    if not _finished(sdf, run_dir, "sdf", fingerprint, device):
-        points, distance = sdf_targets(rest, body.faces, int(hs["points"]), seed=seed + 1,
-                                       extra_points=template["rest_vertices"])
-        sdf = fit_body_sdf(sdf, points, distance, hyperparameters=_epoch_settings(hs, hyper["model"]), seed=seed + 1,
-                           **common)
-    sdf = _frozen(sdf.to(device))
+    sdf = body_sdf(rest, body.faces, hs, run_dir=run_dir, fingerprint=fingerprint, device=device, seed=seed + 1,
+                   extra_points=template["rest_vertices"], checkpoint_interval_s=interval, progress=progress)
 
     hp = dict(hyper["projection"])
     batch_sequences = int(hp.pop("batch_sequences"))
