@@ -27,15 +27,15 @@
 set -uo pipefail
 cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
-train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS per stage (default 30),
-  # CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
+train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS for every stage (default:
+  # each stage's own, or CA_CONFIG's), CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
   # with several GPUs in CUDA_VISIBLE_DEVICES, one torchrun process on each
   echo "${CA_CONFIG:-"{}"}" > "$JOB/ca.yaml"
   local visible=${CUDA_VISIBLE_DEVICES:-0} launch=(python)
   local n=$(( $(printf %s "$visible" | tr -cd , | wc -c) + 1 ))
   [ "$2" != cuda ] || [ "$n" = 1 ] || launch=(python -m torch.distributed.run --standalone --nproc-per-node "$n")
   timeout "${3:-0}" "${launch[@]}" -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
-    --epochs "${CA_EPOCHS:-30}" --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
+    ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
 }
 ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides of CA_CONFIG, e.g.
   # "vae: {hidden_size: 1024}; vae: {kl: 1.0e-5}") retrains the VAE and the regressor in $JOB/variantK
@@ -50,7 +50,7 @@ ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides 
 for stage, values in over.items(): base.setdefault(stage, {}).update(values)
 yaml.safe_dump(base, open(sys.argv[3], 'w'))" "${CA_CONFIG:-"{}"}" "$variant" "$dir/config.yaml"
     (export CUDA_VISIBLE_DEVICES=$((k % $1))
-     python -m pipelines.cli train collision_aware --data "$2" --out "$dir" --device cuda --epochs "${CA_EPOCHS:-30}" \
+     python -m pipelines.cli train collision_aware --data "$2" --out "$dir" --device cuda ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} \
        --config "$dir/config.yaml" --no-progress > "$dir/train.log" 2>&1
      python -m pipelines.cli evaluate "$dir" --data "$2" --device cuda --renders 0 > "$dir/evaluate.log" 2>&1
      echo "variant$k ($variant): $(grep -E '^(train_test|test_train|test_test) ' \
