@@ -64,3 +64,32 @@ def unwritable_dir(tmp_path):
         pytest.skip("no directory refuses writes here")
     if os.geteuid() != 0:
         (tmp_path / "read-only").chmod(0o755)
+
+
+@pytest.fixture
+def spawn_ranks():
+    """``spawn_ranks(fn, *args, ranks=2, timeout_s=120.0, what="...")`` runs ``fn(rank, ranks, port,
+    *args)`` in ``ranks`` spawned processes (``port``: a free local port for their process group)
+    and fails the test when they do not finish within ``timeout_s``; skips without gloo."""
+    import socket
+    import time
+
+    import torch
+
+    if not torch.distributed.is_available() or not torch.distributed.is_gloo_available():
+        pytest.skip("torch.distributed with gloo is not available")
+
+    def spawn(fn, *args, ranks: int = 2, timeout_s: float = 120.0, what: str = "the ranks") -> None:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        context = torch.multiprocessing.start_processes(fn, args=(ranks, port, *args), nprocs=ranks, join=False,
+                                                        start_method="spawn")
+        deadline = time.monotonic() + timeout_s
+        while not context.join(timeout=1.0):
+            if time.monotonic() > deadline:
+                for process in context.processes:
+                    process.kill()
+                pytest.fail(f"{what} did not finish within {timeout_s:.0f} s")
+
+    return spawn

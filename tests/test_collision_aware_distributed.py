@@ -10,12 +10,9 @@ each file holds its own shard's result, and that each rank's VAE trained on all 
 from __future__ import annotations
 
 import os
-import socket
-import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 SHARDS = 3  # over 2 ranks: 2 + 1, so the ranks' shares are unequal
@@ -41,12 +38,6 @@ def _rank(rank: int, world: int, port: int, data: str, run: str, config: str) ->
     Path(run, f"rank{rank}.rc").write_text(str(code))
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _stage(module: torch.nn.Module, path: Path) -> torch.nn.Module:
     from learn.tailornet.train import load_checkpoint
 
@@ -54,9 +45,7 @@ def _stage(module: torch.nn.Module, path: Path) -> torch.nn.Module:
     return module.eval()
 
 
-def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body):
-    if not torch.distributed.is_available() or not torch.distributed.is_gloo_available():
-        pytest.skip("torch.distributed with gloo is not available")
+def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body, spawn_ranks):
     import yaml
     from collision_aware_data import write_band_dataset, write_tiny_config
 
@@ -73,14 +62,7 @@ def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body):
     tiny["sdf"]["kind"] = "mlp"  # the SDF network trains data-parallel over the ranks too
     Path(config).write_text(yaml.safe_dump(tiny))
     run.mkdir()
-    context = torch.multiprocessing.start_processes(
-        _rank, args=(2, _free_port(), str(data), str(run), config), nprocs=2, join=False, start_method="spawn")
-    deadline = time.monotonic() + 300.0
-    while not context.join(timeout=1.0):
-        if time.monotonic() > deadline:
-            for process in context.processes:
-                process.kill()
-            pytest.fail("the 2-rank collision_aware training did not finish within 300 s")
+    spawn_ranks(_rank, str(data), str(run), config, timeout_s=300.0, what="the 2-rank collision_aware training")
     assert [(run / f"rank{r}.rc").read_text() for r in range(2)] == ["0", "0"]
     assert (run / "collision_aware_model.pt").is_file() and (run / "projection.json").is_file()
     cached = sorted((data / "cache" / "canonical").glob("*.npy"))

@@ -320,7 +320,6 @@ def motion_dataset(tmp_path_factory):
 def test_every_motion_frame_is_recorded_once_with_its_pose_root_and_velocities(motion_dataset):
     from data_manifest.reader import DatasetReader
     from data_manifest.validate import validate_dataset
-    from pipelines.dataset_plan import plan_dataset
     from pipelines.generate_dataset import build_context
     from pipelines.spec import validate_spec
 

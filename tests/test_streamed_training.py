@@ -10,8 +10,6 @@ yields every frame exactly once. 2 gloo ranks with unequal shard counts finish a
 from __future__ import annotations
 
 import os
-import socket
-import time
 from pathlib import Path
 
 import h5py
@@ -25,7 +23,7 @@ from learn.data import DrapeDataset
 from learn.streamed_split import StreamedSplit, choose_data_mode
 from learn.tailornet.baseline import baseline_model
 from learn.tailornet.lf import low_frequency_model
-from learn.tailornet.train import fit_tailornet, frame_arrays_from_dataset, load_checkpoint, train_stage
+from learn.tailornet.train import fit_tailornet, frame_arrays_from_dataset, train_stage
 
 STAGE = {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 4, "epochs": 3, "shuffle": False,
          "checkpoint_interval_s": 1e9}
@@ -165,23 +163,8 @@ def _rank(rank: int, world: int, port: int, root: str, out: str) -> None:
     distributed.finish()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_two_ranks_with_unequal_shard_counts_finish(dataset, tmp_path):
-    if not torch.distributed.is_available() or not torch.distributed.is_gloo_available():
-        pytest.skip("torch.distributed with gloo is not available")
-    context = torch.multiprocessing.start_processes(_rank, args=(2, _free_port(), str(dataset), str(tmp_path)),
-                                                    nprocs=2, join=False, start_method="spawn")
-    deadline = time.monotonic() + 120.0
-    while not context.join(timeout=1.0):
-        if time.monotonic() > deadline:
-            for process in context.processes:
-                process.kill()
-            pytest.fail("the 2-rank streamed training did not finish within 120 s")
+def test_two_ranks_with_unequal_shard_counts_finish(dataset, tmp_path, spawn_ranks):
+    spawn_ranks(_rank, str(dataset), str(tmp_path), what="the 2-rank streamed training")
     result = torch.load(tmp_path / "result.pt")
     # 5 shards of 3 frames, 2 per rank per step: rank 0 reads 3 shards (5 batches), rank 1 two (3)
     assert result["counts"] == {"steps": 5, "own": [5, 3]}, result["counts"]
