@@ -14,7 +14,7 @@ from learn.collision_aware.diffusion import closest_surface_points, diffusion_op
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import pose_garment, unpose_garment
 from learn.collision_aware.vae import GarmentVAE
-from learn.common.mesh import grid_mesh
+from learn.common.mesh import grid_mesh, mesh_edges
 from simulate.body.kinematics import axis_angle_to_matrix
 
 ATOL_SURFACE = 1e-5  # diffused value on the surface vs the surface value (values in [0, 1])
@@ -152,7 +152,7 @@ def test_unposing_keeps_a_vertex_on_its_neighbours_branch_of_a_fold() -> None:
     # the plain fixed point converges to the other, exact, solution: 0.5 m from its neighbours
     assert abs(float(stray[0, 12, 0] - truth[0, 12, 0]) + _FoldedWeights.shift) < 1e-5
     kept = unpose_garment(_FoldedWeights(), truth, torch.zeros(1, 1), transforms,
-                          faces=torch.as_tensor(faces, dtype=torch.int64), **kwargs)
+                          edges=torch.as_tensor(mesh_edges(faces)), **kwargs)
     assert (kept - truth).abs().max() < 1e-6, (kept - truth).abs().max()
 
 

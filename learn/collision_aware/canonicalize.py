@@ -41,6 +41,7 @@ from learn import distributed
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import pose_garment, shape_garment, unpose_garment
 from learn.collision_aware.sdf import BodySDF, collision_penalty
+from learn.common.mesh import mesh_edges
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,20 @@ def green_lagrange_energy(vertices: torch.Tensor, faces: torch.Tensor, dm_invers
     return (per_face * area).sum(-1) / area.sum(-1).clamp_min(1e-12)
 
 
+def mesh_edges_torch(faces: torch.Tensor) -> torch.Tensor:
+    """:func:`learn.common.mesh.mesh_edges` of ``faces`` (F, 3), as a tensor on their device."""
+    return torch.as_tensor(mesh_edges(faces.cpu().numpy()), device=faces.device)
+
+
+def unrooted_targets(frames: Any, rows: Any) -> np.ndarray:
+    """The simulated garments [m] (len(rows), V, 3) of ``frames`` (a FrameArrays with
+    posed_vertices) at ``rows``, without their root translation: what the projection fits."""
+    target = np.asarray(frames.posed_vertices[rows], np.float32)
+    if frames.translation is not None:
+        target = target - np.asarray(frames.translation[rows], np.float32)[:, None, :]
+    return target
+
+
 def projection_terms(canonical: torch.Tensor, target: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor,
                      fields: DiffusedBody, sdf: BodySDF, faces: torch.Tensor, reference: tuple[torch.Tensor, torch.Tensor],
                      settings: ProjectionSettings) -> dict[str, torch.Tensor]:
@@ -119,11 +134,13 @@ def projection_terms(canonical: torch.Tensor, target: torch.Tensor, shape: torch
 
 def project_frames(target: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor, *, fields: DiffusedBody,
                    sdf: BodySDF, faces: torch.Tensor, initial: torch.Tensor,
-                   settings: ProjectionSettings = ProjectionSettings()) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+                   settings: ProjectionSettings = ProjectionSettings(),
+                   edges: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Canonical X of a batch of frames.
 
     target: simulated garments [m] (B, V, 3) (without any root translation); shape (B, S);
     transforms: the body's skinning transforms (B, J, 4, 4); initial: starting X [m] (B, V, 3).
+    edges: the mesh's unique edges (E, 2) where the caller has them (else derived from ``faces``).
     Returns X (B, V, 3) and the terms of :func:`projection_terms` at the start (``*_start``, after
     the fixed point) and at the end, each (B,).
     """
@@ -133,7 +150,8 @@ def project_frames(target: torch.Tensor, shape: torch.Tensor, transforms: torch.
     try:
         with torch.no_grad():
             x0 = unpose_garment(fields, target, shape, transforms, initial=initial,
-                                iterations=settings.fixed_point_iterations, faces=faces)
+                                iterations=settings.fixed_point_iterations,
+                                edges=mesh_edges_torch(faces) if edges is None else edges)
             reference = triangle_reference(target, faces)
         x = x0.clone().requires_grad_(True)
         optimizer = torch.optim.Adam([x], lr=settings.lr)
@@ -175,6 +193,7 @@ def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fiel
     if not sequences:
         return [], {}
     faces_t = torch.as_tensor(np.asarray(faces, np.int64), device=device)
+    edges_t = mesh_edges_torch(faces_t)
     body_on = body.on_device(device)
     out = [np.empty_like(np.asarray(s["target"], np.float32)) for s in sequences]
     previous = torch.as_tensor(np.asarray(template, np.float32), device=device)[None].repeat(len(sequences), 1, 1)
@@ -187,7 +206,7 @@ def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fiel
         shape = torch.as_tensor(np.stack([sequences[i]["shape"] for i in live]), dtype=torch.float32, device=device)
         with torch.no_grad():
             transforms = body_on.pose_torch(shape, pose).skinning_transforms.to(device)
-        x, info = project_frames(target, shape, transforms, fields=fields, sdf=sdf, faces=faces_t,
+        x, info = project_frames(target, shape, transforms, fields=fields, sdf=sdf, faces=faces_t, edges=edges_t,
                                  initial=previous[live], settings=settings)
         if warm_start:
             previous[live] = x
@@ -214,10 +233,7 @@ def projection_quality(canonical: np.ndarray, frames: Any, *, body: Any, fields:
     rms, strain = [], []
     for begin in range(0, canonical.shape[0], batch_size):
         rows = slice(begin, begin + batch_size)
-        target = np.asarray(frames.posed_vertices[rows], np.float32)
-        if frames.translation is not None:
-            target = target - np.asarray(frames.translation[rows], np.float32)[:, None, :]
-        target_t = torch.as_tensor(target, device=device)
+        target_t = torch.as_tensor(unrooted_targets(frames, rows), device=device)
         shape = torch.as_tensor(np.asarray(frames.shape[rows], np.float32), device=device)
         pose = torch.as_tensor(np.asarray(frames.pose[rows], np.float32), device=device)
         transforms = body_on.pose_torch(shape, pose).skinning_transforms.to(device)
@@ -305,10 +321,7 @@ def project_split(reader: Any, split: str, frames: Any, *, body: Any, fields: Di
         group = mine[begin:begin + batch_sequences]
         sequences = []
         for _, rows in group:
-            target = frames.posed_vertices[rows]
-            if frames.translation is not None:
-                target = target - frames.translation[rows][:, None, :]
-            sequences.append({"target": target, "pose": frames.pose[rows], "shape": frames.shape[rows[0]]})
+            sequences.append({"target": unrooted_targets(frames, rows), "pose": frames.pose[rows], "shape": frames.shape[rows[0]]})
         results, info = project_sequences(sequences, body=body, fields=fields, sdf=sdf, faces=template["faces"],
                                           template=template["rest_vertices"], settings=settings, device=device,
                                           warm_start=warm_start)

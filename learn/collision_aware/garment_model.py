@@ -37,7 +37,7 @@ def pose_garment(fields: DiffusedBody, canonical: torch.Tensor, shape: torch.Ten
 
 
 def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor, *,
-                   initial: torch.Tensor, iterations: int = 5, faces: torch.Tensor | None = None,
+                   initial: torch.Tensor, iterations: int = 5, edges: torch.Tensor | None = None,
                    max_edge_ratio: float = 3.0) -> torch.Tensor:
     """Canonical X with M_G(X) = ``posed``, by ``iterations`` fixed-point steps from ``initial``.
 
@@ -45,17 +45,15 @@ def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tenso
 
     Where the diffused weights fold (the armpit: arm and torso weights blend over a few cm), LBS
     maps distant canonical points to the same posed point, and a vertex's step can land on the
-    wrong one, tens of cm from its neighbours while still reproducing ``posed``. With ``faces``
-    (F, 3) such a step is caught by its edges: a proposed vertex with an edge longer than
+    wrong one, tens of cm from its neighbours while still reproducing ``posed``. With the mesh's
+    ``edges`` (E, 2) (:func:`learn.common.mesh.mesh_edges`) such a step is caught by its edges: a proposed vertex with an edge longer than
     ``max_edge_ratio`` times that edge in ``posed`` (lengths the unposing should nearly keep)
     takes its mesh neighbours' mean weights instead of its own for that step, which keeps it on
     the branch its neighbours are on.
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
-    edges = None
-    if faces is not None:
-        edges = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).sort(dim=1).values.unique(dim=0)
+    if edges is not None:
         reference = torch.linalg.vector_norm(posed[:, edges[:, 1]] - posed[:, edges[:, 0]], dim=-1)  # (B, E)
         degree = torch.zeros(posed.shape[1], dtype=posed.dtype, device=posed.device).index_add_(
             0, edges.reshape(-1), torch.ones(edges.numel(), dtype=posed.dtype, device=posed.device))

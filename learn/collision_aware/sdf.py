@@ -90,12 +90,10 @@ def grid_sdf(vertices: np.ndarray, faces: np.ndarray, *, voxel_m: float, margin_
     axes = [low[k] + voxel_m * np.arange(counts[k]) for k in range(3)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     points = np.stack([x, y, z], -1).reshape(-1, 3).astype(np.float32)
-    distance = np.empty(points.shape[0], np.float32)
-    for begin in range(0, points.shape[0], chunk):
-        query = body_signed_distance(points[begin:begin + chunk], vertices, faces, device=warp_device,
-                                     max_distance=float(np.linalg.norm(high - low)))
-        block = points[begin:begin + chunk]
-        distance[begin:begin + chunk] = np.linalg.norm(block - query.closest, axis=-1) * np.sign(query.distance)
+    distance = np.concatenate([
+        euclidean_signed_distance(points[begin:begin + chunk], vertices, faces, warp_device=warp_device,
+                                  max_distance=float(np.linalg.norm(high - low)))
+        for begin in range(0, points.shape[0], chunk)])
     sdf = GridSDF(origin=low.tolist(), voxel_m=voxel_m, shape=[int(counts[2]), int(counts[1]), int(counts[0])])
     sdf.values.copy_(torch.as_tensor(distance.reshape(1, 1, counts[2], counts[1], counts[0])))
     return sdf
@@ -106,15 +104,22 @@ def collision_penalty(signed_distance: torch.Tensor, epsilon: float) -> torch.Te
     return torch.relu(epsilon - signed_distance)
 
 
+def euclidean_signed_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, *,
+                              warp_device: str | None = None, max_distance: float | None = None) -> np.ndarray:
+    """Distance [m] (N,) of ``points`` (N, 3) to their closest point on the body, negative inside
+    by the collision metric's test; ``max_distance``: the query radius (default the metric's)."""
+    radius = {} if max_distance is None else {"max_distance": max_distance}
+    query = body_signed_distance(points, vertices, faces, device=warp_device, **radius)
+    return (np.linalg.norm(points - query.closest, axis=-1) * np.sign(query.distance)).astype(np.float32)
+
+
 def sdf_targets(vertices: np.ndarray, faces: np.ndarray, point_count: int, *, seed: int = 0,
                 extra_points: np.ndarray | None = None, warp_device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Training points [m] (N, 3) around the body and their Euclidean signed distance [m] (N,)."""
     points = points_near_body(vertices, faces, point_count, min_offset_m=-0.05, max_offset_m=0.15, seed=seed)
     if extra_points is not None:
         points = np.concatenate([points, np.asarray(extra_points, np.float32).reshape(-1, 3)])
-    query = body_signed_distance(points, vertices, faces, device=warp_device)
-    distance = np.linalg.norm(points - query.closest, axis=-1) * np.sign(query.distance)
-    return points.astype(np.float32), distance.astype(np.float32)
+    return points.astype(np.float32), euclidean_signed_distance(points, vertices, faces, warp_device=warp_device)
 
 
 def sdf_from_config(config: dict[str, Any]) -> nn.Module:

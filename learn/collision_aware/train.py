@@ -31,7 +31,7 @@ import torch
 from learn import distributed
 from learn.batches import is_streamed
 from learn.collision_aware.canonicalize import (ProjectionSettings, project_sequences, project_split,
-                                               projection_quality)
+                                               projection_quality, unrooted_targets)
 from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
 from learn.collision_aware.model import CollisionAwareModel
 from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_times, sequence_rows
@@ -392,7 +392,7 @@ def fit_collision_aware(
                                         log=log if progress else None)
     else:
         groups = [np.flatnonzero(data.pair_id == p) for p in np.unique(data.pair_id)]
-        sequences = [{"target": data.posed_vertices[g] - (0.0 if data.translation is None else data.translation[g][:, None]),
+        sequences = [{"target": unrooted_targets(data, g),
                       "pose": data.pose[g], "shape": data.shape[g[0]]} for g in groups]
         results, info = project_sequences(sequences, body=body, fields=fields, sdf=sdf, faces=template["faces"],
                                           template=template["rest_vertices"], settings=settings, device=device,
