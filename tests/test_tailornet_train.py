@@ -605,3 +605,54 @@ def test_error_analysis_splits_the_error_by_pair_and_pose_distance(trained: dict
         "style_and_shape_in_training": 4, "style_not_in_training": 2, "shape_not_in_training": 1,
         "neither_in_training": 1}
     assert "style not in training" in format_analysis(error_analysis(models, train, {"other": other}, bins=2))
+
+
+def test_cosine_lr_schedule_anneals_and_resumes_where_it_stopped(tmp_path: Path) -> None:
+    """``lr_schedule: cosine`` gives each epoch half a cosine from lr to lr * lr_final (the
+    optimizer sees it, not only the formula); a run that crashes and resumes sees the same
+    sequence as one that does not; ``constant`` keeps lr; bad values name the key."""
+    from learn.tailornet.train import run_epochs, scheduled_lr
+
+    seen: list[float] = []
+    crash_at: list[int] = []
+
+    def epoch_fn(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        seen.append(float(optimizer.param_groups[0]["lr"]))
+        if len(seen) == crash_at[0]:
+            raise RuntimeError("simulated crash")
+        loss = model(torch.zeros(1, POSE_SIZE), torch.zeros(1, 0), torch.zeros(1, 0)).abs().mean()
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return float(loss.detach())
+
+    def model() -> torch.nn.Module:
+        torch.manual_seed(0)
+        return low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
+
+    hyper = {"lr": 1e-2, "weight_decay": 0.0, "batch_size": 1, "epochs": 5, "checkpoint_interval_s": 0.0,
+             "lr_schedule": "cosine", "lr_final": 0.1}
+    expected = [1e-2, 1e-2 * (0.1 + 0.9 * 0.5 * (1 + np.cos(np.pi / 4))), 1e-2 * 0.55,
+                1e-2 * (0.1 + 0.9 * 0.5 * (1 + np.cos(3 * np.pi / 4))), 1e-3]
+    crash_at.append(0)
+    run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / "whole", hyperparameters=hyper, fingerprint=None,
+               progress=False)
+    np.testing.assert_allclose(seen, expected, rtol=1e-12)
+    assert [scheduled_lr(1e-2, e, 5, "cosine", 0.1) for e in range(5)] == pytest.approx(expected, rel=1e-12)
+    seen.clear()
+    crash_at[0] = 3
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / "resumed", hyperparameters=hyper, fingerprint=None,
+                   progress=False)
+    crash_at[0] = 0
+    run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / "resumed", hyperparameters=hyper, fingerprint=None,
+               progress=False)
+    np.testing.assert_allclose(seen, expected[:3] + expected[2:], rtol=1e-12)  # epoch 3 ran twice
+    whole = (tmp_path / "whole" / "stage_loss.csv").read_text().splitlines()
+    resumed = (tmp_path / "resumed" / "stage_loss.csv").read_text().splitlines()
+    assert [r.split(",")[1] for r in whole] == [r.split(",")[1] for r in resumed]
+    assert scheduled_lr(1e-2, 3, 5, "constant") == 1e-2
+    for key, value in (("lr_schedule", "step"), ("lr_final", 2.0)):
+        with pytest.raises(ValueError, match=key):
+            run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / key, fingerprint=None, progress=False,
+                       hyperparameters={**hyper, key: value})

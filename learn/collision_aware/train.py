@@ -69,13 +69,13 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "projection": {**_PROJECTION_DEFAULTS, "batch_sequences": 64},
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
             "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 10.0, "random_collision": 1.0, "kl": 1e-4,
-            "epsilon_m": 2e-3, "random_samples": 32},
+            "epsilon_m": 2e-3, "random_samples": 32, "lr_schedule": "constant", "lr_final": 0.01},
     # kind: auto | gru | mlp. batch_size counts frames (mlp) or windows (gru); layers, window
     # (frames), stride (frames between window starts), velocity_weight and acceleration_weight
     # (rho_1, rho_2 of seed Eq. 18) are the GRU's
     "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
                   "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
-                  "velocity_weight": 1.0, "acceleration_weight": 1.0},
+                  "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01},
     "model": {"checkpoint_interval_s": 60.0},
 }
 

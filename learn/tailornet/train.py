@@ -33,6 +33,7 @@ from __future__ import annotations
 import copy
 import csv
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
@@ -386,6 +387,31 @@ def autocast(device: str | torch.device, enabled: bool) -> torch.autocast:
 
 EpochFn = Callable[[torch.nn.Module, torch.optim.Optimizer, torch.Generator], float]
 
+#: ``lr_schedule`` values: ``constant`` keeps ``lr``; ``cosine`` anneals it over the stage's epochs
+#: from ``lr`` to ``lr_final * lr`` (half a cosine, one value per epoch).
+LR_SCHEDULES = ("constant", "cosine")
+
+
+def scheduled_lr(lr: float, epoch: int, epochs: int, schedule: str, lr_final: float = 0.01) -> float:
+    """The learning rate of ``epoch`` (counted from 0) of ``epochs`` under ``schedule``
+    (:data:`LR_SCHEDULES`). A function of the epoch alone, so a resumed stage continues the
+    schedule where its checkpoint stopped."""
+    if schedule == "constant" or epochs <= 1:
+        return lr
+    if schedule == "cosine":
+        progress = epoch / (epochs - 1)
+        return lr * (lr_final + (1.0 - lr_final) * 0.5 * (1.0 + math.cos(math.pi * progress)))
+    raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {schedule!r}")
+
+
+def _set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Every parameter group's learning rate to ``lr``, in place where it is a tensor."""
+    for group in optimizer.param_groups:
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(lr)
+        else:
+            group["lr"] = lr
+
 
 def run_epochs(
     stage: str,
@@ -433,11 +459,21 @@ def run_epochs(
         raise ValueError(
             f"{stage}: epochs must be >= 0 and batch_size >= 1, got {epochs}, {hyperparameters['batch_size']}"
         )
+    schedule = str(hyperparameters.get("lr_schedule", "constant"))
+    if schedule not in LR_SCHEDULES:
+        raise ValueError(f"{stage}: lr_schedule must be one of {', '.join(LR_SCHEDULES)}, got {schedule!r}")
+    lr_final = float(hyperparameters.get("lr_final", 0.01))
+    if not 0.0 <= lr_final <= 1.0:
+        raise ValueError(f"{stage}: lr_final (a fraction of lr) must be in [0, 1], got {lr_final}")
     torch.manual_seed(seed)
     generator = torch.Generator().manual_seed(seed)
     model = model.to(device)
+    lr = float(hyperparameters["lr"])
+    on_gpu = torch.device(device).type == "cuda"
     optimizer = torch.optim.Adam(
-        model.parameters(), lr=float(hyperparameters["lr"]), weight_decay=float(hyperparameters["weight_decay"]),
+        # a tensor learning rate on GPUs, so that a step replayed as a CUDA graph reads the scheduled value
+        model.parameters(), lr=torch.tensor(lr, device=device) if on_gpu and schedule != "constant" else lr,
+        weight_decay=float(hyperparameters["weight_decay"]),
         fused=torch.device(device).type == "cuda",  # one kernel per step on GPUs
         capturable=torch.device(device).type == "cuda",  # its step count on the GPU: steps replay as graphs
     )
@@ -485,6 +521,8 @@ def run_epochs(
         started = time.perf_counter()
         if parallel:
             torch.manual_seed(distributed.epoch_seed(seed, epoch))
+        if schedule != "constant":
+            _set_lr(optimizer, scheduled_lr(lr, epoch, epochs, schedule, lr_final))
         mean_loss = epoch_fn(model, optimizer, generator)
         if parallel:
             mean_loss = distributed.sum_over_ranks(mean_loss)
