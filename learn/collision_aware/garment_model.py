@@ -44,19 +44,19 @@ def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tenso
     posed, initial: [m] (B, V, 3); shape (B, S); transforms (B, J, 4, 4). Returns (B, V, 3).
 
     Where the diffused weights fold (the armpit: arm and torso weights blend over a few cm), LBS
-    maps distant canonical points to the same posed point, and a vertex's step can land on the
-    wrong one, tens of cm from its neighbours while still reproducing ``posed``. With the mesh's
-    ``edges`` (E, 2) (:func:`learn.common.mesh.mesh_edges`) such a step is caught by its edges: a proposed vertex with an edge longer than
-    ``max_edge_ratio`` times that edge in ``posed`` (lengths the unposing should nearly keep)
-    takes its mesh neighbours' mean weights instead of its own for that step, which keeps it on
-    the branch its neighbours are on.
+    maps distant canonical points to the same posed point, and a step can land vertices on the
+    wrong one, tens of cm from their neighbours while still reproducing ``posed``. With the mesh's
+    ``edges`` (E, 2) (:func:`learn.common.mesh.mesh_edges`) such a step is caught by its edges: an
+    edge of the proposal longer than ``max_edge_ratio`` times that edge in ``posed`` (lengths the
+    unposing should nearly keep) is cut, and every vertex outside the largest part the remaining
+    edges connect (one vertex or a whole patch that strayed) takes, for that step, weights carried
+    in from that part across the mesh (:func:`weights_from_main_part`), which keeps it on the
+    branch the rest of the garment is on.
     """
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     if edges is not None:
         reference = torch.linalg.vector_norm(posed[:, edges[:, 1]] - posed[:, edges[:, 0]], dim=-1)  # (B, E)
-        degree = torch.zeros(posed.shape[1], dtype=posed.dtype, device=posed.device).index_add_(
-            0, edges.reshape(-1), torch.ones(edges.numel(), dtype=posed.dtype, device=posed.device))
     x = initial
     for _ in range(iterations):
         weights = fields.skinning_weights(x)  # (B, V, J)
@@ -64,13 +64,56 @@ def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tenso
         proposal = inverse_lbs(posed, weights, transforms) - offset
         if edges is not None:
             length = torch.linalg.vector_norm(proposal[:, edges[:, 1]] - proposal[:, edges[:, 0]], dim=-1)
-            long = (length > max_edge_ratio * reference.clamp_min(1e-6)).to(posed.dtype)  # (B, E)
-            strayed = torch.zeros_like(posed[..., 0]).index_add_(1, edges[:, 0], long).index_add_(1, edges[:, 1], long)
-            if bool((strayed > 0).any()):
-                summed = torch.zeros_like(weights).index_add_(1, edges[:, 0], weights[:, edges[:, 1]]).index_add_(
-                    1, edges[:, 1], weights[:, edges[:, 0]])
-                neighbours = summed / degree.clamp_min(1.0)[None, :, None]
-                weights = torch.where((strayed > 0)[..., None], neighbours, weights)
+            cut = length > max_edge_ratio * reference.clamp_min(1e-6)  # (B, E)
+            rows = cut.any(1).nonzero()[:, 0]  # the frames with a cut edge
+            if rows.numel():
+                weights = weights.index_copy(0, rows, weights_from_main_part(weights[rows], edges, cut[rows]))
                 proposal = inverse_lbs(posed, weights, transforms) - offset
         x = proposal
     return x
+
+
+def mesh_parts(vertex_count: int, edges: torch.Tensor, cut: torch.Tensor) -> torch.Tensor:
+    """Connected parts of a mesh without its ``cut`` edges: (B, V) labels, each vertex labelled by
+    the smallest vertex index of its part. edges (E, 2); cut (B, E) bool. Minimum-label propagation
+    along the kept edges, with pointer jumping, on the edges' device."""
+    batch = cut.shape[0]
+    labels = torch.arange(vertex_count, device=edges.device).repeat(batch, 1)  # (B, V)
+    big = vertex_count
+    a = edges[:, 0].expand(batch, -1)
+    b = edges[:, 1].expand(batch, -1)
+    while True:
+        la = torch.where(cut, big, labels.gather(1, a))
+        lb = torch.where(cut, big, labels.gather(1, b))
+        new = labels.scatter_reduce(1, a, lb, "amin").scatter_reduce(1, b, la, "amin")
+        new = new.gather(1, new)  # pointer jumping: a label's own label
+        if torch.equal(new, labels):
+            return labels
+        labels = new
+
+
+def weights_from_main_part(weights: torch.Tensor, edges: torch.Tensor, cut: torch.Tensor) -> torch.Tensor:
+    """``weights`` (B, V, J) with every vertex outside its frame's largest part of the mesh
+    without the ``cut`` edges (B, E) given weights carried in from that part: breadth first along
+    all edges, each vertex reached takes the mean weights of its neighbours already reached. The
+    largest part keeps its own."""
+    batch, vertex_count, _ = weights.shape
+    labels = mesh_parts(vertex_count, edges, cut)
+    sizes = torch.zeros_like(labels).scatter_add_(1, labels, torch.ones_like(labels))
+    main = labels == sizes.argmax(1, keepdim=True)  # (B, V)
+    if bool(main.all()):
+        return weights
+    out = weights.clone()
+    reached = main.clone()
+    while not bool(reached.all()):
+        r = reached.to(weights.dtype)  # (B, V)
+        count = torch.zeros_like(r).index_add_(1, edges[:, 0], r[:, edges[:, 1]]).index_add_(1, edges[:, 1], r[:, edges[:, 0]])
+        front = (count > 0) & ~reached
+        if not bool(front.any()):  # a part the mesh does not connect to the main one keeps its weights
+            break
+        held = out * r[..., None]
+        summed = (torch.zeros_like(out).index_add_(1, edges[:, 0], held[:, edges[:, 1]])
+                  .index_add_(1, edges[:, 1], held[:, edges[:, 0]]))
+        out = torch.where(front[..., None], summed / count.clamp_min(1.0)[..., None], out)
+        reached = reached | front
+    return out
