@@ -166,7 +166,7 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
 
     def epoch_fn(net: GarmentVAE, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         order = torch.randperm(x.shape[0], generator=generator).to(device)
-        sums: dict[str, float] = {}
+        sums: dict[str, torch.Tensor] = {}  # on the device: one read per epoch, not a sync per step
         for begin in range(0, x.shape[0], batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             terms = vae_loss(net, x[batch], laplacian=laplacian, sdf=sdf, weights=weights,
@@ -175,8 +175,8 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
             terms["loss"].backward()
             optimizer.step()
             for k, v in terms.items():
-                sums[k] = sums.get(k, 0.0) + float(v.detach()) * batch.numel()
-        mine = {k: v / x.shape[0] for k, v in sums.items()}  # this rank's part of the epoch means (all in one process)
+                sums[k] = sums.get(k, 0.0) + v.detach() * batch.numel()
+        mine = {k: float(v) / x.shape[0] for k, v in sums.items()}  # this rank's part of the epoch means (all in one process)
         log_rows.append(distributed.sum_over_ranks(mine))
         return mine["reconstruction"]  # run_epochs sums the ranks' parts
 
