@@ -473,6 +473,15 @@ def test_plots_write_pngs(tmp_path: Path) -> None:
         render_prediction(vertices[:3], vertices, faces, tmp_path / "bad.png")
 
 
+def _one_step(model: torch.nn.Module, optimizer: torch.optim.Optimizer) -> float:
+    """One optimizer step of a low-frequency model on a zero pose: an epoch of the loop tests."""
+    loss = model(torch.zeros(1, POSE_SIZE), torch.zeros(1, 0), torch.zeros(1, 0)).abs().mean()
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach())
+
+
 @pytest.mark.parametrize("interval_s, expected_epoch", [(0.0, 2), (1e9, None)])
 def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, expected_epoch: int | None) -> None:
     """A crash in epoch 3 leaves the epoch-2 checkpoint when saving every epoch, none
@@ -485,11 +494,7 @@ def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, e
         calls.append(1)
         if len(calls) == 3:
             raise RuntimeError("simulated crash")
-        loss = model(torch.zeros(1, POSE_SIZE), torch.zeros(1, 0), torch.zeros(1, 0)).abs().mean()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        return float(loss.detach())
+        return _one_step(model, optimizer)
 
     torch.manual_seed(0)
     model = low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
@@ -620,11 +625,7 @@ def test_cosine_lr_schedule_anneals_and_resumes_where_it_stopped(tmp_path: Path)
         seen.append(float(optimizer.param_groups[0]["lr"]))
         if len(seen) == crash_at[0]:
             raise RuntimeError("simulated crash")
-        loss = model(torch.zeros(1, POSE_SIZE), torch.zeros(1, 0), torch.zeros(1, 0)).abs().mean()
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        return float(loss.detach())
+        return _one_step(model, optimizer)
 
     def model() -> torch.nn.Module:
         torch.manual_seed(0)
