@@ -37,11 +37,12 @@ def pose_garment(fields: DiffusedBody, canonical: torch.Tensor, shape: torch.Ten
 
 
 def unpose_garment(fields: DiffusedBody, posed: torch.Tensor, shape: torch.Tensor, transforms: torch.Tensor, *,
-                   initial: torch.Tensor, iterations: int = 5, edges: torch.Tensor | None = None,
+                   initial: torch.Tensor, iterations: int = 1, edges: torch.Tensor | None = None,
                    max_edge_ratio: float = 3.0) -> torch.Tensor:
     """Canonical X with M_G(X) = ``posed``, by ``iterations`` fixed-point steps from ``initial``.
 
     posed, initial: [m] (B, V, 3); shape (B, S); transforms (B, J, 4, 4). Returns (B, V, 3).
+    ``iterations`` defaults to the projection's (``ProjectionSettings.fixed_point_iterations``).
 
     Where the diffused weights fold (the armpit: arm and torso weights blend over a few cm), LBS
     maps distant canonical points to the same posed point, and a step can land vertices on the

@@ -99,6 +99,14 @@ def _finished(module: torch.nn.Module, run_dir: Path, stage: str, fingerprint: D
     return True
 
 
+def _sdf_kind(settings: Mapping[str, Any]) -> str:
+    """``settings["kind"]`` (default grid), checked to be grid or mlp."""
+    kind = str(settings.get("kind", "grid"))
+    if kind not in ("grid", "mlp"):
+        raise ValueError(f"sdf.kind must be grid or mlp, got {kind!r}")
+    return kind
+
+
 def body_sdf(rest: np.ndarray, faces: np.ndarray, settings: Mapping[str, Any], *, run_dir: Path,
              fingerprint: DatasetFingerprint | None, device: str, seed: int, extra_points: np.ndarray | None = None,
              checkpoint_interval_s: float = 60.0, progress: bool = False) -> torch.nn.Module:
@@ -106,9 +114,7 @@ def body_sdf(rest: np.ndarray, faces: np.ndarray, settings: Mapping[str, Any], *
     grid or mlp): loaded when finished in ``run_dir``, else computed (grid) or trained (mlp).
     rest: canonical body vertices [m] (Vb, 3); faces (F, 3); extra_points [m]: the MLP's
     additional training points (the garment template)."""
-    kind = str(settings.get("kind", "grid"))
-    if kind not in ("grid", "mlp"):
-        raise ValueError(f"sdf.kind must be grid or mlp, got {kind!r}")
+    kind = _sdf_kind(settings)
     if kind == "grid":
         checkpoint = run_dir / "sdf.pt"
         if (run_dir / "sdf.done").is_file() and checkpoint.is_file():
@@ -356,8 +362,7 @@ def fit_collision_aware(
     hyper = merged_hyperparameters(hyperparameters, DEFAULT_HYPERPARAMETERS)
     kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
     hyper["regressor"]["kind"] = kind
-    if str(hyper["sdf"]["kind"]) not in ("grid", "mlp"):  # also before any stage
-        raise ValueError(f"sdf.kind must be grid or mlp, got {hyper['sdf']['kind']!r}")
+    _sdf_kind(hyper["sdf"])  # also before any stage
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
