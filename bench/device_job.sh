@@ -24,8 +24,10 @@
 # (SPEC_POSES=800: 800 train poses per pair, a third of the targets)
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
+# Solver settings side by side on the 7.7k t-shirt slice (240 targets), one after another on one GPU:
+#   SLICES="; --sim solver=vbd --sim substeps=20 --sim iterations=3" bash bench/device_job.sh start sl bash bench/device_job.sh slices
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small|slices}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS for every stage (default:
   # each stage's own, or CA_CONFIG's), CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
@@ -172,6 +174,7 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     TN=1
     [ -f "$JOB/plan.sh" ] && { . "$JOB/plan.sh"; cat "$JOB/plan.sh"; }
     echo "$(date +%T) training"
+    touch "$JOB/training.started"  # what a job started with AFTER=.../training.started waits for
     (CUDA_VISIBLE_DEVICES=$CA_GPUS train_ca $ds cuda "${CA_SECONDS:-900}") &
     ca=$!
     if [ "$TN" = 1 ]; then
@@ -222,5 +225,30 @@ PY
     python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
     grep -E "collision_aware|evaluation:" "$JOB/evaluate.log"
     ;;
-  *) echo "unknown command $cmd (start, wait, collect, learners-full, learners-ca, ca-small)" >&2; exit 2 ;;
+  slices)
+    # (inside a job) bench/bench_dataset.py on the t-shirt spec's slice of 4 train and 2 test poses per
+    # pair (240 targets, 256 worlds, audit off), once per entry of SLICES (';'-separated bench_dataset
+    # options; an empty entry is the spec as shipped), one after another on GPU SLICE_GPU (default 0),
+    # once the file AFTER exists where given (e.g. another job's training.started, so the slices
+    # take a GPU that job leaves free). One JSON line per entry in $JOB/slices.jsonl, with its options.
+    python - "$JOB/slice_spec.yaml" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+spec = load_spec("tailornet-tshirt")
+spec["audit"]["samples"] = 0
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+    [ -z "${AFTER:-}" ] || { while [ ! -e "$AFTER" ]; do sleep 5; done; }
+    IFS=';' read -ra slices <<< "${SLICES:?SLICES: ';'-separated bench_dataset.py options}"
+    for options in "${slices[@]}"; do
+      echo "$(date +%T) slice: ${options:-the spec as shipped}"
+      # shellcheck disable=SC2086  # the entry's options split into words
+      result=$(CUDA_VISIBLE_DEVICES=${SLICE_GPU:-0} python bench/bench_dataset.py --spec "$JOB/slice_spec.yaml" \
+        --poses 4 --test-poses 2 --device cuda:0 --out /root/jobs/slice_out $options 2>> "$JOB/slices.err")
+      python -c "import json, sys; r = json.loads(sys.argv[1] or '{}'); r['options'] = sys.argv[2]; print(json.dumps(r))" \
+        "$(printf %s "$result" | tail -n 1)" "$options" >> "$JOB/slices.jsonl"
+      tail -n 1 "$JOB/slices.jsonl" | cut -c 1-400
+    done
+    ;;
+  *) echo "unknown command $cmd (start, wait, collect, learners-full, learners-ca, ca-small, slices)" >&2; exit 2 ;;
 esac
