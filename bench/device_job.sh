@@ -20,7 +20,7 @@
 #     bash bench/device_job.sh learners-full 4"
 # TailorNet on GPU 0 beside collision_aware over GPUs 1-3 (torchrun), on the t-shirt spec made on 4 GPUs:
 #   CA_SECONDS=660 bash bench/device_job.sh start learn bash bench/device_job.sh learners-ca 4
-# (CA_VARIANTS="vae: {hidden_size: 1024}; vae: {kl: 1.0e-5}": then VAE and regressor variants on its projections)
+# (CA_VARIANTS="vae: {kl: 1.0e-4}; regressor: {target: canonical}": then VAE and regressor variants on its projections)
 # (SPEC_POSES=800: 800 train poses per pair, a third of the targets)
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
@@ -40,7 +40,7 @@ train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS f
     ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
 }
 ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides of CA_CONFIG, e.g.
-  # "vae: {hidden_size: 1024}; vae: {kl: 1.0e-5}") retrains the VAE and the regressor in $JOB/variantK
+  # "vae: {hidden_size: 1024}; regressor: {target: canonical}") retrains the VAE and the regressor in $JOB/variantK
   # on $JOB/ca's fields and SDF (and so its cached projections), one variant per GPU at a time, each
   # then evaluated; train_variants.log gets a summary line per variant
   local k=0 pids=() variant

@@ -366,3 +366,39 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     assert main(["predict", str(run), "--learner", "collision_aware", "--style", "0.1,0.2", "--out", str(out)]) == 0
     with np.load(run / "template.npz") as template:
         assert len(trimesh.load(out, process=False).vertices) == len(template["rest_vertices"])
+
+
+def test_regressor_with_the_canonical_target_fits_the_decoded_garment_not_the_latents(tmp_path) -> None:
+    """``regressor.target: canonical`` trains through the frozen decoder against the projected
+    frames: given latents that carry nothing (all zero), it still fits the garments, where the
+    latent target fits the zeros. A bad target value names the setting."""
+    from learn.collision_aware.train import _regressor_target, train_regressor
+    from learn.data import FrameArrays
+
+    torch.manual_seed(0)
+    vae = GarmentVAE(20, np.zeros((20, 3)), 0.05, latent_size=4, hidden_size=16)
+    for p in vae.parameters():
+        p.requires_grad_(False)
+    rng = np.random.default_rng(0)
+    n, poses = 64, 6
+    pose = rng.uniform(-1, 1, (n, poses)).astype(np.float32)
+    with torch.no_grad():  # garments the decoder can make, a function of the pose
+        canonical = vae.decode(torch.as_tensor(pose[:, :4])).numpy()
+    data = FrameArrays(pose=pose, shape=np.zeros((n, 2), np.float32), style=np.zeros((n, 2), np.float32),
+                       displacements=np.zeros((n, 20, 3), np.float32), pair_id=np.zeros(n, np.int64))
+    zeros = np.zeros((n, 4), np.float32)
+    hyper = {"lr": 1e-2, "weight_decay": 0.0, "batch_size": 16, "epochs": 150, "hidden_size": 32, "dropout": 0.0}
+
+    def decoded_error(target: str) -> float:
+        regressor = train_regressor(data, zeros, np.arange(poses), run_dir=tmp_path / target, seed=0, progress=False,
+                                    hyperparameters={**hyper, "target": target}, vae=vae, canonical=canonical)
+        with torch.no_grad():
+            garment = vae.decode(regressor(torch.as_tensor(pose), torch.as_tensor(data.shape), torch.as_tensor(data.style)))
+        return float((garment - torch.as_tensor(canonical)).norm(dim=-1).mean())
+
+    spread = float(np.linalg.norm(canonical - canonical.mean(0), axis=-1).mean())
+    assert decoded_error("canonical") < 0.2 * spread < decoded_error("latent"), spread
+    with pytest.raises(ValueError, match="regressor.target must be latent or canonical, got 'vertices'"):
+        _regressor_target({"target": "vertices"}, "mlp")
+    with pytest.raises(ValueError, match="regressor.target 'canonical' is for the mlp regressor"):
+        _regressor_target({"target": "canonical"}, "gru")

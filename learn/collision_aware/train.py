@@ -67,15 +67,19 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
             "lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
             "frequencies": 6, "points": 100000, "near_weight": 4.0},
     "projection": {**_PROJECTION_DEFAULTS, "batch_sequences": 64},
+    # the seed gives no lambda values; collision 100 and kl 1e-5 measured best of kl 1e-5..1e-3 and
+    # collision 10..1000 (docs/learners/collision_aware.md, "The VAE's weights")
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
-            "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 10.0, "random_collision": 1.0, "kl": 1e-4,
+            "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 100.0, "random_collision": 1.0, "kl": 1e-5,
             "epsilon_m": 2e-3, "random_samples": 32, "lr_schedule": "constant", "lr_final": 0.01},
-    # kind: auto | gru | mlp. batch_size counts frames (mlp) or windows (gru); layers, window
+    # kind: auto | gru | mlp. target: latent (seed Eq. 18) | canonical (mlp only: L1 of the decoded
+    # garment against the projection). batch_size counts frames (mlp) or windows (gru); layers, window
     # (frames), stride (frames between window starts), velocity_weight and acceleration_weight
     # (rho_1, rho_2 of seed Eq. 18) are the GRU's
     "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
                   "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
-                  "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01},
+                  "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01,
+                  "target": "latent"},
     "model": {"checkpoint_interval_s": 60.0},
 }
 
@@ -105,6 +109,17 @@ def _sdf_kind(settings: Mapping[str, Any]) -> str:
     if kind not in ("grid", "mlp"):
         raise ValueError(f"sdf.kind must be grid or mlp, got {kind!r}")
     return kind
+
+
+def _regressor_target(settings: Mapping[str, Any], kind: str) -> str:
+    """``settings["target"]`` (default latent), checked: latent, or canonical for the mlp regressor."""
+    target = str(settings.get("target", "latent"))
+    if target not in ("latent", "canonical"):
+        raise ValueError(f"regressor.target must be latent or canonical, got {target!r}")
+    if target == "canonical" and kind != "mlp":
+        raise ValueError(f"regressor.target 'canonical' is for the mlp regressor (quasi-static data), "
+                         f"not regressor.kind {kind!r}")
+    return target
 
 
 def body_sdf(rest: np.ndarray, faces: np.ndarray, settings: Mapping[str, Any], *, run_dir: Path,
@@ -197,24 +212,36 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
 def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndarray, *, run_dir: str | Path,
                     hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None,
                     device: str = "cpu", seed: int = 0, progress: bool = True,
-                    checkpoint_interval_s: float = 60.0) -> LatentRegressor:
-    """Fit R(pose, shape, style) -> latent (N, L) with L1 (stage ``regressor``)."""
+                    checkpoint_interval_s: float = 60.0, vae: GarmentVAE | None = None,
+                    canonical: np.ndarray | None = None) -> LatentRegressor:
+    """Fit R(pose, shape, style) -> latent (N, L) (stage ``regressor``). ``target: latent``: L1
+    against the encoded frames ``latent`` (seed Eq. 18's position term); ``target: canonical``:
+    L1 per vertex [m] of the frozen ``vae``'s decoding against the projected frames ``canonical``
+    (N, V, 3), so the latent dimensions count by what they change in the garment."""
     hyper = dict(hyperparameters)
+    decoded = _regressor_target(hyper, "mlp") == "canonical"
+    if decoded and (vae is None or canonical is None):
+        raise ValueError("regressor.target 'canonical' needs the VAE and the projected frames")
     mean, scale = input_normalisation(data.pose, data.shape, data.style, pose_indices)
     torch.manual_seed(seed)
     regressor = LatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
                                 latent.shape[1], hidden_size=int(hyper["hidden_size"]), dropout=float(hyper["dropout"]),
                                 input_mean=mean, input_scale=scale)
     pose, shape, style = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in (data.pose, data.shape, data.style))
-    target = torch.as_tensor(latent, dtype=torch.float32, device=device)
+    target = torch.as_tensor(canonical if decoded else latent, dtype=torch.float32, device=device)
     batch_size = int(hyper["batch_size"])
+
+    def error(predicted: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
+        if decoded:
+            return (vae.decode(predicted) - target[batch]).abs().sum(-1).mean()
+        return (predicted - target[batch]).abs().sum(-1).mean()
 
     def epoch_fn(net: LatentRegressor, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         order = torch.randperm(target.shape[0], generator=generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, target.shape[0], batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
-            loss = (net(pose[batch], shape[batch], style[batch]) - target[batch]).abs().sum(-1).mean()
+            loss = error(net(pose[batch], shape[batch], style[batch]), batch)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -363,6 +390,7 @@ def fit_collision_aware(
     kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
     hyper["regressor"]["kind"] = kind
     _sdf_kind(hyper["sdf"])  # also before any stage
+    _regressor_target(hyper["regressor"], kind)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
@@ -426,7 +454,7 @@ def fit_collision_aware(
                                               checkpoint_interval_s=interval, **common)
     else:
         regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
-                                    checkpoint_interval_s=interval, **common)
+                                    checkpoint_interval_s=interval, vae=vae, canonical=canonical, **common)
     spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
     model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
     save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})
