@@ -49,7 +49,11 @@ class ProjectionSettings:
     """Settings of the canonical projection.
 
     steps: Adam steps per frame after the fixed-point start.
-    lr: Adam's initial step [m], decayed geometrically to ``lr * final_lr_fraction``.
+    lr: Adam's initial step [m], decayed geometrically to ``lr * final_lr_fraction``. Adam moves a
+        coordinate at most about ``lr`` per step, so the 60 steps move a vertex ~0.25 x 60 x lr in
+        all: at 1e-2 ~15 cm, enough to undo the fixed point's error; on a full-range t-shirt set at
+        7k vertices 1e-3 left a reconstruction rms median of 8.7 mm against 3.6, and 2e-2 / 3e-2
+        strained the garment (p90 1.2 / 2.1 against 0.49).
     strain_weight: w_strain (E_strain is dimensionless, E_rec in m^2).
     collision_weight: w_collision (both in m^2).
     epsilon_m: collision margin epsilon [m] kept between X and the canonical body.
@@ -62,7 +66,7 @@ class ProjectionSettings:
     """
 
     steps: int = 60
-    lr: float = 1.0e-3
+    lr: float = 1.0e-2
     final_lr_fraction: float = 0.02
     strain_weight: float = 1.0e-5
     collision_weight: float = 10.0
