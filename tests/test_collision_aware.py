@@ -9,7 +9,8 @@ import pytest
 import torch
 import trimesh
 
-from learn.collision_aware.canonicalize import ProjectionSettings, project_frames, projection_quality
+from learn.collision_aware.canonicalize import (ProjectionSettings, project_frames, project_sequences, projection_key,
+                                               projection_quality)
 from learn.collision_aware.diffusion import closest_surface_points, diffusion_operator, interpolation_matrix
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import mesh_parts, pose_garment, unpose_garment
@@ -242,6 +243,46 @@ class _FixedPoses:
 
     def pose_torch(self, shape, pose):
         return type("Posed", (), {"skinning_transforms": self.transforms[pose[:, 0].long()]})()
+
+
+def test_warm_started_frames_take_the_warm_step_and_only_they_key_it() -> None:
+    """Under a warm start the first frame is refined at ``lr`` from the template and every later
+    frame at ``warm_lr`` from the frame before; without one every frame at ``lr`` from the
+    template. ``warm_lr`` enters the cache key only under a warm start."""
+    from dataclasses import replace
+
+    truth, faces = _patch_on_sphere(0.2, np.full((3, 100), 0.01))
+    fields = _small_fields(7)
+    shape = torch.full((3, 1), 0.5)
+    transforms = _rotations(3, 3, 0.1, seed=8)
+    with torch.no_grad():
+        target = pose_garment(fields, truth, shape, transforms)
+    template = truth[0].numpy() + 0.01
+    settings = ProjectionSettings(steps=20, lr=1e-2, warm_lr=1e-4)
+    sequence = {"target": target.numpy(), "pose": np.arange(3, dtype=np.float32)[:, None], "shape": np.array([0.5], np.float32)}
+    kwargs = dict(body=_FixedPoses(transforms), fields=fields, sdf=SphereSDF(0.2), faces=faces, template=template)
+    faces_t = torch.as_tensor(faces, dtype=torch.int64)
+
+    def frame(t: int, start: torch.Tensor, step: ProjectionSettings) -> torch.Tensor:
+        return project_frames(target[t:t + 1], shape[t:t + 1], transforms[t:t + 1], fields=fields, sdf=SphereSDF(0.2),
+                              faces=faces_t, initial=start[None], settings=step)[0][0]
+
+    (warm,), _ = project_sequences([sequence], settings=settings, warm_start=True, **kwargs)
+    (cold,), _ = project_sequences([sequence], settings=settings, warm_start=False, **kwargs)
+    start = torch.as_tensor(template)
+    expected_warm = [frame(0, start, settings)]
+    for t in (1, 2):
+        expected_warm.append(frame(t, expected_warm[-1], replace(settings, lr=settings.warm_lr)))
+    np.testing.assert_allclose(warm, torch.stack(expected_warm).numpy(), atol=1e-7)
+    np.testing.assert_allclose(cold, torch.stack([frame(t, start, settings) for t in range(3)]).numpy(), atol=1e-7)
+    at_lr = frame(1, expected_warm[0], settings).numpy()
+    assert np.abs(at_lr - warm[1]).max() > 1e-4, "the warm step should change the second frame's refinement"
+
+    other = replace(settings, warm_lr=1e-3)
+    template_m = np.asarray(template, np.float32)
+    assert projection_key(fields, SphereSDF(0.2), template_m, settings) == projection_key(fields, SphereSDF(0.2), template_m, other)
+    assert (projection_key(fields, SphereSDF(0.2), template_m, settings, warm_start=True)
+            != projection_key(fields, SphereSDF(0.2), template_m, other, warm_start=True))
 
 
 def test_projection_quality_names_the_one_failed_frame() -> None:

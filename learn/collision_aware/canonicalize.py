@@ -30,7 +30,7 @@ import hashlib
 import io
 import json
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +54,12 @@ class ProjectionSettings:
         all: at 1e-2 ~15 cm, enough to undo the fixed point's error; on a full-range t-shirt set at
         7k vertices 1e-3 left a reconstruction rms median of 8.7 mm against 3.6, and 2e-2 / 3e-2
         strained the garment (p90 1.2 / 2.1 against 0.49).
+    warm_lr: Adam's initial step [m] for a warm-started frame (a motion sequence's frames after
+        its first, which start from the previous frame's X, millimetres from their answer). On
+        procedural motion sequences of an 800-vertex t-shirt, ``lr`` (1e-2) there added 19-50 %
+        to the mean second difference of X from frame to frame (0.68 -> 0.82 and 0.33 -> 0.49 mm
+        at amplitudes 1 and 0.5) and raised the reconstruction rms; 1e-3 matched a projection at
+        1e-3 throughout and 3e-4 did no better (docs/learners/collision_aware.md).
     strain_weight: w_strain (E_strain is dimensionless, E_rec in m^2).
     collision_weight: w_collision (both in m^2).
     epsilon_m: collision margin epsilon [m] kept between X and the canonical body.
@@ -67,6 +73,7 @@ class ProjectionSettings:
 
     steps: int = 60
     lr: float = 1.0e-2
+    warm_lr: float = 1.0e-3
     final_lr_fraction: float = 0.02
     strain_weight: float = 1.0e-5
     collision_weight: float = 10.0
@@ -77,7 +84,7 @@ class ProjectionSettings:
         for name in ("steps", "fixed_point_iterations"):
             if getattr(self, name) < 0:
                 raise ValueError(f"projection {name} must be >= 0, got {getattr(self, name)}")
-        for name in ("lr", "final_lr_fraction"):
+        for name in ("lr", "warm_lr", "final_lr_fraction"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"projection {name} must be > 0, got {getattr(self, name)}")
         for name in ("strain_weight", "collision_weight", "epsilon_m"):
@@ -194,9 +201,9 @@ def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fiel
     sequences: each ``{"target": (F_i, V, 3) [m], "pose": (F_i, P), "shape": (S,)}``, frames in
     visiting order; template: the garment's rest vertices [m] (V, 3), the first frame's start.
     warm_start: each frame after the first starts from the previous frame's X (motion sequences,
-    where consecutive frames are close); without it every frame starts from the template
-    (quasi-static shards, whose frames are unrelated poses: a failed frame's X would otherwise
-    be the next frame's start).
+    where consecutive frames are close) and is refined at ``settings.warm_lr``; without it every
+    frame starts from the template (quasi-static shards, whose frames are unrelated poses: a
+    failed frame's X would otherwise be the next frame's start).
     Returns X per sequence (F_i, V, 3) float32 and the mean terms over all frames (start and end).
     """
     if not sequences:
@@ -208,6 +215,7 @@ def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fiel
     previous = torch.as_tensor(np.asarray(template, np.float32), device=device)[None].repeat(len(sequences), 1, 1)
     totals: dict[str, float] = {}
     frames_done = 0
+    warm_settings = replace(settings, lr=settings.warm_lr)
     for t in range(max(len(s["target"]) for s in sequences)):
         live = [i for i, s in enumerate(sequences) if t < len(s["target"])]
         target = torch.as_tensor(np.stack([sequences[i]["target"][t] for i in live]), dtype=torch.float32, device=device)
@@ -216,7 +224,7 @@ def project_sequences(sequences: list[dict[str, np.ndarray]], *, body: Any, fiel
         with torch.no_grad():
             transforms = body_on.pose_torch(shape, pose).skinning_transforms.to(device)
         x, info = project_frames(target, shape, transforms, fields=fields, sdf=sdf, faces=faces_t, edges=edges_t,
-                                 initial=previous[live], settings=settings)
+                                 initial=previous[live], settings=warm_settings if warm_start and t else settings)
         if warm_start:
             previous[live] = x
         for row, i in enumerate(live):
@@ -269,7 +277,8 @@ PROJECTION_METHOD = 3
 def projection_key(fields: DiffusedBody, sdf: BodySDF, template: np.ndarray, settings: ProjectionSettings, *,
                    warm_start: bool = False) -> str:
     """sha256 of what a projection depends on besides the shard: the fields' and the SDF's
-    weights, the garment template's rest vertices, the settings, the start and the method."""
+    weights, the garment template's rest vertices, the settings, the start and the method
+    (``warm_lr`` only under a warm start, the one projection it enters)."""
     digest = hashlib.sha256(f"method {PROJECTION_METHOD} warm_start {bool(warm_start)}".encode())
     for module in (fields, sdf):
         buffer = io.BytesIO()
@@ -278,7 +287,10 @@ def projection_key(fields: DiffusedBody, sdf: BodySDF, template: np.ndarray, set
             buffer.write(value.detach().cpu().contiguous().numpy().tobytes())
         digest.update(buffer.getvalue())
     digest.update(np.ascontiguousarray(template, np.float32).tobytes())
-    digest.update(json.dumps(asdict(settings), sort_keys=True).encode())
+    used = asdict(settings)
+    if not warm_start:
+        used.pop("warm_lr")
+    digest.update(json.dumps(used, sort_keys=True).encode())
     return digest.hexdigest()
 
 
