@@ -111,6 +111,15 @@ def _sdf_kind(settings: Mapping[str, Any]) -> str:
     return kind
 
 
+def _projection_settings(settings: Mapping[str, Any]) -> tuple[ProjectionSettings, int]:
+    """The projection's settings and its ``batch_sequences`` (>= 1), checked before any stage."""
+    hp = dict(settings)
+    batch_sequences = hp.pop("batch_sequences")
+    if isinstance(batch_sequences, bool) or not isinstance(batch_sequences, int) or batch_sequences < 1:
+        raise ValueError(f"projection.batch_sequences must be an integer >= 1, got {batch_sequences!r}")
+    return ProjectionSettings(**hp), int(batch_sequences)
+
+
 def _regressor_target(settings: Mapping[str, Any], kind: str) -> str:
     """``settings["target"]`` (default latent), checked: latent, or canonical for the mlp regressor."""
     target = str(settings.get("target", "latent"))
@@ -391,6 +400,7 @@ def fit_collision_aware(
     hyper["regressor"]["kind"] = kind
     _sdf_kind(hyper["sdf"])  # also before any stage
     _regressor_target(hyper["regressor"], kind)
+    settings, batch_sequences = _projection_settings(hyper["projection"])
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     if pose_indices is None:
@@ -415,9 +425,6 @@ def fit_collision_aware(
     sdf = body_sdf(rest, body.faces, hs, run_dir=run_dir, fingerprint=fingerprint, device=device, seed=seed + 1,
                    extra_points=template["rest_vertices"], checkpoint_interval_s=interval, progress=progress)
 
-    hp = dict(hyper["projection"])
-    batch_sequences = int(hp.pop("batch_sequences"))
-    settings = ProjectionSettings(**hp)
     if dataset is not None:
         canonical, info = project_split(dataset.reader, dataset.split, data, body=body, fields=fields, sdf=sdf,
                                         template=template, settings=settings, batch_sequences=batch_sequences,
