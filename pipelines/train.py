@@ -51,7 +51,8 @@ TRAIN_SPLITS = ("train_train", "train")
 def _check_config(hyper: Any, path: Path, learner: str = "tailornet") -> dict:
     """Stage names, keys and value types of a --config file against the learner's defaults
     (TailorNet's stages for tailornet and baseline; a mapping of mappings for the other learners,
-    which check their own keys); raises naming the file and the field path (e.g. ``lf.lr``)."""
+    whose merge checks their keys and values, ``learn.common.hyperparameters``); raises naming the
+    file and the field path (e.g. ``lf.lr``)."""
     from learn.tailornet.train import DEFAULT_HYPERPARAMETERS
 
     from pipelines.spec import nearest_name
@@ -77,6 +78,11 @@ def _check_config(hyper: Any, path: Path, learner: str = "tailornet") -> dict:
                                  f"expected one of {', '.join(sorted(known))}")
             default = known[key]
             where = f"--config {path}: {stage}.{key}"
+            if isinstance(value, str) and isinstance(default, (int, float)) and not isinstance(default, bool):
+                try:  # YAML reads 1e-3 (no dot) as text
+                    value = values[key] = float(value)
+                except ValueError:
+                    pass
             if isinstance(default, bool):
                 if not isinstance(value, bool):
                     raise UsageError(f"{where} must be true or false (got {value!r})")

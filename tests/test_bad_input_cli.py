@@ -95,6 +95,7 @@ def test_device_cuda_without_cuda(tmp_path, capsys, dataset, command):
     ("model: {canonical_repeat: -1}\n", "model.canonical_repeat must be an integer >= 0 (got -1)"),
     ("model: {use_canonical_split: 0}\n", "model.use_canonical_split must be true or false (got 0)"),
     ("lf: 3\n", "lf must be a mapping of settings"),
+    ("lf: {lr: -1e-4}\n", "lf.lr must be a finite number > 0 (got -0.0001)"),
 ])
 def test_train_config_errors_name_the_file_and_field(tmp_path, capsys, dataset, config, expected):
     path = tmp_path / "hyper.yaml"

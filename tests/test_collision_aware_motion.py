@@ -232,10 +232,10 @@ def test_gru_asked_for_a_quasi_static_dataset_exits_2_naming_the_option(tmp_path
     err = capsys.readouterr().err.strip()
     assert "sdf.kind must be grid or mlp, got 'voxel'" in err and "Traceback" not in err, err
     assert not (run / "fields.pt").exists(), "no stage should run before the SDF kind is checked"
-    for text, message in (("projection: {warm_lr: -1.0}", "projection.warm_lr must be > 0, got -1.0"),
-                          ("projection: {steps: -5}", "projection.steps must be an integer >= 0, got -5"),
-                          ("projection: {steps: ten}", "projection.steps must be a finite number, got 'ten'"),
-                          ("projection: {batch_sequences: 0}", "projection.batch_sequences must be an integer >= 1, got 0")):
+    for text, message in (("projection: {warm_lr: -1.0}", "projection.warm_lr must be > 0 (got -1.0)"),
+                          ("projection: {steps: -5}", "projection.steps must be >= 0 (got -5)"),
+                          ("projection: {steps: ten}", "projection.steps must be an integer (got 'ten')"),
+                          ("projection: {batch_sequences: 0}", "projection.batch_sequences must be an integer >= 1 (got 0)")):
         config.write_text(text + "\n")
         assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
                      "--epochs", "1", "--no-progress"]) == 2, text

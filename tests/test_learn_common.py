@@ -251,3 +251,58 @@ def test_garment_posing_functions_with_fake_body_model() -> None:
     pose = torch.tensor([[0.1, 0.2, 0.3, 0.0, 0.0, 0.0]])
     torch.testing.assert_close(poser(under, pose, shape), under + pose[:, None, :3])
     assert posed_body(pose, shape).shape == (1, 4, 3)
+
+
+@pytest.mark.parametrize("merge, overrides, message", [
+    ("tailornet", {"hf": {"epochs": "ten"}}, "hf.epochs must be an integer (got 'ten')"),
+    ("tailornet", {"lf": {"lr": 0.0}}, "lf.lr must be > 0 (got 0.0)"),
+    ("tailornet", {"model": {"pose_mask": "yes"}}, "model.pose_mask must be true or false (got 'yes')"),
+    ("collision_aware", {"vae": {"kl": -1.0e-5}}, "vae.kl must be >= 0 (got -1e-05)"),
+    ("collision_aware", {"vae": {"batch_size": 0}}, "vae.batch_size must be >= 1 (got 0)"),
+    ("collision_aware", {"regressor": {"dropout": 1.0}}, "regressor.dropout must be in [0, 1) (got 1.0)"),
+    ("collision_aware", {"sdf": {"voxel_m": float("nan")}}, "sdf.voxel_m must be a finite number (got nan)"),
+    ("uvimage", {"uvimage": {"norm": 1}}, "uvimage.norm must be text (got 1)"),
+    ("gcvae", {"model": {"channels": 64}}, "model.channels must be a list (got 64)"),
+    ("gcvae", {"train": {"epochs": 2.5}}, "train.epochs must be an integer (got 2.5)"),
+])
+def test_hyperparameter_overrides_of_the_wrong_type_or_range_are_refused_by_name(merge, overrides, message) -> None:
+    """Every learner's merge checks an override against its default's type and range, so a typo
+    fails before any stage instead of as an internal error or a silently odd training."""
+    if merge == "tailornet":
+        from learn.tailornet.train import merged_hyperparameters
+
+        def call():
+            return merged_hyperparameters(overrides)
+    elif merge == "collision_aware":
+        from learn.collision_aware.train import DEFAULT_HYPERPARAMETERS
+        from learn.tailornet.train import merged_hyperparameters
+
+        def call():
+            return merged_hyperparameters(overrides, DEFAULT_HYPERPARAMETERS)
+    elif merge == "uvimage":
+        from learn.uvimage.train import merged_hyperparameters
+
+        def call():
+            return merged_hyperparameters("uvimage", overrides)
+    else:
+        from learn.gcvae.hyperparameters import merged
+
+        def call():
+            return merged(overrides)
+    with pytest.raises(ValueError) as raised:
+        call()
+    assert str(raised.value) == message
+
+
+def test_hyperparameter_overrides_of_the_default_type_pass_and_ints_stand_for_floats() -> None:
+    from learn.collision_aware.train import DEFAULT_HYPERPARAMETERS
+    from learn.gcvae.hyperparameters import merged
+    from learn.tailornet.train import merged_hyperparameters
+
+    hyper = merged_hyperparameters({"vae": {"kl": 0, "epochs": 2, "lr_schedule": "cosine", "lr": "1e-3"},
+                                    "projection": {"lr": 1}}, DEFAULT_HYPERPARAMETERS)
+    assert hyper["vae"]["kl"] == 0 and hyper["vae"]["epochs"] == 2 and hyper["projection"]["lr"] == 1
+    assert hyper["vae"]["lr"] == 1e-3 and isinstance(hyper["vae"]["lr"], float)  # YAML's text for 1e-3
+    steps = merged_hyperparameters({"projection": {"steps": 30.0}}, DEFAULT_HYPERPARAMETERS)["projection"]["steps"]
+    assert steps == 30 and isinstance(steps, int)
+    assert merged({"representation": {"inner_leg_cosine": -0.2}})["representation"]["inner_leg_cosine"] == -0.2

@@ -84,19 +84,19 @@ class ProjectionSettings:
         def number(name: str) -> float:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                raise ValueError(f"projection.{name} must be a finite number, got {value!r}")
+                raise ValueError(f"projection.{name} must be a finite number (got {value!r})")
             return value
 
         for name in ("steps", "fixed_point_iterations"):
             value = number(name)
             if value < 0 or not isinstance(value, int):
-                raise ValueError(f"projection.{name} must be an integer >= 0, got {value!r}")
+                raise ValueError(f"projection.{name} must be an integer >= 0 (got {value!r})")
         for name in ("lr", "warm_lr", "final_lr_fraction"):
             if not number(name) > 0:
-                raise ValueError(f"projection.{name} must be > 0, got {getattr(self, name)!r}")
+                raise ValueError(f"projection.{name} must be > 0 (got {getattr(self, name)!r})")
         for name in ("strain_weight", "collision_weight", "epsilon_m"):
             if number(name) < 0:
-                raise ValueError(f"projection.{name} must be >= 0, got {getattr(self, name)!r}")
+                raise ValueError(f"projection.{name} must be >= 0 (got {getattr(self, name)!r})")
 
 
 def triangle_reference(reference: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

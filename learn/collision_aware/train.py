@@ -116,7 +116,7 @@ def _projection_settings(settings: Mapping[str, Any]) -> tuple[ProjectionSetting
     hp = dict(settings)
     batch_sequences = hp.pop("batch_sequences")
     if isinstance(batch_sequences, bool) or not isinstance(batch_sequences, int) or batch_sequences < 1:
-        raise ValueError(f"projection.batch_sequences must be an integer >= 1, got {batch_sequences!r}")
+        raise ValueError(f"projection.batch_sequences must be an integer >= 1 (got {batch_sequences!r})")
     return ProjectionSettings(**hp), int(batch_sequences)
 
 

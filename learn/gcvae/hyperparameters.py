@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import copy
 
+from learn.common.hyperparameters import checked_override
+
 #: Representation: the common body mesh and the registration (learn.gcvae.body_mesh,
 #: learn.gcvae.registration).
 REPRESENTATION: dict = {
@@ -85,7 +87,7 @@ def merged(overrides: dict | None = None) -> dict[str, dict]:
         for key, value in values.items():
             if key not in out[section]:
                 raise ValueError(f"unknown gcvae hyper-parameter {section}.{key}; expected one of {sorted(out[section])}")
-            out[section][key] = value
+            out[section][key] = checked_override(f"{section}.{key}", value, out[section][key])
     if len(out["model"]["channels"]) != out["model"]["pool_levels"] + 1:
         raise ValueError(f"model.channels must have pool_levels + 1 = {out['model']['pool_levels'] + 1} entries, "
                          f"got {out['model']['channels']}")

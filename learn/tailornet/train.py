@@ -48,6 +48,7 @@ from tqdm.auto import tqdm
 from learn import distributed
 from learn.batches import MemoryBatches, batches_for, is_streamed
 from learn.data import FrameArrays
+from learn.common.hyperparameters import checked_override
 from learn.common.losses import l1_displacement_loss
 from learn.common.smoothing import LaplacianSmoother, split_frequencies
 from learn.common.training_step import TrainingStep
@@ -338,7 +339,7 @@ def merged_hyperparameters(
                 raise ValueError(
                     f"unknown hyper-parameter '{stage}.{key}'; expected one of {sorted(merged[stage])}"
                 )
-            merged[stage][key] = value
+            merged[stage][key] = checked_override(f"{stage}.{key}", value, merged[stage][key])
     return merged
 
 

@@ -28,6 +28,7 @@ import torch
 
 from learn import distributed
 from learn.batches import MemoryBatches, StreamBatches, is_streamed
+from learn.common.hyperparameters import checked_override
 from learn.common.normals import vertex_normals
 from learn.tailornet.train import (
     DatasetFingerprint,
@@ -62,7 +63,7 @@ def merged_hyperparameters(stage: str, overrides: Mapping[str, Any] | None) -> d
     for key, value in dict((overrides or {}).get(stage, {}) or {}).items():
         if key not in merged:
             raise ValueError(f"unknown hyper-parameter '{stage}.{key}'; expected one of {sorted(merged)}")
-        merged[key] = value
+        merged[key] = checked_override(f"{stage}.{key}", value, merged[key])
     if merged.get("norm", "l1") not in NORMS:
         raise ValueError(f"{stage}.norm must be one of {NORMS}, got {merged['norm']!r}")
     return merged
