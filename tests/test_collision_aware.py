@@ -211,6 +211,18 @@ def _patch_on_sphere(radius: float, offsets: np.ndarray) -> tuple[torch.Tensor, 
     return torch.as_tensor(points, dtype=torch.float32), faces
 
 
+def _posed_patches(frames: int, *, fields_seed: int, scale: float, transforms_seed: int) -> tuple:
+    """``frames`` copies of a patch 1 cm over the sphere, shape 0.5, posed by random transforms of
+    ``scale`` rad: truth (canonical), faces, fields, shape, transforms, target (posed)."""
+    truth, faces = _patch_on_sphere(0.2, np.full((frames, 100), 0.01))
+    fields = _small_fields(fields_seed)
+    shape = torch.full((frames, 1), 0.5)
+    transforms = _rotations(frames, 3, scale, seed=transforms_seed)
+    with torch.no_grad():
+        target = pose_garment(fields, truth, shape, transforms)
+    return truth, faces, fields, shape, transforms, target
+
+
 def test_projection_reduces_its_objective_and_clears_the_body() -> None:
     sdf = SphereSDF(0.2)
     grid_offsets = np.linspace(-0.004, 0.008, 100)  # some vertices up to 4 mm inside the sphere
@@ -251,12 +263,7 @@ def test_warm_started_frames_take_the_warm_step_and_only_they_key_it() -> None:
     template. ``warm_lr`` enters the cache key only under a warm start."""
     from dataclasses import replace
 
-    truth, faces = _patch_on_sphere(0.2, np.full((3, 100), 0.01))
-    fields = _small_fields(7)
-    shape = torch.full((3, 1), 0.5)
-    transforms = _rotations(3, 3, 0.1, seed=8)
-    with torch.no_grad():
-        target = pose_garment(fields, truth, shape, transforms)
+    truth, faces, fields, shape, transforms, target = _posed_patches(3, fields_seed=7, scale=0.1, transforms_seed=8)
     template = truth[0].numpy() + 0.01
     settings = ProjectionSettings(steps=20, lr=1e-2, warm_lr=1e-4)
     sequence = {"target": target.numpy(), "pose": np.arange(3, dtype=np.float32)[:, None], "shape": np.array([0.5], np.float32)}
@@ -290,12 +297,7 @@ def test_projection_quality_names_the_one_failed_frame() -> None:
     the count over 50 mm, and leaves the other frames' scores as they were."""
     from types import SimpleNamespace
 
-    truth, faces = _patch_on_sphere(0.2, np.full((4, 100), 0.01))
-    fields = _small_fields(5)
-    shape = torch.full((4, 1), 0.5)
-    transforms = _rotations(4, 3, 0.3, seed=6)
-    with torch.no_grad():
-        target = pose_garment(fields, truth, shape, transforms)
+    truth, faces, fields, shape, transforms, target = _posed_patches(4, fields_seed=5, scale=0.3, transforms_seed=6)
     frames = SimpleNamespace(posed_vertices=target.numpy(), translation=None, shape=shape.numpy(),
                              pose=np.arange(4, dtype=np.float32)[:, None])
     kwargs = dict(body=_FixedPoses(transforms), fields=fields, sdf=SphereSDF(0.2), faces=faces, batch_size=3)
