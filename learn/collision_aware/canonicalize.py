@@ -31,6 +31,7 @@ import io
 import json
 import os
 from dataclasses import asdict, dataclass, replace
+from dataclasses import fields as dataclass_fields
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,7 @@ from learn import distributed
 from learn.collision_aware.fields import DiffusedBody
 from learn.collision_aware.garment_model import pose_garment, shape_garment, unpose_garment
 from learn.collision_aware.sdf import BodySDF, collision_penalty
+from learn.common.hyperparameters import checked_override
 from learn.common.mesh import mesh_edges
 
 
@@ -81,22 +83,12 @@ class ProjectionSettings:
     fixed_point_iterations: int = 1
 
     def __post_init__(self) -> None:
-        def number(name: str) -> float:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                raise ValueError(f"projection.{name} must be a finite number (got {value!r})")
-            return value
-
-        for name in ("steps", "fixed_point_iterations"):
-            value = number(name)
-            if value < 0 or not isinstance(value, int):
-                raise ValueError(f"projection.{name} must be an integer >= 0 (got {value!r})")
-        for name in ("lr", "warm_lr", "final_lr_fraction"):
-            if not number(name) > 0:
-                raise ValueError(f"projection.{name} must be > 0 (got {getattr(self, name)!r})")
-        for name in ("strain_weight", "collision_weight", "epsilon_m"):
-            if number(name) < 0:
-                raise ValueError(f"projection.{name} must be >= 0 (got {getattr(self, name)!r})")
+        # the learners' shared rule on settings (types; steps, weights >= 0; lr, warm_lr > 0)
+        for setting in dataclass_fields(self):
+            value = checked_override(f"projection.{setting.name}", getattr(self, setting.name), setting.default)
+            object.__setattr__(self, setting.name, value)
+        if not self.final_lr_fraction > 0:
+            raise ValueError(f"projection.final_lr_fraction must be > 0 (got {self.final_lr_fraction!r})")
 
 
 def triangle_reference(reference: torch.Tensor, faces: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

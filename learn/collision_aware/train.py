@@ -115,7 +115,7 @@ def _projection_settings(settings: Mapping[str, Any]) -> tuple[ProjectionSetting
     """The projection's settings and its ``batch_sequences`` (>= 1), checked before any stage."""
     hp = dict(settings)
     batch_sequences = hp.pop("batch_sequences")
-    if isinstance(batch_sequences, bool) or not isinstance(batch_sequences, int) or batch_sequences < 1:
+    if batch_sequences < 1:  # an integer: merged_hyperparameters checked its type
         raise ValueError(f"projection.batch_sequences must be an integer >= 1 (got {batch_sequences!r})")
     return ProjectionSettings(**hp), int(batch_sequences)
 
