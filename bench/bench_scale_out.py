@@ -108,6 +108,9 @@ def bench_generate(args: argparse.Namespace) -> dict:
     print(json.dumps({"local": local}), file=sys.stderr, flush=True)
     result = {"spec": str(args.spec), "batches": int(spec["simulation"]["batches"]),
               "train_count": int(spec["poses"]["train_count"]), "local": local, "ray": {}}
+    if args.ray_data is not None:
+        result["ray"] = ray_from_dataset(args.ray_data, local_out, local)
+        return result
     for n, ray_out in zip(args.gpus, outs[1:]):
         if (local_out / "cache").is_dir() and not (ray_out / "cache").exists():
             shutil.copytree(local_out / "cache", ray_out / "cache")
@@ -120,6 +123,28 @@ def bench_generate(args: argparse.Namespace) -> dict:
         result["ray"][n] = ray_run
         print(json.dumps({f"ray{n}": ray_run}), file=sys.stderr, flush=True)
     return result
+
+
+def ray_from_dataset(ray_out: Path, local_out: Path, local: dict) -> dict:
+    """The figures of a Ray run made before into ``ray_out``, keyed by its GPU count, compared with the
+    local run in ``local_out``: the same spec (and so plan) is required."""
+    manifest = json.loads((ray_out / "manifest.json").read_text())
+    local_sha = json.loads((local_out / "manifest.json").read_text())["spec_sha256"]
+    if manifest["spec_sha256"] != local_sha:
+        raise SystemExit(f"--ray-data {ray_out}: its spec (sha256 {manifest['spec_sha256'][:12]}) is not the local "
+                         f"run's ({local_sha[:12]}): the rates would not be of the same tasks")
+    simulation = manifest["audit"].get("simulation") or {}
+    cluster = simulation.get("ray")
+    if not cluster:
+        raise SystemExit(f"--ray-data {ray_out}: its manifest records no Ray run (audit.simulation.ray)")
+    seconds = float(simulation["seconds"])
+    run = {"executor": "ray", "gpus": int(cluster["gpus"]), "device": simulation.get("device"),
+           "kept_frames": int(simulation["kept_frames"]), "target_frames": int(simulation["target_frames"]),
+           "simulation_s": round(seconds, 2), "kept_frames_per_s": round(simulation["kept_frames"] / seconds, 3),
+           "ray": cluster, "batches": int(manifest["spec"]["simulation"]["batches"]), "from": str(ray_out)}
+    run.update(speedup=round(run["kept_frames_per_s"] / (local["kept_frames_per_s"] or float("nan")), 3),
+               **compare_shards(local_out, ray_out))
+    return {run["gpus"]: run}
 
 
 def _epoch_seconds(run: Path, stage: str) -> list[float]:
@@ -189,6 +214,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="epochs of every stage (default: the learner's, or --config's; tailornet's split of its "
                         "stages over the processes follows each stage's epochs)")
     parser.add_argument("--config", type=Path, default=None, help="drape train --config of (b)")
+    parser.add_argument("--ray-data", type=Path, default=None,
+                        help="a Ray run of the same spec made before: (a) runs only the local run and compares with it")
     parser.add_argument("--skip-generate", action="store_true")
     parser.add_argument("--skip-train", action="store_true")
     parser.add_argument("--keep", action="store_true", help="resume (a)'s datasets instead of starting over")
@@ -203,7 +230,11 @@ def main(argv: list[str] | None = None) -> int:
         args.gpus = sorted({int(n) for n in args.gpus.split(",")}) if args.gpus else [available or 2]
     except ValueError:
         parser.error(f"--gpus must be N or N,M,... (got {args.gpus!r})")
-    if min(args.gpus) < 1 or (cuda and max(args.gpus) > available):
+    if args.ray_data is not None and not (args.ray_data / "manifest.json").is_file():
+        parser.error(f"--ray-data {args.ray_data} is not a dataset (no manifest.json)")
+    # with --ray-data and no training, only the local run needs a GPU here
+    gpus_here = not (args.ray_data is not None and args.skip_train)
+    if min(args.gpus) < 1 or (cuda and gpus_here and max(args.gpus) > available):
         parser.error(f"--gpus must be counts in 1..{available or 'N'} (got {args.gpus})")
     for name in ("local_batches", "ray_batches_per_gpu", "batches"):
         if getattr(args, name) is not None and getattr(args, name) < 1:

@@ -22,12 +22,15 @@
 #   CA_SECONDS=660 bash bench/device_job.sh start learn bash bench/device_job.sh learners-ca 4
 # (CA_VARIANTS="vae: {kl: 1.0e-4}; regressor: {target: canonical}": then VAE and regressor variants on its projections)
 # (SPEC_POSES=800: 800 train poses per pair, a third of the targets)
+# (PROJECTION_BENCH=0: the generation alone on the 4 GPUs) and beside it, once training starts, the
+# one-GPU run of that plan's first batch on GPU 3 for the 1-vs-4 generation ratio:
+#   AFTER=/root/jobs/learn/out/training.started bash bench/device_job.sh start ratio bash bench/device_job.sh ratio
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 # Solver settings side by side on the 7.7k t-shirt slice (240 targets), one after another on one GPU:
 #   SLICES="; --sim solver=vbd --sim substeps=20 --sim iterations=3" bash bench/device_job.sh start sl bash bench/device_job.sh slices
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small|slices}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small|ratio|slices}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS for every stage (default:
   # each stage's own, or CA_CONFIG's), CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
@@ -163,14 +166,18 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     if [ -z "${LEARN_DATA:-}" ]; then
       generate_full "$gpus" $ds &
       gen=$!
-      CUDA_VISIBLE_DEVICES=0 python bench/bench_projection.py --gpus $((gpus - 1)) > "$JOB/projection_bench.json" \
-        2> "$JOB/projection_bench.err"
-      cat "$JOB/projection_bench.json"
+      # PROJECTION_BENCH=0: no projection timing beside the generation (its GPU 0 then simulates
+      # alone, so the generation's rate is that of N GPUs, e.g. for the ratio job below)
+      if [ "${PROJECTION_BENCH:-1}" = 1 ]; then
+        CUDA_VISIBLE_DEVICES=0 python bench/bench_projection.py --gpus $((gpus - 1)) > "$JOB/projection_bench.json" \
+          2> "$JOB/projection_bench.err"
+        cat "$JOB/projection_bench.json"
+      fi
       wait $gen
     fi
     # a call made while the data generates may still change CA_CONFIG, CA_SECONDS, CA_GPUS (e.g.
     # 0,1,2,3) or TN=0 (no TailorNet) by writing them to $JOB/plan.sh, once the step's time is known
-    CA_GPUS=$(seq -s, 1 $((gpus - 1)))
+    CA_GPUS=${CA_GPUS:-$(seq -s, 1 $((gpus - 1)))}
     TN=1
     [ -f "$JOB/plan.sh" ] && { . "$JOB/plan.sh"; cat "$JOB/plan.sh"; }
     echo "$(date +%T) training"
@@ -224,6 +231,18 @@ PY
     echo "$(date +%T) evaluating"
     python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
     grep -E "collision_aware|evaluation:" "$JOB/evaluate.log"
+    ;;
+  ratio)
+    # (inside a job) the 1-vs-N GPU generation ratio on a GPU other work leaves free: once AFTER exists
+    # (e.g. /root/jobs/learn/out/training.started), bench_scale_out.py's local run of the plan's first
+    # batch on GPU RATIO_GPU (default 3), compared with the Ray dataset RAY_DATA (default
+    # /root/jobs/data-tshirt) of the spec RATIO_SPEC (default /root/jobs/learn/out/spec.yaml); JSON in $JOB/scale.json
+    [ -z "${AFTER:-}" ] || { while [ ! -e "$AFTER" ]; do sleep 5; done; }
+    echo "$(date +%T) local run of batch 0"
+    CUDA_VISIBLE_DEVICES=${RATIO_GPU:-3} python bench/bench_scale_out.py --spec "${RATIO_SPEC:-/root/jobs/learn/out/spec.yaml}" \
+      --gpus 4 --local-batches 1 --ray-data "${RAY_DATA:-/root/jobs/data-tshirt}" --skip-train --out /root/jobs/ratio \
+      > "$JOB/scale.json" 2> "$JOB/scale.err"
+    tail -n 3 "$JOB/scale.err"; grep -E '"(kept_frames_per_s|speedup|simulation_s)"' "$JOB/scale.json"
     ;;
   slices)
     # (inside a job) bench/bench_dataset.py on the t-shirt spec's slice of 4 train and 2 test poses per
