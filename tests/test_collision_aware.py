@@ -387,6 +387,10 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
                  "--epochs", "2", "--no-progress"]) == 0
     cached = sorted((data / "cache" / "canonical").glob("*.npy"))
     assert len(cached) == 2, f"expected one cached projection per training shard, got {cached}"
+    # each stage's loss log names its units: the VAE's in metres, the latent regressor's without
+    headers = {stage: (run / f"{stage}_loss.csv").read_text().splitlines()[0] for stage in ("fields", "vae", "regressor")}
+    assert headers == {"fields": "epoch,train_l1,seconds", "vae": "epoch,train_l1_m,seconds",
+                       "regressor": "epoch,train_l1_latent,seconds"}, headers
     import yaml
 
     coarser = yaml.safe_load(open(config))

@@ -162,4 +162,5 @@ def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Pa
         return float(total) / count
 
     return run_epochs("fields", fields, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters,
-                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress,
+                      loss_name="l1")  # weights (no unit) plus offsets [m]

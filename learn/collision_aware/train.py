@@ -257,9 +257,11 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
             total += loss.detach() * batch.numel()
         return float(total) / target.shape[0]
 
+    # latent target: L1 summed over the latent's dimensions (no unit); decoded: per-vertex L1 [m]
     return run_epochs("regressor", regressor, epoch_fn, run_dir=run_dir,
                       hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
-                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress,
+                      loss_name="l1_m" if decoded else "l1_latent")
 
 
 def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndarray, fps: float, *,
@@ -325,7 +327,8 @@ def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indice
 
     return run_epochs("regressor", regressor, epoch_fn, run_dir=run_dir,
                       hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
-                      fingerprint=fingerprint, device=device, seed=seed, progress=progress)
+                      fingerprint=fingerprint, device=device, seed=seed, progress=progress,
+                      loss_name="loss")  # the seed's sequence loss (latent L1 and collision terms)
 
 
 REGRESSOR_KINDS = ("auto", "gru", "mlp")

@@ -427,12 +427,15 @@ def run_epochs(
     progress: bool = True,
     checkpoint_interval_s: float = DEFAULT_CHECKPOINT_INTERVAL_S,
     after_epoch: Callable[[torch.nn.Module, int], None] | None = None,
+    loss_name: str = "l1_m",
 ) -> torch.nn.Module:
     """The resumable epoch loop shared by every stage.
 
     ``epoch_fn(model, optimizer, generator)`` runs one epoch (shuffling with
-    ``generator``) and returns its mean training loss [m]. Each epoch's loss goes to
-    ``<run_dir>/<stage>_loss.csv``. The model, optimizer, epoch count and RNG states go to
+    ``generator``) and returns its mean training loss, named ``loss_name`` (default ``l1_m``: a
+    per-vertex L1 in metres, shown in mm on the bar; a stage whose loss is in other units names
+    them, e.g. ``l1_latent``). Each epoch's loss goes to ``<run_dir>/<stage>_loss.csv`` (column
+    ``train_<loss_name>``). The model, optimizer, epoch count and RNG states go to
     ``<run_dir>/<stage>.pt`` after an epoch when ``checkpoint_interval_s`` seconds have
     passed since the last save (0: after every epoch), or, with a positive interval,
     :data:`SAVE_SHARE_INVERSE` times the last save's duration if longer (saves then take at most
@@ -508,7 +511,7 @@ def run_epochs(
     if writes:
         with log_path.open("w", newline="") as handle:
             writer = csv.writer(handle)
-            writer.writerow(["epoch", "train_l1_m", "seconds"])
+            writer.writerow(["epoch", f"train_{loss_name}", "seconds"])
             writer.writerows(rows)
 
     bar = tqdm(
@@ -530,7 +533,8 @@ def run_epochs(
         if writes:
             with log_path.open("a", newline="") as handle:
                 csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
-        bar.set_postfix(l1_mm=f"{mean_loss * 1000:.3f}", refresh=False)  # redrawn at tqdm's pace, not per epoch
+        shown = {f"{loss_name}m": f"{mean_loss * 1000:.3f}"} if loss_name.endswith("_m") else {loss_name: f"{mean_loss:.4g}"}
+        bar.set_postfix(shown, refresh=False)  # redrawn at tqdm's pace, not per epoch
         if after_epoch is not None:
             after_epoch(model, epoch + 1)
         if epoch + 1 < epochs and time.monotonic() - last_save < interval_s:
@@ -549,7 +553,7 @@ def run_epochs(
                 "hyperparameters": dict(hyperparameters),
                 "seed": seed,
                 "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
-                "train_l1_m": mean_loss,
+                f"train_{loss_name}": mean_loss,
             },
             checkpoint_path,
         )
