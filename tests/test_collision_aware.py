@@ -387,10 +387,10 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
                  "--epochs", "2", "--no-progress"]) == 0
     cached = sorted((data / "cache" / "canonical").glob("*.npy"))
     assert len(cached) == 2, f"expected one cached projection per training shard, got {cached}"
-    # each stage's loss log names its units: the VAE's in metres, the latent regressor's without
+    # each stage's loss log names its units; the default (mlp) regressor compares decoded garments [m]
     headers = {stage: (run / f"{stage}_loss.csv").read_text().splitlines()[0] for stage in ("fields", "vae", "regressor")}
     assert headers == {"fields": "epoch,train_l1,seconds", "vae": "epoch,train_l1_m,seconds",
-                       "regressor": "epoch,train_l1_latent,seconds"}, headers
+                       "regressor": "epoch,train_l1_m,seconds"}, headers
     import yaml
 
     coarser = yaml.safe_load(open(config))
@@ -445,7 +445,15 @@ def test_regressor_with_the_canonical_target_fits_the_decoded_garment_not_the_la
 
     spread = float(np.linalg.norm(canonical - canonical.mean(0), axis=-1).mean())
     assert decoded_error("canonical") < 0.2 * spread < decoded_error("latent"), spread
-    with pytest.raises(ValueError, match="regressor.target must be latent or canonical, got 'vertices'"):
+    # the loss logs name their units: metres against the garment, none against the latents
+    for target, column in (("canonical", "train_l1_m"), ("latent", "train_l1_latent")):
+        assert (tmp_path / target / "regressor_loss.csv").read_text().splitlines()[0] == f"epoch,{column},seconds"
+    with pytest.raises(ValueError, match="regressor.target must be auto, latent or canonical, got 'vertices'"):
         _regressor_target({"target": "vertices"}, "mlp")
     with pytest.raises(ValueError, match="regressor.target 'canonical' is for the mlp regressor"):
         _regressor_target({"target": "canonical"}, "gru")
+    # auto (the default): the decoded garment for the mlp, the seed's latents for the gru
+    assert (_regressor_target({}, "mlp"), _regressor_target({}, "gru")) == ("canonical", "latent")
+    assert _regressor_target({"target": "auto"}, "gru") == "latent"
+    with pytest.raises(ValueError, match="regressor.target 'auto' trains against the decoded garment"):
+        train_regressor(data, zeros, np.arange(poses), run_dir=tmp_path / "none", progress=False, hyperparameters=hyper)
