@@ -360,6 +360,24 @@ def test_self_supervised_term_pushes_random_samples_out_of_the_body() -> None:
     assert random_penalty() < 0.9 * before, (before, random_penalty())
 
 
+def test_batch_random_latents_follow_the_encoded_data_not_the_prior() -> None:
+    """``random_latents: batch`` draws the self-supervised term's latents where the batch's latent
+    means lie (their per-dimension mean and spread), ``prior`` from N(0, I); an unknown source is
+    named. Data latents far from N(0, I) (a weak KL weight) are covered only by the first."""
+    from learn.collision_aware.vae import random_latents
+
+    torch.manual_seed(0)
+    mu = torch.tensor([3.0, -2.0, 0.0]) + torch.randn(64, 3) * torch.tensor([2.0, 0.5, 1.0])
+    batch = random_latents(mu, 20000, "batch")
+    assert torch.allclose(batch.mean(0), mu.mean(0), atol=0.05), batch.mean(0)
+    assert torch.allclose(batch.std(0), mu.std(0, unbiased=False), rtol=0.03), batch.std(0)
+    prior = random_latents(mu, 20000, "prior")
+    assert torch.allclose(prior.mean(0), torch.zeros(3), atol=0.05) and torch.allclose(prior.std(0), torch.ones(3), rtol=0.03)
+    assert not random_latents(mu.clone().requires_grad_(True), 4, "batch").requires_grad, "the data's latents are detached"
+    with pytest.raises(ValueError, match="vae.random_latents must be one of prior, batch, got 'uniform'"):
+        random_latents(mu, 4, "uniform")
+
+
 def test_vae_collision_gradient_points_out_of_the_body() -> None:
     """The collision term's gradient moves decoded vertices that are inside the body outward."""
     sdf = SphereSDF(0.2)

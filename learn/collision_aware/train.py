@@ -39,7 +39,7 @@ from learn.collision_aware.recurrent_regressor import (RecurrentLatentRegressor,
 from learn.collision_aware.recurrent_regressor import input_normalisation as sequence_normalisation
 from learn.collision_aware.regressor import LatentRegressor, input_normalisation
 from learn.collision_aware.sdf import fit_body_sdf, grid_sdf, new_body_sdf, sdf_from_config, sdf_targets
-from learn.collision_aware.vae import LATENT_SIZE, GarmentVAE, vae_loss
+from learn.collision_aware.vae import LATENT_SIZE, RANDOM_LATENTS, GarmentVAE, vae_loss
 from learn.common.mesh import uniform_laplacian_torch
 from learn.tailornet.train import (
     DatasetFingerprint,
@@ -71,7 +71,8 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     # collision 10..1000 (docs/learners/collision_aware.md, "The VAE's weights")
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
             "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 100.0, "random_collision": 1.0, "kl": 1e-5,
-            "epsilon_m": 2e-3, "random_samples": 32, "lr_schedule": "constant", "lr_final": 0.01},
+            "epsilon_m": 2e-3, "random_samples": 32, "random_latents": "prior", "lr_schedule": "constant",
+            "lr_final": 0.01},
     # kind: auto | gru | mlp. target: auto | latent (seed Eq. 18) | canonical (mlp only: L1 of the
     # decoded garment against the projection); auto is canonical for the mlp (4-8 % lower error at
     # scale, docs/learners/collision_aware.md "The defaults at scale") and latent for the gru. batch_size counts frames (mlp) or windows (gru); layers, window
@@ -204,7 +205,8 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
         for begin in range(0, x.shape[0], batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             terms = vae_loss(net, x[batch], laplacian=laplacian, sdf=sdf, weights=weights,
-                             epsilon_m=float(hyper["epsilon_m"]), random_samples=int(hyper["random_samples"]))
+                             epsilon_m=float(hyper["epsilon_m"]), random_samples=int(hyper["random_samples"]),
+                             latents=str(hyper["random_latents"]))
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             optimizer.step()
@@ -407,6 +409,9 @@ def fit_collision_aware(
     kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
     hyper["regressor"]["kind"] = kind
     _sdf_kind(hyper["sdf"])  # also before any stage
+    if hyper["vae"]["random_latents"] not in RANDOM_LATENTS:
+        raise ValueError(f"vae.random_latents must be one of {', '.join(RANDOM_LATENTS)}, "
+                         f"got {hyper['vae']['random_latents']!r}")
     hyper["regressor"]["target"] = _regressor_target(hyper["regressor"], kind)  # saved with the model as resolved
     settings, batch_sequences = _projection_settings(hyper["projection"])
     run_dir = Path(run_dir)

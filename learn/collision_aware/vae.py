@@ -79,15 +79,34 @@ class GarmentVAE(nn.Module):
         return self.decode(z), mu, log_var
 
 
+RANDOM_LATENTS = ("prior", "batch")
+
+
+def random_latents(mu: torch.Tensor, count: int, source: str) -> torch.Tensor:
+    """``count`` latents (count, L) for the self-supervised collision term. ``prior``: z ~ N(0, I)
+    (the seed's). ``batch``: z ~ N(m, diag(s^2)) with m, s the mean and standard deviation over the
+    batch of its latent means ``mu`` (B, L), detached: where the encoder puts the data, and so the
+    regressor's outputs. The two agree when the KL term holds the latents at N(0, I); a weak KL
+    weight spreads them wider, and N(0, I) then samples only their middle."""
+    z = torch.randn(count, mu.shape[-1], device=mu.device)
+    if source == "prior":
+        return z
+    if source != "batch":
+        raise ValueError(f"vae.random_latents must be one of {', '.join(RANDOM_LATENTS)}, got {source!r}")
+    m = mu.detach()
+    return m.mean(0) + z * (m.std(0, unbiased=False) if m.shape[0] > 1 else torch.ones_like(m[0]))
+
+
 def vae_loss(vae: GarmentVAE, canonical: torch.Tensor, *, laplacian: torch.Tensor,
              sdf: Callable[[torch.Tensor], torch.Tensor], weights: dict[str, float], epsilon_m: float,
-             random_samples: int) -> dict[str, torch.Tensor]:
+             random_samples: int, latents: str = "prior") -> dict[str, torch.Tensor]:
     """Terms of Eq. 13 on a batch X [m] (B, V, 3) and their weighted sum ``loss``.
 
     laplacian: uniform Laplacian, sparse (V, V); sdf: points (..., 3) -> signed distance (...);
     weights: ``laplacian``, ``collision``, ``kl`` (lambda_1..3) and ``random_collision``
     (the self-supervised term's weight relative to lambda_2; 0 turns it off);
-    random_samples: latents z ~ N(0, I) decoded per batch for it.
+    random_samples: latents decoded per batch for it, drawn as ``latents`` says
+    (:func:`random_latents`: ``prior`` or ``batch``).
     Reconstruction, Laplacian and collision terms are in metres (L1 per vertex, mean over
     vertices and frames), KL in nats per frame.
     """
@@ -103,7 +122,7 @@ def vae_loss(vae: GarmentVAE, canonical: torch.Tensor, *, laplacian: torch.Tenso
     collision = collision_penalty(sdf(reconstruction), epsilon_m).mean()
     terms = {"reconstruction": rec, "laplacian": lap_term, "kl": kl, "collision": collision}
     if random_samples > 0 and weights.get("random_collision", 1.0) > 0:
-        z = torch.randn(random_samples, vae.latent_size, device=canonical.device)
+        z = random_latents(mu, random_samples, latents)
         terms["random_collision"] = collision_penalty(sdf(vae.decode(z)), epsilon_m).mean()
     else:
         terms["random_collision"] = torch.zeros((), device=canonical.device)
