@@ -57,6 +57,25 @@ def _load_models(run_dir: Path, fingerprint, device: str, data: str = "dataset")
     return models
 
 
+def _canonical_collisions(results: dict, model, run_dir: Path, splits: dict, device: str) -> None:
+    """Adds ``canonical_collision_rate`` to collision_aware's metrics of every split: its
+    predicted canonical garments' vertices inside the canonical body by more than the collision
+    threshold, by the run's ``sdf.pt`` (none without it). Set against ``collision_rate`` it says
+    whether collisions come from the generative space or from the posing."""
+    from learn.collision_aware.sdf import load_run_sdf
+
+    sdf = load_run_sdf(run_dir, device)
+    if sdf is None:
+        return
+    for split, frames in splits.items():
+        root = frames.root_joint
+        if frames.translation is not None:
+            root = frames.translation if root is None else root + frames.translation
+        results["splits"][split]["collision_aware"]["canonical_collision_rate"] = model.canonical_collision_rate(
+            sdf, frames.pose, frames.shape, frames.style, sequence=frames.sequence, frame_index=frames.frame_index,
+            root=root, device=device)
+
+
 def simulator_ms_per_frame(manifest) -> float | None:
     """Amortized simulation wall time per kept frame [ms] recorded by generate-dataset."""
     sim = (manifest.audit or {}).get("simulation") if manifest.audit else None
@@ -146,6 +165,8 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
     results = evaluate_models(models, splits, posing=posing, postprocess=True, postprocess_frames=postprocess_frames,
                               device=device, timing_devices=timing_devices, timing_batch_sizes=(1, 32),
                               postprocess_workers=postprocess_workers)
+    if "collision_aware" in models:
+        _canonical_collisions(results, models["collision_aware"], run_dir, splits, device)
     results["evaluation_seconds"] = round(time.perf_counter() - t0, 2)
     if floor:
         results["floor"] = json.loads(Path(floor).read_text())
@@ -217,6 +238,11 @@ def evaluate(run_dir: str | Path, data: str | Path, *, device: str = "cpu", out:
                          f"{100 * r.get('collision_rate', float('nan')):>8.2f}{100 * r.get('collision_rate_postprocessed', float('nan')):>10.2f}")
     for split, label, mm in floor_rows(results.get("floor", {})):
         table.append(f"{split:<12}{label:<13}{mm:>11.2f}")
+    canonical = {split: r["collision_aware"]["canonical_collision_rate"] for split, r in results["splits"].items()
+                 if "canonical_collision_rate" in r.get("collision_aware", {})}
+    if canonical:
+        table.append("collision_aware, predicted canonical garments inside the canonical body (before posing): "
+                     + ", ".join(f"{split} {100 * rate:.2f} %" for split, rate in canonical.items()))
     log("\n".join(table))
     if "analysis" in results:
         from learn.tailornet.analysis import format_analysis

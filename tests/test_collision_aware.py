@@ -427,6 +427,33 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     assert abs(metrics["posed_error_mm"] - metrics["unposed_error_mm"]) < 0.5 * metrics["unposed_error_mm"] + 1.0, metrics
     timing = report["timing"]["collision_aware"]["cpu"]
     assert timing["ms_per_frame_batch_1"] > 0 and timing["decoder_ms_per_frame_batch_1"] > 0
+    # the canonical collision rate: the predicted canonical garments' vertices inside the run's SDF
+    assert 0.0 <= metrics["canonical_collision_rate"] <= 1.0, metrics
+    from learn.collision_aware.sdf import load_run_sdf
+    from learn.registry import LEARNERS
+
+    model = LEARNERS["collision_aware"].load(run / "collision_aware_model.pt", fingerprint=None,
+                                             require_same_manifest=False, device="cpu")
+    assert load_run_sdf(tmp_path / "nowhere") is None
+    sdf = load_run_sdf(run)
+    from learn.data import DrapeDataset
+    from learn.tailornet.train import frame_arrays_from_dataset
+
+    test = frame_arrays_from_dataset(DrapeDataset(data, "test_test", frequencies=False))
+
+    class Offset(torch.nn.Module):  # the run's SDF moved by a constant [m]
+        def __init__(self, by: float) -> None:
+            super().__init__()
+            self.by = by
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            return sdf(x) + self.by
+
+    rate = model.canonical_collision_rate(sdf, test.pose, test.shape, test.style)
+    assert rate == pytest.approx(metrics["canonical_collision_rate"])
+    assert model.canonical_collision_rate(Offset(-1.0), test.pose, test.shape, test.style) == 1.0  # all 1 m inside
+    assert model.canonical_collision_rate(Offset(1.0), test.pose, test.shape, test.style) == 0.0
+    assert model.canonical_collision_rate(Offset(-0.002), test.pose, test.shape, test.style) >= rate
     out = tmp_path / "pred.obj"
     assert main(["predict", str(run), "--learner", "collision_aware", "--style", "0.1,0.2", "--out", str(out)]) == 0
     with np.load(run / "template.npz") as template:

@@ -29,6 +29,7 @@ from learn.collision_aware.motion_descriptor import padded, padded_times, sequen
 from learn.collision_aware.recurrent_regressor import RecurrentLatentRegressor
 from learn.collision_aware.regressor import LatentRegressor
 from learn.collision_aware.vae import GarmentVAE
+from learn.common.collision import COLLISION_THRESHOLD_M
 from simulate.body.kinematics import inverse_lbs
 
 
@@ -155,6 +156,34 @@ class CollisionAwareModel(nn.Module):
         inputs = [torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (pose, shape, style)]
         return torch.cat([self(*(x[b:b + batch_size] for x in inputs), latent=latent[b:b + batch_size]).float()
                           for b in range(0, latent.shape[0], batch_size)], dim=0)
+
+
+    @torch.no_grad()
+    def canonical_collision_rate(self, sdf: nn.Module, pose: np.ndarray, shape: np.ndarray, style: np.ndarray, *,
+                                 sequence: np.ndarray | None = None, frame_index: np.ndarray | None = None,
+                                 root: np.ndarray | None = None, threshold_m: float = COLLISION_THRESHOLD_M,
+                                 batch_size: int = 256, device: str | torch.device = "cpu") -> float:
+        """Fraction of the predicted canonical garments' vertices more than ``threshold_m`` inside the
+        canonical body, by ``sdf`` (points [m] (..., 3) -> signed distance [m], negative inside; the
+        run's ``sdf.pt``): the collisions the generative space and the regressor leave before any
+        posing. What the posed rate adds to it comes from the posing (the diffused fields against
+        the body's own skinning). Frames as in :meth:`predict_frames` (sequence, frame_index and
+        root for the recurrent regressor)."""
+        self.to(device).eval()
+        sdf = sdf.to(device).eval()
+        if self.recurrent:
+            latent = torch.as_tensor(self.sequence_latents(pose, shape, style, sequence, frame_index, root,
+                                                           device=device), device=device)
+        else:
+            inputs = [torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (pose, shape, style)]
+            latent = torch.cat([self.latent(*(x[b:b + batch_size] for x in inputs))
+                                for b in range(0, inputs[0].shape[0], batch_size)])
+        inside = total = 0
+        for b in range(0, latent.shape[0], batch_size):
+            distance = sdf(self.vae.decode(latent[b:b + batch_size]))
+            inside += int((distance < -threshold_m).sum())
+            total += distance.numel()
+        return inside / max(total, 1)
 
 
 class _CanonicalOnly(nn.Module):

@@ -129,6 +129,22 @@ def sdf_from_config(config: dict[str, Any]) -> nn.Module:
     return BodySDF(**{k: v for k, v in config.items() if k != "kind"})
 
 
+def load_run_sdf(run_dir: str | Path, device: str | torch.device = "cpu") -> nn.Module | None:
+    """The canonical body's SDF a ``drape train collision_aware`` run saved (``RUN/sdf.pt``, its
+    ``sdf.done`` written), frozen on ``device``; None when the run has none."""
+    from learn.tailornet.train import load_checkpoint
+
+    run_dir = Path(run_dir)
+    if not ((run_dir / "sdf.done").is_file() and (run_dir / "sdf.pt").is_file()):
+        return None
+    stored = load_checkpoint(run_dir / "sdf.pt", map_location=device)
+    sdf = sdf_from_config(stored["model_config"])
+    sdf.load_state_dict(stored["model_state"])
+    for parameter in sdf.parameters():
+        parameter.requires_grad_(False)
+    return sdf.to(device).eval()
+
+
 def new_body_sdf(vertices: np.ndarray, *, hidden_size: int, layers: int, frequencies: int) -> BodySDF:
     """Untrained SDF scaled for the canonical body ``vertices`` [m] (Vb, 3)."""
     low, high = np.asarray(vertices).min(0), np.asarray(vertices).max(0)
