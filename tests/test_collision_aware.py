@@ -111,6 +111,41 @@ def _small_fields(seed: int = 0) -> DiffusedBody:
     return DiffusedBody(3, [0.5], [0.5], hidden_size=16, layers=2, frequencies=1, scale=0.5)
 
 
+def test_shape_field_error_measures_the_skin_against_the_body_models_own_shapes(anny_body) -> None:
+    """``shape_field_error`` is zero for a field that gives the body's own offsets at its vertices
+    and the offsets' size for a field that gives none; vertex_index restricts it to those vertices."""
+    from learn.collision_aware.fields import canonical_body, shape_field_error
+
+    rest = torch.as_tensor(canonical_body(anny_body), dtype=torch.float32)
+
+    class Exact(torch.nn.Module):  # the body's own shaped rest minus the canonical one, at its vertices
+        def __init__(self, scale: float) -> None:
+            super().__init__()
+            self.scale = torch.nn.Parameter(torch.tensor(scale), requires_grad=False)
+
+        def shape_offset(self, points: torch.Tensor, shape: torch.Tensor) -> torch.Tensor:
+            shaped, _ = anny_body.rest(shape.numpy())
+            return self.scale * (torch.as_tensor(shaped)[:, :points.shape[1]] - rest[None, :points.shape[1]])
+
+    ranges = np.asarray(anny_body.shape_ranges)
+    shapes = np.stack([ranges[:, 0], ranges[:, 1]]).astype(np.float32)
+    exact = shape_field_error(Exact(1.0), anny_body, shapes)
+    assert exact["max_mm"] < 1e-3 and exact["shapes"] == 2, exact
+    none = shape_field_error(Exact(0.0), anny_body, shapes)
+    shaped, _ = anny_body.rest(shapes)
+    sizes = np.linalg.norm(shaped - rest.numpy()[None], axis=-1) * 1e3
+    assert none["max_mm"] == pytest.approx(float(sizes.max()), rel=1e-4) and none["median_mm"] > 10.0, none
+    first = shape_field_error(Exact(0.0), anny_body, shapes, vertex_index=np.arange(100))
+    assert first["max_mm"] == pytest.approx(float(sizes[:, :100].max()), rel=1e-4)
+    # the data's shapes join the random ones among the field's training shapes, offsets and all
+    from learn.collision_aware.fields import field_targets
+
+    targets = field_targets(anny_body, point_count=64, shape_count=2, samples=4, extra_shapes=shapes, seed=0)
+    assert targets.shapes.shape[0] == 4 and np.array_equal(targets.shapes[2:], shapes)
+    assert targets.offsets.shape[:2] == (4, 64)
+    assert np.abs(targets.offsets[3]).max() > 0.01, "the extra shapes get their own offsets"
+
+
 def test_canonical_posed_canonical_round_trip() -> None:
     fields = _small_fields()
     g = torch.Generator().manual_seed(1)
@@ -405,6 +440,9 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
                  "--epochs", "2", "--no-progress"]) == 0
     cached = sorted((data / "cache" / "canonical").glob("*.npy"))
     assert len(cached) == 2, f"expected one cached projection per training shard, got {cached}"
+    fields_report = json.loads((run / "fields.json").read_text())["shape_field_error_on_skin_under_garment"]
+    assert fields_report["data_shapes"]["shapes"] >= 1 and fields_report["random_shapes"]["shapes"] == 16
+    assert all(np.isfinite(v["median_mm"]) for v in fields_report.values()), fields_report
     # each stage's loss log names its units; the default (mlp) regressor compares decoded garments [m]
     headers = {stage: (run / f"{stage}_loss.csv").read_text().splitlines()[0] for stage in ("fields", "vae", "regressor")}
     assert headers == {"fields": "epoch,train_l1,seconds", "vae": "epoch,train_l1_m,seconds",

@@ -95,12 +95,13 @@ def canonical_body(body: Any) -> np.ndarray:
 
 
 def field_targets(body: Any, *, point_count: int = 20000, shape_count: int = 32, samples: int = DEFAULT_SAMPLES,
-                  spread: float = 1.0, extra_points: np.ndarray | None = None, seed: int = 0,
-                  warp_device: str | None = None) -> FieldTargets:
+                  spread: float = 1.0, extra_points: np.ndarray | None = None, extra_shapes: np.ndarray | None = None,
+                  seed: int = 0, warp_device: str | None = None) -> FieldTargets:
     """Diffused skinning weights and shape offsets at points around the canonical body.
 
     ``extra_points`` [m] (M, 3) (e.g. the garment template) are added to the sampled points;
-    shapes are drawn uniformly within the body model's shape ranges.
+    ``shape_count`` shapes are drawn uniformly within the body model's shape ranges, and
+    ``extra_shapes`` (E, S) (e.g. the training data's) added to them.
     """
     rest = canonical_body(body)
     points = points_near_body(rest, body.faces, point_count, seed=seed)
@@ -112,9 +113,31 @@ def field_targets(body: Any, *, point_count: int = 20000, shape_count: int = 32,
     rng = np.random.default_rng(seed + 2)
     ranges = np.asarray(body.shape_ranges, np.float64)
     shapes = rng.uniform(ranges[:, 0], ranges[:, 1], size=(shape_count, ranges.shape[0])).astype(np.float32)
+    if extra_shapes is not None and len(extra_shapes):
+        shapes = np.concatenate([shapes, np.asarray(extra_shapes, np.float32).reshape(-1, ranges.shape[0])])
     shaped, _ = body.rest(shapes)  # (K, Vb, 3)
-    offsets = np.stack([operator @ (shaped[k].astype(np.float64) - rest) for k in range(shape_count)])  # (K, N, 3)
+    offsets = np.stack([operator @ (shaped[k].astype(np.float64) - rest) for k in range(len(shapes))])  # (K, N, 3)
     return FieldTargets(points.astype(np.float32), weights.astype(np.float32), shapes, offsets.astype(np.float32))
+
+
+@torch.no_grad()
+def shape_field_error(fields: DiffusedBody, body: Any, shapes: np.ndarray, vertex_index: np.ndarray | None = None
+                      ) -> dict[str, float]:
+    """How far the shape field puts the body's own skin: canonical body vertices (those of
+    ``vertex_index``, e.g. the ones under the garment; default all) moved by the field's offsets
+    for each of ``shapes`` (K, S), against the body model's shaped rest vertices. Median, p99 and
+    max over vertices and shapes [mm]. A garment point on the skin is posed this far off, so the
+    collision terms' margin (``epsilon_m``) has to cover it."""
+    shapes = np.asarray(shapes, np.float32).reshape(-1, len(body.shape_ranges))
+    rest = canonical_body(body).astype(np.float32)
+    index = np.arange(rest.shape[0]) if vertex_index is None else np.asarray(vertex_index)
+    device = next(fields.parameters()).device
+    points = torch.as_tensor(rest[index], device=device)[None].expand(len(shapes), -1, -1).contiguous()
+    moved = (points + fields.shape_offset(points, torch.as_tensor(shapes, device=device))).cpu().numpy()
+    truth, _ = body.rest(shapes)
+    error = np.linalg.norm(moved - truth[:, index], axis=-1) * 1e3
+    return {"shapes": int(len(shapes)), "median_mm": float(np.median(error)),
+            "p99_mm": float(np.percentile(error, 99)), "max_mm": float(error.max())}
 
 
 def new_diffused_body(body: Any, *, hidden_size: int, layers: int, frequencies: int) -> DiffusedBody:

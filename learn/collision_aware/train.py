@@ -32,7 +32,8 @@ from learn import distributed
 from learn.batches import is_streamed
 from learn.collision_aware.canonicalize import (ProjectionSettings, project_sequences, project_split,
                                                projection_quality, unrooted_targets)
-from learn.collision_aware.fields import canonical_body, field_targets, fit_fields, new_diffused_body
+from learn.collision_aware.fields import (canonical_body, field_targets, fit_fields, new_diffused_body,
+                                         shape_field_error)
 from learn.collision_aware.model import CollisionAwareModel
 from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_times, sequence_rows
 from learn.collision_aware.recurrent_regressor import (RecurrentLatentRegressor, sequence_loss, sequence_windows)
@@ -59,8 +60,10 @@ EPOCH_STAGES = ("fields", "sdf", "vae", "regressor")
 _PROJECTION_DEFAULTS = {f.name: f.default for f in dataclass_fields(ProjectionSettings)}
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    # shapes: random shapes within the body's ranges; data_shapes: up to this many of the training
+    # frames' distinct shapes added to them (the shape field is then closest where the data are)
     "fields": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
-               "frequencies": 4, "points": 50000, "shapes": 32, "samples": 64, "spread": 1.0},
+               "frequencies": 4, "points": 50000, "shapes": 32, "data_shapes": 256, "samples": 64, "spread": 1.0},
     # kind: grid (the exact signed distance on voxel_m voxels, margin_m past the body) | mlp (the
     # seed's network; the other settings are its)
     "sdf": {"kind": "grid", "voxel_m": 0.005, "margin_m": 0.05,
@@ -120,6 +123,26 @@ def _projection_settings(settings: Mapping[str, Any]) -> tuple[ProjectionSetting
     if batch_sequences < 1:  # an integer: merged_hyperparameters checked its type
         raise ValueError(f"projection.batch_sequences must be an integer >= 1 (got {batch_sequences!r})")
     return ProjectionSettings(**hp), int(batch_sequences)
+
+
+def _write_fields_quality(fields: torch.nn.Module, body: Any, template: Mapping[str, Any], shapes: np.ndarray,
+                          run_dir: Path, seed: int, *, log: Any = print) -> None:
+    """``fields.json``: :func:`shape_field_error` on the body vertices under the garment, for the
+    training data's distinct shapes (up to 16) and for 16 random shapes within the body's ranges,
+    and one log line: how far off the skin a garment point on it is posed."""
+    index = np.asarray(template["body_vertex_index"])
+    under = np.unique(index[index >= 0])
+    distinct = np.unique(np.asarray(shapes, np.float32), axis=0)
+    distinct = distinct[np.random.default_rng(seed + 8).permutation(len(distinct))[:16]]
+    ranges = np.asarray(body.shape_ranges, np.float64)
+    random = np.random.default_rng(seed + 9).uniform(ranges[:, 0], ranges[:, 1], size=(16, len(ranges)))
+    report = {"shape_field_error_on_skin_under_garment": {"data_shapes": shape_field_error(fields, body, distinct, under),
+                                                          "random_shapes": shape_field_error(fields, body, random, under)}}
+    (run_dir / "fields.json").write_text(json.dumps(report, indent=2))
+    data_err, random_err = (report["shape_field_error_on_skin_under_garment"][k] for k in ("data_shapes", "random_shapes"))
+    log(f"fields: the skin under the garment, shaped by the shape field, is off by median {data_err['median_mm']:.1f} mm, "
+        f"p99 {data_err['p99_mm']:.1f} mm at the data's shapes ({random_err['median_mm']:.1f} / "
+        f"{random_err['p99_mm']:.1f} mm at random shapes)")
 
 
 def _regressor_target(settings: Mapping[str, Any], kind: str) -> str:
@@ -427,12 +450,20 @@ def fit_collision_aware(
     torch.manual_seed(seed)
     fields = new_diffused_body(body, hidden_size=int(hf["hidden_size"]), layers=int(hf["layers"]),
                                frequencies=int(hf["frequencies"]))
+    data_shapes = np.unique(np.asarray(data.shape, np.float32), axis=0)
+    if len(data_shapes) > int(hf["data_shapes"]):  # a seeded choice where the data have more
+        data_shapes = data_shapes[np.sort(np.random.default_rng(seed + 7).choice(
+            len(data_shapes), int(hf["data_shapes"]), replace=False))]
+    elif int(hf["data_shapes"]) == 0:
+        data_shapes = data_shapes[:0]
     if not _finished(fields, run_dir, "fields", fingerprint, device):
         targets = field_targets(body, point_count=int(hf["points"]), shape_count=int(hf["shapes"]),
                                 samples=int(hf["samples"]), spread=float(hf["spread"]),
-                                extra_points=template["rest_vertices"], seed=seed)
+                                extra_points=template["rest_vertices"], extra_shapes=data_shapes, seed=seed)
         fields = fit_fields(fields, targets, hyperparameters=_epoch_settings(hf, hyper["model"]), seed=seed, **common)
     fields = _frozen(fields.to(device))
+    if distributed.writes_files():
+        _write_fields_quality(fields, body, template, data.shape, run_dir, seed, log=log)
 
     hs = hyper["sdf"]
     sdf = body_sdf(rest, body.faces, hs, run_dir=run_dir, fingerprint=fingerprint, device=device, seed=seed + 1,
