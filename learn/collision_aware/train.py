@@ -78,9 +78,10 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
             "lr_final": 0.01},
     # kind: auto | gru | mlp. target: auto | latent (seed Eq. 18) | canonical (mlp only: L1 of the
     # decoded garment against the projection); auto is canonical for the mlp (4-8 % lower error at
-    # scale, docs/learners/collision_aware.md "The defaults at scale") and latent for the gru. batch_size counts frames (mlp) or windows (gru); layers, window
-    # (frames), stride (frames between window starts), velocity_weight and acceleration_weight
-    # (rho_1, rho_2 of seed Eq. 18) are the GRU's
+    # scale, docs/learners/collision_aware.md "The defaults at scale") and latent for the gru.
+    # batch_size counts frames (mlp) or windows (gru); layers, window (frames), stride (frames
+    # between window starts), velocity_weight and acceleration_weight (rho_1, rho_2 of seed Eq. 18)
+    # are the GRU's
     "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
                   "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
                   "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01,
