@@ -146,7 +146,9 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     wait $uv $floor $ca
     # one run directory: the evaluation puts them side by side
     cp "$JOB/uv/uvimage_model.pt" "$JOB/tn/" 2>/dev/null || echo "uvimage: not trained (UV_SECONDS=0)"
-    cp "$JOB/ca/collision_aware_model.pt" "$JOB/tn/" 2>/dev/null || echo "collision_aware: no model (see its log)"
+    # the SDF too: drape evaluate reports collision_aware's canonical collision rate with it
+    cp "$JOB/ca/collision_aware_model.pt" "$JOB/ca/sdf.pt" "$JOB/ca/sdf.done" "$JOB/tn/" 2>/dev/null \
+      || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       --floor "$JOB/floor/floor.json" > "$JOB/evaluate.log" 2>&1
     if [ -n "${TN2_CONFIG:-}" ]; then
@@ -191,7 +193,7 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     wait $ca
     echo "$(date +%T) evaluating"
     mkdir -p "$JOB/tn"
-    cp "$JOB/ca/collision_aware_model.pt" "$JOB/ca/template.npz" "$JOB/tn/" 2>/dev/null \
+    cp "$JOB/ca/collision_aware_model.pt" "$JOB/ca/template.npz" "$JOB/ca/sdf.pt" "$JOB/ca/sdf.done" "$JOB/tn/" 2>/dev/null \
       || echo "collision_aware: no model (see its log)"
     CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli evaluate "$JOB/tn" --data $ds --device cuda --analysis \
       > "$JOB/evaluate.log" 2>&1
