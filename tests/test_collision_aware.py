@@ -137,11 +137,19 @@ def test_shape_field_error_measures_the_skin_against_the_body_models_own_shapes(
     assert none["max_mm"] == pytest.approx(float(sizes.max()), rel=1e-4) and none["median_mm"] > 10.0, none
     first = shape_field_error(Exact(0.0), anny_body, shapes, vertex_index=np.arange(100))
     assert first["max_mm"] == pytest.approx(float(sizes[:, :100].max()), rel=1e-4)
+    # the data's shapes are drawn their share of the time, uniformly among them; share 0: all alike
+    from learn.collision_aware.fields import draw_shapes
+
+    drawn = draw_shapes(40000, 128, 3, 0.5, torch.Generator().manual_seed(0))
+    assert abs(float((drawn >= 128).float().mean()) - 0.5) < 0.01 and int(drawn.max()) == 130
+    assert np.allclose(np.bincount(drawn[drawn >= 128].numpy() - 128) / float((drawn >= 128).sum()), 1 / 3, atol=0.02)
+    alike = draw_shapes(40000, 128, 3, 0.0, torch.Generator().manual_seed(0))
+    assert abs(float((alike >= 128).float().mean()) - 3 / 131) < 0.005
     # the data's shapes join the random ones among the field's training shapes, offsets and all
     from learn.collision_aware.fields import field_targets
 
     targets = field_targets(anny_body, point_count=64, shape_count=2, samples=4, extra_shapes=shapes, seed=0)
-    assert targets.shapes.shape[0] == 4 and np.array_equal(targets.shapes[2:], shapes)
+    assert targets.shapes.shape[0] == 4 and np.array_equal(targets.shapes[2:], shapes) and targets.data_count == 2
     assert targets.offsets.shape[:2] == (4, 64)
     assert np.abs(targets.offsets[3]).max() > 0.01, "the extra shapes get their own offsets"
 

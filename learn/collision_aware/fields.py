@@ -80,12 +80,13 @@ class DiffusedBody(nn.Module):
 @dataclass
 class FieldTargets:
     """Distillation data: points [m] (N, 3); diffused skinning weights (N, J); shapes (K, S) and
-    diffused shape offsets [m] (K, N, 3) of each."""
+    diffused shape offsets [m] (K, N, 3) of each; the last ``data_count`` shapes are the data's."""
 
     points: np.ndarray
     weights: np.ndarray
     shapes: np.ndarray
     offsets: np.ndarray
+    data_count: int = 0
 
 
 def canonical_body(body: Any) -> np.ndarray:
@@ -117,7 +118,8 @@ def field_targets(body: Any, *, point_count: int = 20000, shape_count: int = 32,
         shapes = np.concatenate([shapes, np.asarray(extra_shapes, np.float32).reshape(-1, ranges.shape[0])])
     shaped, _ = body.rest(shapes)  # (K, Vb, 3)
     offsets = np.stack([operator @ (shaped[k].astype(np.float64) - rest) for k in range(len(shapes))])  # (K, N, 3)
-    return FieldTargets(points.astype(np.float32), weights.astype(np.float32), shapes, offsets.astype(np.float32))
+    return FieldTargets(points.astype(np.float32), weights.astype(np.float32), shapes, offsets.astype(np.float32),
+                        data_count=len(shapes) - shape_count)
 
 
 @torch.no_grad()
@@ -151,11 +153,26 @@ def new_diffused_body(body: Any, *, hidden_size: int, layers: int, frequencies: 
                         scale=float(0.5 * (high - low).max()) + 0.2)
 
 
+def draw_shapes(count: int, random_count: int, data_count: int, share: float, generator: torch.Generator
+                ) -> torch.Tensor:
+    """``count`` shape indices (count,) into ``random_count`` random shapes followed by
+    ``data_count`` data shapes: a data shape with probability ``share`` (0: every shape alike)."""
+    if share <= 0.0 or data_count == 0:
+        return torch.randint(random_count + data_count, (count,), generator=generator)
+    data = random_count + torch.randint(data_count, (count,), generator=generator)
+    if random_count == 0:
+        return data
+    random = torch.randint(random_count, (count,), generator=generator)
+    return torch.where(torch.rand(count, generator=generator) < share, data, random)
+
+
 def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Path,
                hyperparameters: dict[str, Any], fingerprint: Any = None, device: str = "cpu", seed: int = 0,
                progress: bool = True) -> DiffusedBody:
     """Distil ``targets`` into ``fields`` (stage ``fields``): per batch of points, L1 of the
-    weights (summed over joints) plus L1 of the shape offset [m] for one random shape per point."""
+    weights (summed over joints) plus L1 of the shape offset [m] for one random shape per point,
+    drawn from the data's shapes with probability ``hyperparameters["data_share"]`` (default 0:
+    every shape alike) where the targets have some."""
     from learn import distributed
     from learn.tailornet.train import run_epochs
 
@@ -165,10 +182,13 @@ def fit_fields(fields: DiffusedBody, targets: FieldTargets, *, run_dir: str | Pa
     offsets = torch.as_tensor(targets.offsets, device=device)
     count = points.shape[0]
     batch_size = int(hyperparameters["batch_size"])
+    data_count = int(targets.data_count)
+    share = float(hyperparameters.get("data_share", 0.0)) if data_count else 0.0
+    random_count = shapes.shape[0] - data_count
 
     def epoch_fn(net: DiffusedBody, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         order = torch.randperm(count, generator=generator).to(device)
-        which = torch.randint(shapes.shape[0], (count,), generator=generator).to(device)
+        which = draw_shapes(count, random_count, data_count, share, generator).to(device)
         total = torch.zeros((), device=device)
         for begin in range(0, count, batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's points (all in one process)

@@ -61,9 +61,11 @@ _PROJECTION_DEFAULTS = {f.name: f.default for f in dataclass_fields(ProjectionSe
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     # shapes: random shapes within the body's ranges; data_shapes: up to this many of the training
-    # frames' distinct shapes added to them (the shape field is then closest where the data are)
+    # frames' distinct shapes added to them, drawn data_share of the time (the shape field is then
+    # closest where the data are and still general: docs/learners/collision_aware.md, "The shape field")
     "fields": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
-               "frequencies": 4, "points": 50000, "shapes": 32, "data_shapes": 256, "samples": 64, "spread": 1.0},
+               "frequencies": 4, "points": 50000, "shapes": 128, "data_shapes": 256, "data_share": 0.5, "samples": 64,
+               "spread": 1.0},
     # kind: grid (the exact signed distance on voxel_m voxels, margin_m past the body) | mlp (the
     # seed's network; the other settings are its)
     "sdf": {"kind": "grid", "voxel_m": 0.005, "margin_m": 0.05,
@@ -433,6 +435,8 @@ def fit_collision_aware(
     kind = regressor_kind(str(hyper["regressor"]["kind"]), motion_fps)  # before any stage: a wrong kind costs nothing
     hyper["regressor"]["kind"] = kind
     _sdf_kind(hyper["sdf"])  # also before any stage
+    if not 0.0 <= float(hyper["fields"]["data_share"]) <= 1.0:
+        raise ValueError(f"fields.data_share must be in [0, 1] (got {hyper['fields']['data_share']})")
     if hyper["vae"]["random_latents"] not in RANDOM_LATENTS:
         raise ValueError(f"vae.random_latents must be one of {', '.join(RANDOM_LATENTS)}, "
                          f"got {hyper['vae']['random_latents']!r}")
