@@ -63,17 +63,15 @@ def _canonical_collisions(results: dict, model, run_dir: Path, splits: dict, dev
     threshold, by the run's ``sdf.pt`` (none without it). Set against ``collision_rate`` it says
     whether collisions come from the generative space or from the posing."""
     from learn.collision_aware.sdf import load_run_sdf
+    from learn.tailornet.evaluate import sequence_root
 
     sdf = load_run_sdf(run_dir, device)
     if sdf is None:
         return
     for split, frames in splits.items():
-        root = frames.root_joint
-        if frames.translation is not None:
-            root = frames.translation if root is None else root + frames.translation
         results["splits"][split]["collision_aware"]["canonical_collision_rate"] = model.canonical_collision_rate(
             sdf, frames.pose, frames.shape, frames.style, sequence=frames.sequence, frame_index=frames.frame_index,
-            root=root, device=device)
+            root=sequence_root(frames), device=device)
 
 
 def simulator_ms_per_frame(manifest) -> float | None:

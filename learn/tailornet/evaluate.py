@@ -96,6 +96,15 @@ def evaluate_split(model: torch.nn.Module, data: FrameArrays, **options: Any) ->
     return evaluate_split_models({"model": model}, data, **options)["model"]
 
 
+def sequence_root(data: FrameArrays) -> np.ndarray | None:
+    """Each frame's root motion [m] (N, 3) for a recurrent model: the root joint plus the frame's
+    translation, whichever the split carries (None when neither)."""
+    root = data.root_joint
+    if data.translation is not None:
+        root = data.translation if root is None else root + data.translation
+    return root
+
+
 def _predict_split(model: torch.nn.Module, data: FrameArrays, batch_size: int, device: str) -> torch.Tensor:
     """Unposed displacements of every frame of ``data`` on ``device``, (N, V, 3); a recurrent model
     runs the split's sequences in frame order."""
@@ -103,10 +112,8 @@ def _predict_split(model: torch.nn.Module, data: FrameArrays, batch_size: int, d
         if data.sequence is None or data.frame_index is None:
             raise ValueError("a recurrent model needs each frame's sequence and frame_index (FrameArrays.sequence, "
                              ".frame_index) to run the split's sequences in order")
-        root = data.root_joint
-        if data.translation is not None:
-            root = data.translation if root is None else root + data.translation
-        predicted = model.predict_frames(data.pose, data.shape, data.style, data.sequence, data.frame_index, root,
+        predicted = model.predict_frames(data.pose, data.shape, data.style, data.sequence, data.frame_index,
+                                         sequence_root(data),
                                          batch_size=batch_size, device=device)
     else:
         predicted = predict_on_device(model, data.pose, data.shape, data.style, batch_size=batch_size, device=device)
