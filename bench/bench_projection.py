@@ -56,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     from learn.collision_aware.canonicalize import ProjectionSettings, projection_terms, triangle_reference
-    from learn.collision_aware.fields import canonical_body, new_diffused_body
+    from learn.collision_aware.fields import canonical_body, new_diffused_body, shape_basis
     from learn.collision_aware.sdf import grid_sdf, new_body_sdf
     from learn.collision_aware.train import DEFAULT_HYPERPARAMETERS
     from simulate.body import load_body_model
@@ -64,8 +64,15 @@ def main(argv: list[str] | None = None) -> int:
     body = load_body_model("anny")
     hf, hs = DEFAULT_HYPERPARAMETERS["fields"], DEFAULT_HYPERPARAMETERS["sdf"]
     torch.manual_seed(0)
-    fields = new_diffused_body(body, hidden_size=hf["hidden_size"], layers=hf["layers"],
-                               frequencies=hf["frequencies"]).to(args.device).requires_grad_(False)
+    fields = new_diffused_body(body, hidden_size=hf["hidden_size"], layers=hf["layers"], frequencies=hf["frequencies"],
+                               shape_basis=hf["shape_basis"], shape_hidden_size=hf["shape_hidden_size"],
+                               shape_layers=hf["shape_layers"], shape_frequencies=hf["shape_frequencies"])
+    if fields.basis_size:  # the default basis field: its basis from random shapes (the networks stay untrained)
+        ranges = np.asarray(body.shape_ranges, np.float64)
+        shapes = np.random.default_rng(0).uniform(ranges[:, 0], ranges[:, 1], (hf["shapes"], len(ranges)))
+        rest = canonical_body(body)
+        fields.set_shape_basis(*shape_basis(body.rest(shapes.astype(np.float32))[0] - rest, fields.basis_size), rest)
+    fields = fields.to(args.device).requires_grad_(False)
     if args.sdf == "grid":
         sdf = grid_sdf(canonical_body(body), body.faces, voxel_m=hs["voxel_m"], margin_m=hs["margin_m"],
                        warp_device=args.device if args.device.startswith("cuda") else "cpu")

@@ -42,24 +42,32 @@ train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS f
   timeout "${3:-0}" "${launch[@]}" -m pipelines.cli train collision_aware --data "$1" --out "$JOB/ca" --device "$2" \
     ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} --config "$JOB/ca.yaml" 2>&1 | stamp > "$JOB/train_collision_aware.log"
 }
+ca_variant() {  # DIR GPU VARIANT DATA [COPY]: collision_aware with VARIANT (YAML overrides of CA_CONFIG)
+  # into DIR on GPU, then evaluated; COPY=1: on $JOB/ca's SDF and, unless VARIANT sets fields, its
+  # fields (and so its cached projections); train_variants.log gets a summary line
+  local dir=$1 variant=$3
+  mkdir -p "$dir"
+  if [ "${5:-0}" = 1 ]; then
+    cp "$JOB"/ca/sdf.* "$dir/"
+    printf %s "$variant" | grep -q 'fields:' || cp "$JOB"/ca/fields.* "$dir/"
+  fi
+  python -c "import sys, yaml; base = yaml.safe_load(sys.argv[1]) or {}; over = yaml.safe_load(sys.argv[2]) or {}
+for stage, values in over.items(): base.setdefault(stage, {}).update(values)
+yaml.safe_dump(base, open(sys.argv[3], 'w'))" "${CA_CONFIG:-"{}"}" "$variant" "$dir/config.yaml"
+  export CUDA_VISIBLE_DEVICES=$2
+  python -m pipelines.cli train collision_aware --data "$4" --out "$dir" --device cuda ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} \
+    --config "$dir/config.yaml" --no-progress > "$dir/train.log" 2>&1
+  python -m pipelines.cli evaluate "$dir" --data "$4" --device cuda --renders 0 > "$dir/evaluate.log" 2>&1
+  echo "$(basename "$dir") ($variant): $(grep -E '^(train_test|test_train|test_test) ' \
+    "$dir/evaluate.log" | awk '{printf "%s %s mm %s %%; ", $1, $3, $6}')" >> "$JOB/train_variants.log"
+}
 ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides of CA_CONFIG, e.g.
-  # "vae: {hidden_size: 1024}; regressor: {target: canonical}") retrains the VAE and the regressor in $JOB/variantK
-  # on $JOB/ca's fields and SDF (and so its cached projections), one variant per GPU at a time, each
-  # then evaluated; train_variants.log gets a summary line per variant
+  # "vae: {hidden_size: 1024}; regressor: {target: canonical}") by ca_variant into $JOB/variantK on
+  # $JOB/ca's SDF and fields (a variant that sets fields trains its own), one per GPU at a time
   local k=0 pids=() variant
   IFS=';' read -ra variants <<< "$CA_VARIANTS"
   for variant in "${variants[@]}"; do
-    local dir="$JOB/variant$k"
-    mkdir -p "$dir" && cp "$JOB"/ca/fields.* "$JOB"/ca/sdf.* "$dir/"
-    python -c "import sys, yaml; base = yaml.safe_load(sys.argv[1]) or {}; over = yaml.safe_load(sys.argv[2]) or {}
-for stage, values in over.items(): base.setdefault(stage, {}).update(values)
-yaml.safe_dump(base, open(sys.argv[3], 'w'))" "${CA_CONFIG:-"{}"}" "$variant" "$dir/config.yaml"
-    (export CUDA_VISIBLE_DEVICES=$((k % $1))
-     python -m pipelines.cli train collision_aware --data "$2" --out "$dir" --device cuda ${CA_EPOCHS:+--epochs "$CA_EPOCHS"} \
-       --config "$dir/config.yaml" --no-progress > "$dir/train.log" 2>&1
-     python -m pipelines.cli evaluate "$dir" --data "$2" --device cuda --renders 0 > "$dir/evaluate.log" 2>&1
-     echo "variant$k ($variant): $(grep -E '^(train_test|test_train|test_test) ' \
-       "$dir/evaluate.log" | awk '{printf "%s %s mm %s %%; ", $1, $3, $6}')" >> "$JOB/train_variants.log") &
+    (ca_variant "$JOB/variant$k" $((k % $1)) "$variant" "$2" 1) &
     pids+=($!)
     k=$((k + 1))
     if [ $((k % $1)) = 0 ]; then wait "${pids[@]}"; pids=(); fi
@@ -162,7 +170,8 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     # generate_full; LEARN_DATA=DIR: an existing dataset instead), while bench/bench_projection.py times the projection step on GPU 0;
     # then TailorNet at the paper's epochs on GPU 0 beside collision_aware over GPUs 1..N-1 with
     # torchrun (stopped after CA_SECONDS, default 900; CA_EPOCHS, CA_CONFIG as in train_ca); then one
-    # evaluation of both with --analysis; then, with CA_VARIANTS, ca_variants on the same projections.
+    # evaluation of both with --analysis; then, with CA_VARIANTS, ca_variants on the same projections
+    # (CA_BESIDE: a whole second collision_aware on GPU 0 after TailorNet, see below).
     gpus=${2:-4}
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
     if [ -z "${LEARN_DATA:-}" ]; then
@@ -190,6 +199,9 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
       CUDA_VISIBLE_DEVICES=0 python -m pipelines.cli train tailornet --data $ds --out "$JOB/tn" --device cuda \
         --no-progress > "$JOB/train_tailornet.log" 2>&1
     fi
+    # CA_BESIDE (YAML overrides of CA_CONFIG): after TailorNet, a whole second collision_aware (its
+    # own fields and SDF) on GPU 0 into $JOB/beside while the first still trains, then evaluated
+    [ -z "${CA_BESIDE:-}" ] || (ca_variant "$JOB/beside" 0 "$CA_BESIDE" $ds)
     wait $ca
     echo "$(date +%T) evaluating"
     mkdir -p "$JOB/tn"

@@ -124,7 +124,8 @@ def write_tiny_config(path: Path, **regressor) -> str:
 
     small = {"hidden_size": 16, "layers": 1, "frequencies": 1, "batch_size": 512, "lr": 3e-3}
     Path(path).write_text(yaml.safe_dump({
-        "fields": {**small, "points": 500, "shapes": 2, "samples": 4},
+        "fields": {**small, "points": 500, "shapes": 2, "samples": 4, "shape_basis": 2, "shape_hidden_size": 16,
+                   "shape_layers": 1, "shape_frequencies": 1},
         "sdf": {**small, "points": 1000, "voxel_m": 0.03},  # a grid SDF (the default kind) of 3 cm voxels
         "projection": {"steps": 3},
         "vae": {"hidden_size": 16, "batch_size": 4},

@@ -154,6 +154,51 @@ def test_shape_field_error_measures_the_skin_against_the_body_models_own_shapes(
     assert np.abs(targets.offsets[3]).max() > 0.01, "the extra shapes get their own offsets"
 
 
+def test_basis_shape_field_is_the_body_models_own_offsets_in_the_span_of_its_basis(anny_body) -> None:
+    """The basis field: the components of sampled shapes' offsets span those shapes, so their
+    coefficients (by the body model) rebuild their offsets exactly; with components exact at the
+    body's vertices the skin is shaped to the body model's own; zero at the default shape; a
+    basis wider than the offsets' span is refused; a field without its body says so."""
+    from learn.collision_aware.fields import canonical_body, new_diffused_body, shape_basis, shape_field_error
+
+    rest = canonical_body(anny_body).astype(np.float64)
+    ranges = np.asarray(anny_body.shape_ranges, np.float64)
+    shapes = np.random.default_rng(3).uniform(ranges[:, 0], ranges[:, 1], size=(3, len(ranges))).astype(np.float32)
+    offsets = anny_body.rest(shapes)[0].astype(np.float64) - rest  # (3, Vb, 3)
+    vectors, scale = shape_basis(offsets, 3)
+    assert vectors.shape == (3, rest.shape[0], 3) and np.all(np.diff(scale) <= 0)
+    assert np.allclose(np.einsum("cvd,evd->ce", vectors, vectors), np.eye(3), atol=1e-5), "orthonormal"
+    with pytest.raises(ValueError, match="span only 3 dimensions"):
+        shape_basis(offsets, 4)
+    fields = new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0, shape_basis=3, shape_hidden_size=8,
+                               shape_layers=1, shape_frequencies=0)
+    fields.set_shape_basis(vectors, scale, rest)
+    coefficients = fields.shape_coefficients(torch.as_tensor(shapes)).numpy()  # (3, C)
+    rebuilt = np.einsum("kc,c,cvd->kvd", coefficients, scale, vectors)
+    assert np.abs(rebuilt - offsets).max() < 1e-4, np.abs(rebuilt - offsets).max()  # [m], float32 sums over 41k
+    default = torch.as_tensor(np.asarray(anny_body.shape_default, np.float32))[None]
+    assert fields.shape_coefficients(default).abs().max() < 1e-3
+
+    index = {tuple(np.round(v, 5)): i for i, v in enumerate(rest.astype(np.float32))}
+    components = torch.as_tensor(vectors * scale[:, None, None], dtype=torch.float32)  # (C, Vb, 3)
+
+    class ExactComponents(torch.nn.Module):  # the diffused components on the skin: their values there
+        def forward(self, points: torch.Tensor) -> torch.Tensor:
+            rows = [index[tuple(np.round(p, 5))] for p in points.reshape(-1, 3).numpy()]
+            return components[:, rows].permute(1, 0, 2).reshape(*points.shape[:-1], -1)
+
+    fields.shape_net = ExactComponents()
+    exact = shape_field_error(fields, anny_body, shapes)
+    assert exact["max_mm"] < 0.1, exact
+    outside = np.random.default_rng(4).uniform(ranges[:, 0], ranges[:, 1], size=(2, len(ranges))).astype(np.float32)
+    off_span = shape_field_error(fields, anny_body, outside)  # three shapes do not span anny's offsets
+    assert off_span["max_mm"] > 1.0, off_span
+    bare = new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0, shape_basis=3)
+    bare.use_body(None)
+    with pytest.raises(RuntimeError, match="use_body"):
+        bare.shape_offset(torch.zeros(1, 2, 3), default)
+
+
 def test_canonical_posed_canonical_round_trip() -> None:
     fields = _small_fields()
     g = torch.Generator().manual_seed(1)

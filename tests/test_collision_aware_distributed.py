@@ -50,7 +50,7 @@ def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body, 
     from collision_aware_data import write_band_dataset, write_tiny_config
 
     from learn.collision_aware.canonicalize import ProjectionSettings, project_split
-    from learn.collision_aware.fields import new_diffused_body
+    from learn.collision_aware.fields import DiffusedBody
     from learn.collision_aware.sdf import sdf_from_config
     from learn.data import DrapeDataset
     from learn.tailornet.train import frame_arrays_from_dataset, load_checkpoint
@@ -69,8 +69,7 @@ def test_two_ranks_project_their_own_shards_and_share_them(tmp_path, anny_body, 
     assert len(cached) == SHARDS, f"expected one cached projection per training shard, got {cached}"
 
     # every shard again in one process, from the run's fields and SDF, into a fresh cache
-    fields = _stage(new_diffused_body(anny_body, hidden_size=tiny["fields"]["hidden_size"],
-                                      layers=tiny["fields"]["layers"], frequencies=tiny["fields"]["frequencies"]),
+    fields = _stage(DiffusedBody(**load_checkpoint(run / "fields.pt")["model_config"]).use_body(anny_body),
                     run / "fields.pt")
     sdf = _stage(sdf_from_config(load_checkpoint(run / "sdf.pt")["model_config"]), run / "sdf.pt")
     with np.load(run / "template.npz") as loaded:

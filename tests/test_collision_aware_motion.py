@@ -236,7 +236,8 @@ def test_gru_asked_for_a_quasi_static_dataset_exits_2_naming_the_option(tmp_path
                           ("projection: {steps: -5}", "projection.steps must be >= 0 (got -5)"),
                           ("projection: {steps: ten}", "projection.steps must be an integer (got 'ten')"),
                           ("projection: {batch_sequences: 0}", "projection.batch_sequences must be an integer >= 1 (got 0)"),
-                          ("fields: {data_share: 1.5}", "fields.data_share must be in [0, 1] (got 1.5)")):
+                          ("fields: {data_share: 1.5}", "fields.data_share must be in [0, 1] (got 1.5)"),
+                          ("fields: {shape_basis: 999}", "fields.shape_basis must be in [0, fields.shapes = 512]")):
         config.write_text(text + "\n")
         assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
                      "--epochs", "1", "--no-progress"]) == 2, text

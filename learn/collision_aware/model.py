@@ -61,6 +61,8 @@ class CollisionAwareModel(nn.Module):
         self.register_buffer("body_vertex_index", torch.as_tensor(np.asarray(template["body_vertex_index"], np.int64)))
         self.register_buffer("template_rest", torch.as_tensor(np.asarray(template["rest_vertices"], np.float32)))
         self._body = body
+        if body is not None:
+            fields.use_body(body)  # a basis shape field's coefficients come from the body model
 
     @classmethod
     def from_config(cls, config: dict[str, Any], *, body: Any = None) -> "CollisionAwareModel":
@@ -77,6 +79,7 @@ class CollisionAwareModel(nn.Module):
             from simulate.body import load_body_model
 
             self._body = load_body_model(self.config["body"]["backend"], path=self.config["body"]["path"])
+            self.fields.use_body(self._body)
         return self._body.on_device(device)
 
     def latent(self, pose: torch.Tensor, shape: torch.Tensor, style: torch.Tensor) -> torch.Tensor:

@@ -60,12 +60,15 @@ EPOCH_STAGES = ("fields", "sdf", "vae", "regressor")
 _PROJECTION_DEFAULTS = {f.name: f.default for f in dataclass_fields(ProjectionSettings)}
 
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
-    # shapes: random shapes within the body's ranges; data_shapes: up to this many of the training
-    # frames' distinct shapes added to them, drawn data_share of the time (the shape field is then
-    # closest where the data are and still general: docs/learners/collision_aware.md, "The shape field")
+    # shape_basis: C > 0, the shape field is linear in C principal components of the body's shape
+    # offsets over the sampled shapes (the coefficients exact, from the body model); 0, one MLP of
+    # (point, shape). shapes: random shapes within the body's ranges; data_shapes: up to this many
+    # of the training frames' distinct shapes added to them, drawn data_share of the time by the
+    # conditioned field. shape_*: the shape network's size (the weights network has hidden_size,
+    # layers, frequencies). docs/learners/collision_aware.md, "The shape field".
     "fields": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 4096, "epochs": 300, "hidden_size": 128, "layers": 3,
-               "frequencies": 4, "points": 50000, "shapes": 128, "data_shapes": 256, "data_share": 0.5, "samples": 64,
-               "spread": 1.0},
+               "frequencies": 4, "points": 50000, "shapes": 512, "data_shapes": 256, "data_share": 0.5, "samples": 64,
+               "spread": 1.0, "shape_basis": 32, "shape_hidden_size": 256, "shape_layers": 4, "shape_frequencies": 6},
     # kind: grid (the exact signed distance on voxel_m voxels, margin_m past the body) | mlp (the
     # seed's network; the other settings are its)
     "sdf": {"kind": "grid", "voxel_m": 0.005, "margin_m": 0.05,
@@ -437,6 +440,9 @@ def fit_collision_aware(
     _sdf_kind(hyper["sdf"])  # also before any stage
     if not 0.0 <= float(hyper["fields"]["data_share"]) <= 1.0:
         raise ValueError(f"fields.data_share must be in [0, 1] (got {hyper['fields']['data_share']})")
+    if not 0 <= int(hyper["fields"]["shape_basis"]) <= int(hyper["fields"]["shapes"]):
+        raise ValueError(f"fields.shape_basis must be in [0, fields.shapes = {hyper['fields']['shapes']}] (0: the "
+                         f"conditioned field; a basis comes from the sampled shapes), got {hyper['fields']['shape_basis']}")
     if hyper["vae"]["random_latents"] not in RANDOM_LATENTS:
         raise ValueError(f"vae.random_latents must be one of {', '.join(RANDOM_LATENTS)}, "
                          f"got {hyper['vae']['random_latents']!r}")
@@ -454,7 +460,9 @@ def fit_collision_aware(
     hf = hyper["fields"]
     torch.manual_seed(seed)
     fields = new_diffused_body(body, hidden_size=int(hf["hidden_size"]), layers=int(hf["layers"]),
-                               frequencies=int(hf["frequencies"]))
+                               frequencies=int(hf["frequencies"]), shape_basis=int(hf["shape_basis"]),
+                               shape_hidden_size=int(hf["shape_hidden_size"]), shape_layers=int(hf["shape_layers"]),
+                               shape_frequencies=int(hf["shape_frequencies"]))
     data_shapes = np.unique(np.asarray(data.shape, np.float32), axis=0)
     if len(data_shapes) > int(hf["data_shapes"]):  # a seeded choice where the data have more
         data_shapes = data_shapes[np.sort(np.random.default_rng(seed + 7).choice(
@@ -464,7 +472,8 @@ def fit_collision_aware(
     if not _finished(fields, run_dir, "fields", fingerprint, device):
         targets = field_targets(body, point_count=int(hf["points"]), shape_count=int(hf["shapes"]),
                                 samples=int(hf["samples"]), spread=float(hf["spread"]),
-                                extra_points=template["rest_vertices"], extra_shapes=data_shapes, seed=seed)
+                                extra_points=template["rest_vertices"], extra_shapes=data_shapes,
+                                basis=int(hf["shape_basis"]), seed=seed)
         fields = fit_fields(fields, targets, hyperparameters=_epoch_settings(hf, hyper["model"]), seed=seed, **common)
     fields = _frozen(fields.to(device))
     if distributed.writes_files():
