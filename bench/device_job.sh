@@ -67,7 +67,7 @@ ca_variants() {  # GPUS DATA: each of CA_VARIANTS (';'-separated YAML overrides 
   local k=0 pids=() variant
   IFS=';' read -ra variants <<< "$CA_VARIANTS"
   for variant in "${variants[@]}"; do
-    (ca_variant "$JOB/variant$k" $((k % $1)) "$variant" "$2" 1) &
+    (ca_variant "$JOB/variant$k" $((k % $1)) "$variant" "$2" "$([ -f "$JOB/ca/sdf.pt" ] && echo 1 || echo 0)") &
     pids+=($!)
     k=$((k + 1))
     if [ $((k % $1)) = 0 ]; then wait "${pids[@]}"; pids=(); fi
@@ -212,6 +212,10 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     [ -z "${CA_VARIANTS:-}" ] || ca_variants "$gpus" $ds
     find "$JOB" -name "*.pt" -delete
     ;;
+  ca-variants)
+    # (inside a job) CA_VARIANTS alone on the dataset LEARN_DATA over N GPUs (ca_variants; each
+    # variant trains its own fields and SDF, there being no $JOB/ca)
+    ca_variants "${2:-1}" "${LEARN_DATA:?LEARN_DATA: the dataset}" ;;
   ca-small)
     # (inside a job) collision_aware alone on a reduced t-shirt spec: CA_POSES train poses per train
     # pair (default 150), 40 test poses (fewer with fewer train poses), the garment at CA_RESOLUTION
