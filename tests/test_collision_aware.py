@@ -193,6 +193,10 @@ def test_basis_shape_field_is_the_body_models_own_offsets_in_the_span_of_its_bas
     outside = np.random.default_rng(4).uniform(ranges[:, 0], ranges[:, 1], size=(2, len(ranges))).astype(np.float32)
     off_span = shape_field_error(fields, anny_body, outside)  # three shapes do not span anny's offsets
     assert off_span["max_mm"] > 1.0, off_span
+    # a conditioned field saved without the (empty) basis buffers loads
+    conditioned = new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0)
+    state = {k: v for k, v in conditioned.state_dict().items() if not k.startswith("basis_")}
+    new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0).load_state_dict(state)
     bare = new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0, shape_basis=3)
     bare.use_body(None)
     with pytest.raises(RuntimeError, match="use_body"):

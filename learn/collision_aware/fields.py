@@ -92,9 +92,12 @@ class DiffusedBody(nn.Module):
         self._body: Any = None
         self._coefficients: dict[bytes, torch.Tensor] = {}
 
-    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         self._coefficients.clear()  # a new basis: the kept coefficients are of the old one
-        super()._load_from_state_dict(*args, **kwargs)
+        if not self.basis_size:  # a conditioned field saved before the basis buffers existed: they are empty
+            for name in ("basis_vectors", "basis_scale", "basis_rest"):
+                state_dict.setdefault(prefix + name, getattr(self, name))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def shape_size(self) -> int:
