@@ -203,6 +203,36 @@ def test_basis_shape_field_is_the_body_models_own_offsets_in_the_span_of_its_bas
         bare.shape_offset(torch.zeros(1, 2, 3), default)
 
 
+def test_posed_collision_term_is_zero_outside_the_posed_body_and_pushes_points_out_of_it(anny_body) -> None:
+    """At the rest pose and default shape the garment model is the identity, so the posed term
+    sees the canonical points themselves: 0 for skin points 5 mm outside (margin 1 mm), the
+    depth plus the margin for points 5 mm inside, and its gradient moves them out along the
+    normal. The distance is the collision metric's own."""
+    from learn.collision_aware.fields import canonical_body, new_diffused_body
+    from learn.collision_aware.posed_collision import PosedCollision
+    from learn.common.collision import collision_mask
+    from simulate.body.mesh_utils import vertex_normals
+
+    rest = canonical_body(anny_body).astype(np.float32)
+    normals = vertex_normals(rest, anny_body.faces).astype(np.float32)
+    chest = np.flatnonzero((np.asarray(anny_body.vertex_parts) == 0) & (normals[:, 2] > 0.9))[::40][:50]
+    fields = new_diffused_body(anny_body, hidden_size=8, layers=1, frequencies=0)
+    term = PosedCollision(anny_body, fields, epsilon_m=1e-3, device="cpu")
+    pose = torch.as_tensor(np.asarray(anny_body.canonical_pose, np.float32))[None]
+    shape = torch.as_tensor(np.asarray(anny_body.shape_default, np.float32))[None]
+    outside = torch.as_tensor(rest[chest] + 5e-3 * normals[chest])[None]
+    with torch.no_grad():
+        assert float(term(outside, pose, shape)) == 0.0
+    inside = torch.as_tensor(rest[chest] - 5e-3 * normals[chest])[None].requires_grad_(True)
+    penalty = term(inside, pose, shape)
+    assert float(penalty) == pytest.approx(6e-3, abs=1e-3), float(penalty)
+    penalty.backward()
+    assert (inside.grad[0] * torch.as_tensor(normals[chest])).sum(-1).max() < 0, "descent moves the points outward"
+    posed, body_vertices = term.posed(inside.detach(), pose, shape)
+    distance = term.distance(posed, body_vertices)
+    assert bool((distance < -1e-3).all()) and collision_mask(posed, body_vertices, anny_body.faces).all()
+
+
 def test_canonical_posed_canonical_round_trip() -> None:
     fields = _small_fields()
     g = torch.Generator().manual_seed(1)
@@ -504,7 +534,23 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     headers = {stage: (run / f"{stage}_loss.csv").read_text().splitlines()[0] for stage in ("fields", "vae", "regressor")}
     assert headers == {"fields": "epoch,train_l1,seconds", "vae": "epoch,train_l1_m,seconds",
                        "regressor": "epoch,train_l1_m,seconds"}, headers
+    # the posed-space collision term: the regressor alone retrained on the run's fields, SDF and VAE
+    import shutil
+
     import yaml
+
+    posed_run = tmp_path / "posed"
+    posed_run.mkdir()
+    for path in run.iterdir():
+        if path.name.split(".")[0] in ("fields", "sdf", "vae"):
+            shutil.copy(path, posed_run / path.name)
+    posed = yaml.safe_load(open(config))
+    posed["regressor"]["posed_collision"] = 100.0
+    (tmp_path / "posed.yaml").write_text(yaml.safe_dump(posed))
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(posed_run), "--config",
+                 str(tmp_path / "posed.yaml"), "--epochs", "2", "--no-progress"]) == 0
+    assert (posed_run / "regressor_loss.csv").read_text().splitlines()[0] == "epoch,train_loss_m,seconds"
+    assert (posed_run / "fields.pt").read_bytes() == (run / "fields.pt").read_bytes(), "the copied stages are kept"
 
     coarser = yaml.safe_load(open(config))
     coarser["sdf"]["voxel_m"] = 0.04

@@ -171,6 +171,12 @@ def test_cli_trains_the_gru_on_a_motion_dataset_then_evaluates_and_predicts(tmp_
     data = tmp_path / "motion"
     write_band_dataset(data, anny_body, splits={"train_train": 2, "test_test": 1}, frames_per_task=6, motion_fps=FPS)
     run = tmp_path / "run"
+    posed = write_tiny_config(tmp_path / "posed.yaml", layers=1, posed_collision=10.0)
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", posed,
+                 "--epochs", "2", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "regressor.posed_collision is for the mlp regressor" in err and "Traceback" not in err, err
+    assert not (run / "fields.pt").exists(), "no stage should run before the posed term's regressor is checked"
     config = write_tiny_config(tmp_path / "tiny.yaml", layers=1, window=4, stride=2)
     assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", config,
                  "--epochs", "2", "--no-progress"]) == 0
@@ -237,7 +243,8 @@ def test_gru_asked_for_a_quasi_static_dataset_exits_2_naming_the_option(tmp_path
                           ("projection: {steps: ten}", "projection.steps must be an integer (got 'ten')"),
                           ("projection: {batch_sequences: 0}", "projection.batch_sequences must be an integer >= 1 (got 0)"),
                           ("fields: {data_share: 1.5}", "fields.data_share must be in [0, 1] (got 1.5)"),
-                          ("fields: {shape_basis: 999}", "fields.shape_basis must be in [0, fields.shapes = 512]")):
+                          ("fields: {shape_basis: 999}", "fields.shape_basis must be in [0, fields.shapes = 512]"),
+                          ("regressor: {posed_collision: -1.0}", "regressor.posed_collision must be >= 0 (got -1.0)")):
         config.write_text(text + "\n")
         assert main(["train", "collision-aware", "--data", str(data), "--out", str(run), "--config", str(config),
                      "--epochs", "1", "--no-progress"]) == 2, text

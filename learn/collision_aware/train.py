@@ -36,6 +36,7 @@ from learn.collision_aware.fields import (canonical_body, field_targets, fit_fie
                                          shape_field_error)
 from learn.collision_aware.model import CollisionAwareModel
 from learn.collision_aware.motion_descriptor import motion_fps, padded, padded_times, sequence_rows
+from learn.collision_aware.posed_collision import PosedCollision
 from learn.collision_aware.recurrent_regressor import (RecurrentLatentRegressor, sequence_loss, sequence_windows)
 from learn.collision_aware.recurrent_regressor import input_normalisation as sequence_normalisation
 from learn.collision_aware.regressor import LatentRegressor, input_normalisation
@@ -90,7 +91,7 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
                   "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
                   "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01,
-                  "target": "auto"},
+                  "target": "auto", "posed_collision": 0.0, "posed_epsilon_m": 1.0e-3},
     "model": {"checkpoint_interval_s": 60.0},
 }
 
@@ -257,16 +258,21 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
                     hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None,
                     device: str = "cpu", seed: int = 0, progress: bool = True,
                     checkpoint_interval_s: float = 60.0, vae: GarmentVAE | None = None,
-                    canonical: np.ndarray | None = None) -> LatentRegressor:
+                    canonical: np.ndarray | None = None, posed: PosedCollision | None = None) -> LatentRegressor:
     """Fit R(pose, shape, style) -> latent (N, L) (stage ``regressor``). ``target: latent``: L1
     against the encoded frames ``latent`` (seed Eq. 18's position term); ``target: canonical``:
     L1 per vertex [m] of the frozen ``vae``'s decoding against the projected frames ``canonical``
-    (N, V, 3), so the latent dimensions count by what they change in the garment."""
+    (N, V, 3), so the latent dimensions count by what they change in the garment. With ``posed``
+    and ``hyperparameters["posed_collision"]`` = w > 0, w times the posed-space collision hinge
+    [m] of the decoded garment (:class:`PosedCollision`) is added."""
     hyper = dict(hyperparameters)
     decoded = _regressor_target(hyper, "mlp") == "canonical"
     if decoded and (vae is None or canonical is None):
         raise ValueError(f"regressor.target {hyper.get('target', 'auto')!r} trains against the decoded garment: "
                          "it needs the VAE and the projected frames")
+    collision_weight = float(hyper.get("posed_collision", 0.0))
+    if collision_weight > 0 and (posed is None or vae is None):
+        raise ValueError("regressor.posed_collision poses the decoded garment: it needs the VAE and a PosedCollision")
     mean, scale = input_normalisation(data.pose, data.shape, data.style, pose_indices)
     torch.manual_seed(seed)
     regressor = LatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
@@ -277,9 +283,14 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
     batch_size = int(hyper["batch_size"])
 
     def error(predicted: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
+        garment = vae.decode(predicted) if decoded or collision_weight > 0 else None
         if decoded:
-            return (vae.decode(predicted) - target[batch]).abs().sum(-1).mean()
-        return (predicted - target[batch]).abs().sum(-1).mean()
+            loss = (garment - target[batch]).abs().sum(-1).mean()
+        else:
+            loss = (predicted - target[batch]).abs().sum(-1).mean()
+        if collision_weight > 0:
+            loss = loss + collision_weight * posed(garment, pose[batch], shape[batch])
+        return loss
 
     def epoch_fn(net: LatentRegressor, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
         order = torch.randperm(target.shape[0], generator=generator).to(device)
@@ -297,7 +308,8 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
     return run_epochs("regressor", regressor, epoch_fn, run_dir=run_dir,
                       hyperparameters={**hyper, "checkpoint_interval_s": checkpoint_interval_s},
                       fingerprint=fingerprint, device=device, seed=seed, progress=progress,
-                      loss_name="l1_m" if decoded else "l1_latent")
+                      loss_name=("loss_m" if decoded else "loss") if collision_weight > 0 else
+                      ("l1_m" if decoded else "l1_latent"))
 
 
 def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndarray, fps: float, *,
@@ -447,6 +459,9 @@ def fit_collision_aware(
         raise ValueError(f"vae.random_latents must be one of {', '.join(RANDOM_LATENTS)}, "
                          f"got {hyper['vae']['random_latents']!r}")
     hyper["regressor"]["target"] = _regressor_target(hyper["regressor"], kind)  # saved with the model as resolved
+    if float(hyper["regressor"]["posed_collision"]) > 0 and kind == "gru":
+        raise ValueError("regressor.posed_collision is for the mlp regressor (quasi-static data); the gru's "
+                         "sequences train without it")
     settings, batch_sequences = _projection_settings(hyper["projection"])
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -518,8 +533,12 @@ def fit_collision_aware(
                                               hyperparameters=hyper["regressor"], seed=seed + 3,
                                               checkpoint_interval_s=interval, **common)
     else:
+        posed = None
+        if float(hyper["regressor"]["posed_collision"]) > 0:
+            posed = PosedCollision(body, fields, epsilon_m=float(hyper["regressor"]["posed_epsilon_m"]), device=device)
         regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
-                                    checkpoint_interval_s=interval, vae=vae, canonical=canonical, **common)
+                                    checkpoint_interval_s=interval, vae=vae, canonical=canonical, posed=posed,
+                                    **common)
     spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
     model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
     save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})
