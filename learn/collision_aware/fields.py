@@ -182,7 +182,7 @@ class FieldTargets:
 def shape_basis(offsets: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """The principal components of the body's shape offsets: ``offsets`` [m] (K, Vb, 3) of K
     shapes -> orthonormal vectors (C, Vb, 3) and each one's root-mean-square coefficient over
-    the K shapes [m] (C,), C = ``count`` (fewer where the offsets span fewer dimensions). Not
+    the K shapes [m] (C,), C = ``count``; an error where the offsets span fewer dimensions. Not
     centred: the offsets are zero at the default shape, and so is every coefficient."""
     flat = np.asarray(offsets, np.float64).reshape(len(offsets), -1)
     _, singular, vectors = np.linalg.svd(flat, full_matrices=False)
