@@ -43,6 +43,7 @@ from learn.collision_aware.regressor import LatentRegressor, input_normalisation
 from learn.collision_aware.sdf import fit_body_sdf, grid_sdf, new_body_sdf, sdf_from_config, sdf_targets
 from learn.collision_aware.vae import LATENT_SIZE, RANDOM_LATENTS, GarmentVAE, vae_loss
 from learn.common.mesh import uniform_laplacian_torch
+from learn.tailornet.evaluate import sequence_root
 from learn.tailornet.train import (
     DatasetFingerprint,
     FrameArrays,
@@ -326,9 +327,7 @@ def train_recurrent_regressor(data: FrameArrays, latent: np.ndarray, pose_indice
         raise ValueError("the recurrent regressor needs each training frame's sequence and frame_index "
                          "(FrameArrays.sequence, .frame_index)")
     rows = sequence_rows(data.sequence, data.frame_index)
-    root = data.root_joint
-    if data.translation is not None:
-        root = data.translation if root is None else root + data.translation
+    root = sequence_root(data)
     torch.manual_seed(seed)
     regressor = RecurrentLatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
                                          latent.shape[1], fps, hidden_size=int(hyper["hidden_size"]),
