@@ -22,7 +22,11 @@ OUT/train-wN with ``torchrun --nproc-per-node N -m pipelines.cli train``; the ep
 the mean of the logged epoch seconds after the first (rank 0's clock: it includes the gradient
 exchange), and ``speedup`` is the epoch rate at each N over the rate at 1; for ``tailornet``,
 which trains its stages side by side (hf's prototypes in parts), it is the whole training's
-time at 1 over that at N (``run.json`` seconds).
+time at 1 over that at N (``run.json`` seconds). Each run also gives every stage's mean epoch
+seconds (``stage_epoch_s``). ``--pack`` runs the world sizes that fit on the host's GPUs side by
+side on disjoint GPUs (``--gpus 2,4`` on 4 GPUs: 1 and 2 at once on GPUs 0 and 1-2, then 4): the
+same stage's epoch seconds in a packed run and in a run alone show whether the runs slowed each
+other (they share the host's CPUs).
 """
 from __future__ import annotations
 
@@ -156,33 +160,80 @@ def _epoch_seconds(run: Path, stage: str) -> list[float]:
         return [float(row["seconds"]) for row in csv.DictReader(fh)]
 
 
+def stage_epoch_seconds(run: Path) -> dict[str, float]:
+    """Mean seconds of an epoch after the first (all of them where there is one) of every stage
+    (or hf part) that logged a ``<stage>_loss.csv`` into ``run``."""
+    means = {}
+    for path in sorted(run.glob("*_loss.csv")):
+        with path.open() as fh:
+            seconds = [float(row["seconds"]) for row in csv.DictReader(fh)]
+        timed = seconds[1:] or seconds
+        if timed:
+            means[path.name[: -len("_loss.csv")]] = round(sum(timed) / len(timed), 4)
+    return means
+
+
+def pack_world_sizes(world_sizes: list[int], gpus: int) -> list[list[tuple[int, int]]]:
+    """Rounds of training runs: each run as (world size, first GPU), the runs of a round side by
+    side on disjoint GPUs of the ``gpus`` the host has, smallest first; a world size larger than
+    ``gpus`` gets a round of its own from GPU 0."""
+    rounds: list[list[tuple[int, int]]] = []
+    free = 0
+    for world in sorted(set(world_sizes)):
+        if not rounds or free + world > gpus:
+            rounds.append([])
+            free = 0
+        rounds[-1].append((world, free))
+        free += world
+    return rounds
+
+
+def _train_command(args: argparse.Namespace, data: Path, run: Path, world: int) -> list[str]:
+    command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={world}",
+               "-m", "pipelines.cli", "train", args.learner, "--data", str(data), "--out", str(run),
+               "--device", args.train_device, "--no-progress"]
+    if args.epochs is not None:
+        command += ["--epochs", str(args.epochs)]
+    if args.config:
+        command += ["--config", str(args.config)]
+    return command
+
+
 def bench_train(args: argparse.Namespace, data: Path) -> dict:
     stage = TIMED_STAGE[args.learner.replace("-", "_")]
     results = {}
-    for world in sorted({1, *args.gpus}):
-        run = args.out / f"train-w{world}"
-        if run.exists():
-            shutil.rmtree(run)
-        command = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={world}",
-                   "-m", "pipelines.cli", "train", args.learner, "--data", str(data), "--out", str(run),
-                   "--device", args.train_device, "--no-progress"]
-        if args.epochs is not None:
-            command += ["--epochs", str(args.epochs)]
-        if args.config:
-            command += ["--config", str(args.config)]
-        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-        if args.train_device == "cpu":
-            env.setdefault("OMP_NUM_THREADS", "1")
-        started = time.perf_counter()
-        done = subprocess.run(command, env=env, cwd=ROOT, capture_output=True, text=True)
-        if done.returncode != 0:
-            raise SystemExit(f"torchrun with {world} process(es) failed ({done.returncode}):\n{done.stderr[-4000:]}")
-        seconds = _epoch_seconds(run, stage)
-        timed = seconds[1:] or seconds
-        run_s = json.loads((run / "run.json").read_text())["seconds"]
-        results[world] = {"epoch_s": round(sum(timed) / len(timed), 4), "epochs": len(seconds),
-                          "run_s": run_s, "wall_s": round(time.perf_counter() - started, 2)}
-        print(json.dumps({f"train{world}": results[world]}), file=sys.stderr, flush=True)
+    worlds = sorted({1, *args.gpus})
+    cuda = args.train_device != "cpu"
+    rounds = pack_world_sizes(worlds, args.host_gpus) if args.pack else [[(w, 0)] for w in worlds]
+    for members in rounds:
+        running = {}
+        for world, first in members:
+            run = args.out / f"train-w{world}"
+            if run.exists():
+                shutil.rmtree(run)
+            env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+            if not cuda:
+                env.setdefault("OMP_NUM_THREADS", "1")
+            elif args.pack:
+                env["CUDA_VISIBLE_DEVICES"] = ",".join(str(first + k) for k in range(world))
+            log = (args.out / f"train-w{world}.log").open("w")
+            running[world] = (run, log, time.perf_counter(),
+                              subprocess.Popen(_train_command(args, data, run, world), env=env, cwd=ROOT,
+                                               stdout=log, stderr=subprocess.STDOUT, text=True))
+        for world, (run, log, started, process) in running.items():
+            code = process.wait()
+            wall = time.perf_counter() - started
+            log.close()
+            if code != 0:
+                tail = (args.out / f"train-w{world}.log").read_text()[-4000:]
+                raise SystemExit(f"torchrun with {world} process(es) failed ({code}):\n{tail}")
+            seconds = _epoch_seconds(run, stage)
+            timed = seconds[1:] or seconds
+            run_s = json.loads((run / "run.json").read_text())["seconds"]
+            results[world] = {"epoch_s": round(sum(timed) / len(timed), 4), "epochs": len(seconds),
+                              "run_s": run_s, "wall_s": round(wall, 2), "stage_epoch_s": stage_epoch_seconds(run),
+                              "beside": [w for w, _ in members if w != world]}
+            print(json.dumps({f"train{world}": results[world]}), file=sys.stderr, flush=True)
     # tailornet spreads its stages (and hf's prototypes) over the processes: its gain is the whole
     # training's time (rank 0's run.json, which waits for every stage), not an epoch's
     basis = "run_s" if stage == "hf" else "epoch_s"
@@ -214,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="epochs of every stage (default: the learner's, or --config's; tailornet's split of its "
                         "stages over the processes follows each stage's epochs)")
     parser.add_argument("--config", type=Path, default=None, help="drape train --config of (b)")
+    parser.add_argument("--pack", action="store_true",
+                        help="(b): world sizes that fit on the GPUs side by side run at once on disjoint GPUs")
     parser.add_argument("--ray-data", type=Path, default=None,
                         help="a Ray run of the same spec made before: (a) runs only the local run and compares with it")
     parser.add_argument("--skip-generate", action="store_true")
@@ -240,6 +293,7 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, name) is not None and getattr(args, name) < 1:
             parser.error(f"--{name.replace('_', '-')} must be >= 1 (got {getattr(args, name)})")
     args.sim_device = lambda k: f"cuda:{k}" if cuda else "cpu"
+    args.host_gpus = available if cuda else max(args.gpus)
     args.train_device = "cuda" if cuda else "cpu"
     args.out.mkdir(parents=True, exist_ok=True)
     report = {"machine": {"host": platform.node(), "cpus": os.cpu_count(),

@@ -25,12 +25,14 @@
 # (PROJECTION_BENCH=0: the generation alone on the 4 GPUs) and beside it, once training starts, the
 # one-GPU run of that plan's first batch on GPU 3 for the 1-vs-4 generation ratio:
 #   AFTER=/root/jobs/learn/out/training.started bash bench/device_job.sh start ratio bash bench/device_job.sh ratio
+# Training's 1-vs-2-vs-4 GPU epoch rate (TailorNet) on the whole t-shirt spec made on 4 GPUs:
+#   GPU_TESTS="tests/test_collision_aware.py" bash bench/device_job.sh start scale bash bench/device_job.sh scale-train 4
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 # Solver settings side by side on the 7.7k t-shirt slice (240 targets), one after another on one GPU:
 #   SLICES="; --sim solver=vbd --sim substeps=20 --sim iterations=3" bash bench/device_job.sh start sl bash bench/device_job.sh slices
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full|learners-ca|ca-small|ratio|slices}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|learners-ca|scale-train|ca-variants|ca-small|ratio|slices}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS for every stage (default:
   # each stage's own, or CA_CONFIG's), CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
@@ -212,6 +214,41 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     [ -z "${CA_VARIANTS:-}" ] || ca_variants "$gpus" $ds
     find "$JOB" -name "*.pt" -delete
     ;;
+  scale-train)
+    # (inside a job) the training's epoch rate at 1, 2 and N GPUs on the whole t-shirt spec: the spec
+    # generated on N GPUs with Ray (generate_full; LEARN_DATA=DIR: an existing dataset), with GPU_TESTS
+    # (pytest paths, e.g. the CUDA cases of tests/test_collision_aware.py) on GPU 0 beside it; then
+    # bench_scale_out.py --pack over TRAIN_GPUS (default 2,N) with LEARNER (default tailornet): 1 and
+    # 2 processes side by side on GPUs 0 and 1-2, then N; then each run evaluated, the runs side by
+    # side on their own GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json.
+    gpus=${2:-4}
+    ds=${LEARN_DATA:-/root/jobs/data-tshirt}
+    if [ -z "${LEARN_DATA:-}" ]; then
+      generate_full "$gpus" $ds &
+      gen=$!
+      # shellcheck disable=SC2086  # GPU_TESTS: several paths or node ids
+      [ -z "${GPU_TESTS:-}" ] || (CUDA_VISIBLE_DEVICES=0 python -m pytest -q -p no:cacheprovider $GPU_TESTS \
+        > "$JOB/gpu_tests.log" 2>&1; tail -n 3 "$JOB/gpu_tests.log")
+      wait $gen
+      grep -E "kept|wall" "$JOB/generate.log" | tail -n 4
+    fi
+    echo "$(date +%T) training"
+    scale=/root/jobs/scale-train
+    python bench/bench_scale_out.py --skip-generate --data $ds --gpus "${TRAIN_GPUS:-2,$gpus}" --pack \
+      --learner "${LEARNER:-tailornet}" --out $scale > "$JOB/scale_train.json" 2> "$JOB/scale_train.err"
+    tail -n 4 "$JOB/scale_train.err"
+    echo "$(date +%T) evaluating"
+    k=0
+    for run in $scale/train-w*/; do
+      w=$(basename "$run"); mkdir -p "$JOB/$w"
+      cp "$run"/*.csv "$run"/run.json "$JOB/$w/" 2>/dev/null; cp $scale/"$w".log "$JOB/$w/train.log" 2>/dev/null
+      (CUDA_VISIBLE_DEVICES=$((k % gpus)) python -m pipelines.cli evaluate "$run" --data $ds --device cuda --renders 0 \
+        > "$JOB/$w/evaluate.log" 2>&1) &
+      k=$((k + 1))
+    done
+    wait
+    for w in "$JOB"/train-w*/; do echo "$(basename "$w"): $(grep -E '^(train_test|test_train|test_test) ' "$w/evaluate.log" | tr -s ' ' | tr '\n' ';')"; done
+    ;;
   ca-variants)
     # (inside a job) CA_VARIANTS alone on the dataset LEARN_DATA over N GPUs (ca_variants; each
     # variant trains its own fields and SDF, there being no $JOB/ca)
@@ -287,5 +324,5 @@ PY
       tail -n 1 "$JOB/slices.jsonl" | cut -c 1-400
     done
     ;;
-  *) echo "unknown command $cmd (start, wait, collect, learners-full, learners-ca, ca-small, slices)" >&2; exit 2 ;;
+  *) echo "unknown command $cmd (start, wait, collect, learners-full, learners-ca, scale-train, ca-variants, ca-small, ratio, slices)" >&2; exit 2 ;;
 esac
