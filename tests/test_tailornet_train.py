@@ -7,6 +7,7 @@ high-frequency ripple, so both the low- and high-frequency parts have to be lear
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -379,6 +380,20 @@ def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -
     assert fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["hf_2of2"], hf_parts=2, **fit) is None
     model = fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["shape_style", "lf", "hf_1of2"],
                           hf_parts=2, **fit)
+    # a process other than rank 0 never writes the model, even with every stage finished (ranks
+    # that assembled at once raced on the model file)
+    (tmp_path / "ranks" / "tailornet_model.pt").unlink()
+    assert fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["hf_2of2"], hf_parts=2, assemble=False,
+                         wait_timeout_s=60.0, **fit) is None
+    assert not (tmp_path / "ranks" / "tailornet_model.pt").exists()
+    # rank 0 assembling stages that others finished loads them without preparing their data: no
+    # low-frequency split is computed, and the model is the one trained
+    fresh, _ = make_frames(0, 12, _pairs())
+    assert fresh.low_frequency is None
+    again = fit_tailornet(fresh, faces, run_dir=tmp_path / "ranks", stages=[], hf_parts=2, **fit)
+    assert fresh.low_frequency is None, "a finished stage prepared its training data"
+    np.testing.assert_array_equal(predict_displacements(again, train.pose, train.shape, train.style),
+                                  predict_displacements(model, train.pose, train.shape, train.style))
     alone = fit_tailornet(train, faces, run_dir=tmp_path / "alone", **fit)
     test, _ = make_frames(1, 6, _pairs())
     np.testing.assert_allclose(predict_displacements(model, test.pose, test.shape, test.style),
@@ -657,3 +672,22 @@ def test_cosine_lr_schedule_anneals_and_resumes_where_it_stopped(tmp_path: Path)
         with pytest.raises(ValueError, match=key):
             run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / key, fingerprint=None, progress=False,
                        hyperparameters={**hyper, key: value})
+
+
+def test_a_stage_is_finished_when_its_marker_counts_its_epochs(tmp_path: Path) -> None:
+    """stage_finished needs the checkpoint and a .done marker with the configured epochs (a marker
+    of fewer epochs is a stage to resume); wait_for_stage returns once another process finishes."""
+    import threading
+
+    from learn.tailornet.train import stage_finished, wait_for_stage
+
+    assert not stage_finished(tmp_path, "baseline", 3)
+    (tmp_path / "baseline.done").write_text(json.dumps({"stage": "baseline", "epochs": 3}))
+    assert not stage_finished(tmp_path, "baseline", 3), "no checkpoint"
+    (tmp_path / "baseline.pt").write_bytes(b"x")
+    assert stage_finished(tmp_path, "baseline", 3) and not stage_finished(tmp_path, "baseline", 5)
+    assert not wait_for_stage(tmp_path, "baseline", 5, timeout_s=0.2, poll_s=0.05)
+    later = threading.Timer(0.3, lambda: (tmp_path / "baseline.done").write_text(json.dumps({"epochs": 5})))
+    later.start()
+    assert wait_for_stage(tmp_path, "baseline", 5, timeout_s=10.0, poll_s=0.05)
+    later.join()

@@ -595,21 +595,27 @@ def train_stage(
     mixed = bool(hyperparameters.get("mixed_precision", False))
     graphs = bool(hyperparameters.get("cuda_graphs", True))
     shuffle = bool(hyperparameters.get("shuffle", True))
-    if isinstance(target, str):
-        source = batches_for(data, ("pose", "shape", "style", target), batch_size=batch_size, device=device,
-                             shuffle=shuffle)
-    else:
-        if target.shape != (data.frame_count, model.vertex_count, 3):
-            raise ValueError(
-                f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
-            )
-        source = MemoryBatches({"pose": data.pose, "shape": data.shape, "style": data.style, "target": target},
-                               batch_size=batch_size, device=device, shuffle=shuffle)
-        target = "target"
+    if not isinstance(target, str) and target.shape != (data.frame_count, model.vertex_count, 3):
+        raise ValueError(
+            f"{stage}: target must have shape ({data.frame_count}, {model.vertex_count}, 3), got {target.shape}"
+        )
+    field = target if isinstance(target, str) else "target"
+    sources: list[MemoryBatches | Any] = []  # built at the first epoch: a finished stage only loads
+
+    def batch_source() -> MemoryBatches | Any:
+        if not sources:
+            if isinstance(target, str):
+                sources.append(batches_for(data, ("pose", "shape", "style", target), batch_size=batch_size,
+                                           device=device, shuffle=shuffle))
+            else:
+                sources.append(MemoryBatches({"pose": data.pose, "shape": data.shape, "style": data.style,
+                                              "target": target}, batch_size=batch_size, device=device, shuffle=shuffle))
+        return sources[0]
 
     steps: dict[int, TrainingStep] = {}  # by optimizer: the one run_epochs builds for this stage
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        source = batch_source()
         total = torch.zeros((), device=device)
         if isinstance(source, MemoryBatches) and not distributed.active():  # one graph per step on a GPU
             if id(optimizer) not in steps:
@@ -617,7 +623,7 @@ def train_stage(
                     batch = source.gather(inputs["index"])
                     with autocast(device, mixed):
                         prediction = net(batch["pose"], batch["shape"], batch["style"])
-                    return l1_displacement_loss(prediction.float(), batch[target])
+                    return l1_displacement_loss(prediction.float(), batch[field])
 
                 steps[id(optimizer)] = TrainingStep(loss_of, optimizer, graph=graphs)
             step = steps[id(optimizer)]
@@ -627,7 +633,7 @@ def train_stage(
         for batch in source.epoch(generator, optimizer):  # this rank's frames (all in one process)
             with autocast(device, mixed):
                 prediction = net(batch["pose"], batch["shape"], batch["style"])
-            loss = l1_displacement_loss(prediction.float(), batch[target])
+            loss = l1_displacement_loss(prediction.float(), batch[field])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -643,7 +649,7 @@ def train_stage(
 def train_stacked_prototypes(
     model: HighFrequencyPrototypes,
     data: FrameArrays,
-    target: np.ndarray,
+    target: np.ndarray | None,
     frames_per_prototype: list[np.ndarray],
     *,
     run_dir: str | os.PathLike[str],
@@ -665,6 +671,9 @@ def train_stacked_prototypes(
     random order repeated as needed (exactly one pass when all n_k are equal multiples
     of the batch size, as with TailorNet's equal pose sets).
 
+    ``target``: (N, V, 3) for ``data``'s N frames; None only for a stage that has finished
+    (:func:`stage_finished`), which loads from its checkpoint.
+
     ``members``: ``model`` holds only these prototypes of the K that ``frames_per_prototype``
     lists (a part trained by one of several processes). Their batches are those of the whole
     run: every prototype's order is drawn and the step count is the whole run's, so a part's
@@ -680,14 +689,19 @@ def train_stacked_prototypes(
         raise ValueError(f"every prototype needs frames; counts per prototype: {counts}")
     batch_size = int(hyperparameters["batch_size"])
     mixed = bool(hyperparameters.get("mixed_precision", False))
-    pose = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
-    target_t = torch.as_tensor(target, dtype=torch.float32, device=device)
     frames = [torch.as_tensor(np.asarray(f), dtype=torch.int64) for f in frames_per_prototype]
     steps = -(-max(counts) // batch_size)
     graphs = bool(hyperparameters.get("cuda_graphs", True))
     training_steps: dict[int, TrainingStep] = {}  # by optimizer: the one run_epochs builds for this stage
+    tensors: dict[str, torch.Tensor] = {}  # on the device at the first epoch: a finished stage only loads
 
     def epoch_fn(net: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        if not tensors:
+            if target is None:
+                raise ValueError(f"{stage}: no target given, but the stage has epochs left to train")
+            tensors["pose"] = torch.as_tensor(data.pose, dtype=torch.float32, device=device)
+            tensors["target"] = torch.as_tensor(target, dtype=torch.float32, device=device)
+        pose, target_t = tensors["pose"], tensors["target"]
         sequences = []
         for idx in frames:
             order = idx[torch.randperm(idx.numel(), generator=generator)]
@@ -714,6 +728,23 @@ def train_stacked_prototypes(
         stage, model, epoch_fn, run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint,
         device=device, seed=seed, progress=progress,
     )
+
+
+def _member_frames(data: FrameArrays, frames_per_prototype: list[np.ndarray],
+                   members: Sequence[int]) -> tuple[FrameArrays, list[np.ndarray]]:
+    """``data`` cut to the frames of the ``members`` prototypes, and every prototype's frame
+    list renumbered into the cut: the members' onto their frames, the others' (same lengths) onto
+    frame 0, never read."""
+    keep = sorted(int(m) for m in members)
+    picked = np.concatenate([frames_per_prototype[m] for m in keep])
+    renumbered, start = [], 0
+    for k, frames in enumerate(frames_per_prototype):
+        if k in keep:
+            renumbered.append(np.arange(start, start + frames.size))
+            start += frames.size
+        else:
+            renumbered.append(np.zeros(frames.size, np.int64))
+    return data.subset(picked), renumbered
 
 
 def stage_hyper(hyper: Mapping[str, Any], model_hyper: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -779,9 +810,10 @@ def train_lf(
 ) -> DisplacementMLP:
     """Train D_LF(pose, shape, style) on the smoothed displacements (``data.low_frequency``; a
     streamed split reads them from the per-shard cache, :meth:`StreamedSplit.prepare_low_frequency`)."""
-    if not is_streamed(data) and data.low_frequency is None:
-        raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     hyper = merged_hyperparameters(hyperparameters)
+    finished = stage_finished(run_dir, "lf", int(hyper["lf"]["epochs"]))  # loads without the split
+    if not finished and not is_streamed(data) and data.low_frequency is None:
+        raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     shape_components, style_components = _components(data, hyper["model"])
     torch.manual_seed(seed)  # deterministic initial weights
     model = low_frequency_model(
@@ -825,14 +857,18 @@ def train_hf(
     step feeds each prototype a batch of its own pair's frames, which a stream dealing whole
     shards cannot serve, and they are K of the split's X pairs.
     """
-    if is_streamed(data):
+    hyper = merged_hyperparameters(hyperparameters)
+    if stacked is None:
+        stacked = bool(hyper["hf"]["stacked"])
+    stage = "hf" if part is None else hf_part_stage(*part)
+    finished = stacked and stage_finished(run_dir, stage, int(hyper["hf"]["epochs"]))
+    if finished:
+        pass  # loads from its checkpoint: no low-frequency split needed
+    elif is_streamed(data):
         if not data.low_frequency_ready:
             raise ValueError("the streamed split's low-frequency cache is not prepared: call data.prepare_low_frequency()")
     elif data.low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
-    hyper = merged_hyperparameters(hyperparameters)
-    if stacked is None:
-        stacked = bool(hyper["hf"]["stacked"])
     frames_per_prototype = []
     for pair in np.asarray(prototype_pairs).reshape(-1):
         frames = np.flatnonzero(data.pair_id == pair)
@@ -854,11 +890,16 @@ def train_hf(
         )
     members = list(range(len(initial))) if part is None else hf_part_members(len(initial), *part).tolist()
     if stacked:
+        if part is not None and not finished and not is_streamed(data):
+            # a part needs only its prototypes' frames on the device; the others' index lists keep
+            # their lengths (their random orders are still drawn, so the members see the batches
+            # the whole stage gives them) but point nowhere they are read
+            data, frames_per_prototype = _member_frames(data, frames_per_prototype, members)
         return train_stacked_prototypes(
             HighFrequencyPrototypes.from_mlps([initial[k] for k in members]), data,
-            data.displacements - data.low_frequency, frames_per_prototype, run_dir=run_dir,
+            None if finished else data.displacements - data.low_frequency, frames_per_prototype, run_dir=run_dir,
             hyperparameters=stage_hyper(hyper["hf"], hyper["model"]), fingerprint=fingerprint, device=device,
-            seed=seed + 1, progress=progress, stage="hf" if part is None else hf_part_stage(*part), members=members,
+            seed=seed + 1, progress=progress, stage=stage, members=members,
         )
     models = []
     for k in members:
@@ -1013,6 +1054,31 @@ def _done_markers(run_dir: Path, stage: str, prototype_count: int, stacked: bool
     return [run_dir / f"{stage}.done"]
 
 
+def stage_finished(run_dir: str | os.PathLike[str], stage: str, epochs: int) -> bool:
+    """Whether ``stage`` has trained ``epochs`` epochs in ``run_dir``: its ``.done`` marker says
+    so and its checkpoint exists. Such a stage loads from the checkpoint without its training
+    data being prepared (the stages other processes trained, when rank 0 assembles the model)."""
+    marker, checkpoint = Path(run_dir) / f"{stage}.done", Path(run_dir) / f"{stage}.pt"
+    if not (marker.is_file() and checkpoint.is_file()):
+        return False
+    try:
+        return int(json.loads(marker.read_text())["epochs"]) == int(epochs)
+    except (ValueError, KeyError, TypeError):
+        return False
+
+
+def wait_for_stage(run_dir: str | os.PathLike[str], stage: str, epochs: int, timeout_s: float,
+                   poll_s: float = 1.0) -> bool:
+    """Wait until ``stage`` has finished ``epochs`` epochs in ``run_dir`` (:func:`stage_finished`;
+    another process trains it), at most ``timeout_s`` seconds. Returns whether it finished."""
+    deadline = time.monotonic() + max(0.0, timeout_s)
+    while not stage_finished(run_dir, stage, epochs):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(min(poll_s, max(0.0, deadline - time.monotonic())))
+    return True
+
+
 def fit_tailornet(
     data: FrameArrays,
     faces: np.ndarray,
@@ -1029,6 +1095,7 @@ def fit_tailornet(
     wait_timeout_s: float = 0.0,
     hf_parts: int = 1,
     canonical: FrameArrays | None = None,
+    assemble: bool = True,
 ) -> TailorNet | None:
     """Train TailorNet's stages on the training split and save ``tailornet_model.pt``.
 
@@ -1046,6 +1113,9 @@ def fit_tailornet(
             are finished (their ``.done`` markers exist, waiting up to
             ``wait_timeout_s`` seconds) the model is assembled and saved, else None is
             returned and a later call (e.g. by rank 0) assembles it.
+        assemble: whether this call assembles and saves the model once every stage is
+            finished; False returns None after training ``stages`` (the processes other than
+            rank 0 of a stage-parallel run: one process writes the model).
         hf_parts: hf is trained as this many parts ``hf_<i>of<P>`` (:func:`train_hf`'s
             ``part``); ``stages`` may name parts, and ``hf`` then means all of them.
         canonical: the dataset's ``canonical`` split (every style-shape combination in the
@@ -1062,6 +1132,7 @@ def fit_tailornet(
     stream their batches, g and the prototype choice read one frame per pair, and HF reads its
     prototype pairs' frames (:func:`train_hf`).
     """
+    started = time.perf_counter()
     hyper = merged_hyperparameters(hyperparameters)
     if is_streamed(data):
         from learn.data import ITERATIONS, SMOOTHNESS
@@ -1107,7 +1178,12 @@ def fit_tailornet(
     def train(stage: str) -> torch.nn.Module:
         if stage == "shape_style":
             return train_shape_style(data, canonical_pose=canonical_pose, canonical=canonical, seed=seed, **common)
-        if is_streamed(data):
+        epochs = int(hyper["lf" if stage == "lf" else "hf"]["epochs"])
+        # trained before, or by another process: it loads from its checkpoint, no split to prepare
+        ready = (stage == "lf" or bool(hyper["hf"]["stacked"])) and stage_finished(run_dir, stage, epochs)
+        if ready:
+            pass
+        elif is_streamed(data):
             if not data.low_frequency_ready:
                 data.prepare_low_frequency(device)
         elif data.low_frequency is None:
@@ -1116,13 +1192,26 @@ def fit_tailornet(
                 iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
             )
         if stage == "lf":
-            lf_data = data if is_streamed(data) else with_canonical_frames(data, canonical, repeat, faces, hyper, device)
+            lf_data = data if ready or is_streamed(data) else with_canonical_frames(data, canonical, repeat, faces,
+                                                                                    hyper, device)
             return train_lf(lf_data, pose_indices, seed=seed + 1000, **common)
         part = None if stage == "hf" else (parts.index(stage), hf_parts)
         return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, part=part, **common)
 
     units = [s for s in TAILORNET_STAGES if s != "hf"] + (parts or ["hf"])
-    trained = {unit: train(unit) for unit in units if unit in stages}
+    who = f"[rank {distributed.rank()}] " if distributed.env_world_size() > 1 else ""
+
+    def timed(unit: str) -> torch.nn.Module:
+        # one line per stage: where a stage-parallel run's time goes (epochs, checkpoints, waiting)
+        begun = time.perf_counter()
+        module = train(unit)
+        print(f"{who}tailornet {unit}: {time.perf_counter() - begun:.1f} s", flush=True)
+        return module
+
+    print(f"{who}tailornet: prototypes chosen in {time.perf_counter() - started:.1f} s", flush=True)
+    trained = {unit: timed(unit) for unit in units if unit in stages}
+    if not assemble:
+        return None
     stacked = bool(hyper["hf"]["stacked"])
 
     def unit_markers(unit: str) -> list[Path]:
@@ -1133,11 +1222,15 @@ def fit_tailornet(
         return [run_dir / f"hf_{k:02d}.done" for k in hf_part_members(prototype_count, parts.index(unit), hf_parts)]
 
     markers = [marker for unit in units if unit not in trained for marker in unit_markers(unit)]
-    deadline = time.monotonic() + max(0.0, wait_timeout_s)
+    waited = time.monotonic()
+    deadline = waited + max(0.0, wait_timeout_s)
     while not all(m.exists() for m in markers):
         if time.monotonic() >= deadline:
             return None
-        time.sleep(min(5.0, max(0.0, deadline - time.monotonic())))
+        time.sleep(min(1.0, max(0.0, deadline - time.monotonic())))
+    if markers:
+        print(f"{who}tailornet: waited {time.monotonic() - waited:.1f} s for the other processes' stages", flush=True)
+    assembling = time.perf_counter()
     # Stages finished elsewhere load from their complete checkpoints (no further epochs).
     modules = {unit: trained[unit] if unit in trained else train(unit) for unit in units}
     if parts:
@@ -1151,6 +1244,7 @@ def fit_tailornet(
         model, "tailornet", run_dir / "tailornet_model.pt", fingerprint=fingerprint,
         extra={"hyperparameters": hyper},
     )
+    print(f"{who}tailornet: model assembled and saved in {time.perf_counter() - assembling:.1f} s", flush=True)
     return model
 
 
