@@ -23,7 +23,8 @@ the mean of the logged epoch seconds after the first (rank 0's clock: it include
 exchange), and ``speedup`` is the epoch rate at each N over the rate at 1; for ``tailornet``,
 which trains its stages side by side (hf's prototypes in parts), it is the whole training's
 time at 1 over that at N (``run.json`` seconds). Each run also gives every stage's mean epoch
-seconds (``stage_epoch_s``). ``--pack`` runs the world sizes that fit on the host's GPUs side by
+seconds (``stage_epoch_s``). ``--processes`` adds tailornet runs with more processes than GPUs
+(its stages then share GPUs). ``--pack`` runs the world sizes that fit on the host's GPUs side by
 side on disjoint GPUs (``--gpus 2,4`` on 4 GPUs: 1 and 2 at once on GPUs 0 and 1-2, then 4): the
 same stage's epoch seconds in a packed run and in a run alone show whether the runs slowed each
 other (they share the host's CPUs).
@@ -202,7 +203,7 @@ def _train_command(args: argparse.Namespace, data: Path, run: Path, world: int) 
 def bench_train(args: argparse.Namespace, data: Path) -> dict:
     stage = TIMED_STAGE[args.learner.replace("-", "_")]
     results = {}
-    worlds = sorted({1, *args.gpus})
+    worlds = sorted({1, *args.gpus, *(args.processes or [])})
     cuda = args.train_device != "cpu"
     rounds = pack_world_sizes(worlds, args.host_gpus) if args.pack else [[(w, 0)] for w in worlds]
     for members in rounds:
@@ -215,7 +216,8 @@ def bench_train(args: argparse.Namespace, data: Path) -> dict:
             if not cuda:
                 env.setdefault("OMP_NUM_THREADS", "1")
             elif args.pack:
-                env["CUDA_VISIBLE_DEVICES"] = ",".join(str(first + k) for k in range(world))
+                # more processes than GPUs (tailornet's --processes): they share all of them
+                env["CUDA_VISIBLE_DEVICES"] = ",".join(str(first + k) for k in range(min(world, args.host_gpus)))
             log = (args.out / f"train-w{world}.log").open("w")
             running[world] = (run, log, time.perf_counter(),
                               subprocess.Popen(_train_command(args, data, run, world), env=env, cwd=ROOT,
@@ -265,6 +267,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="epochs of every stage (default: the learner's, or --config's; tailornet's split of its "
                         "stages over the processes follows each stage's epochs)")
     parser.add_argument("--config", type=Path, default=None, help="drape train --config of (b)")
+    parser.add_argument("--processes", default=None,
+                        help="(b), tailornet only: also train with these process counts (N or N,M,...) above the GPU "
+                        "count, the stages sharing the GPUs (process k on GPU k mod the GPU count)")
     parser.add_argument("--pack", action="store_true",
                         help="(b): world sizes that fit on the GPUs side by side run at once on disjoint GPUs")
     parser.add_argument("--ray-data", type=Path, default=None,
@@ -283,6 +288,13 @@ def main(argv: list[str] | None = None) -> int:
         args.gpus = sorted({int(n) for n in args.gpus.split(",")}) if args.gpus else [available or 2]
     except ValueError:
         parser.error(f"--gpus must be N or N,M,... (got {args.gpus!r})")
+    try:
+        args.processes = sorted({int(n) for n in args.processes.split(",")}) if args.processes else []
+    except ValueError:
+        parser.error(f"--processes must be N or N,M,... (got {args.processes!r})")
+    if args.processes and (args.learner != "tailornet" or min(args.processes) < 1):
+        parser.error(f"--processes is for --learner tailornet (its stages share GPUs), counts >= 1 (got "
+                     f"{args.processes} with --learner {args.learner})")
     if args.ray_data is not None and not (args.ray_data / "manifest.json").is_file():
         parser.error(f"--ray-data {args.ray_data} is not a dataset (no manifest.json)")
     # with --ray-data and no training, only the local run needs a GPU here

@@ -71,14 +71,22 @@ def test_packed_training_runs_share_no_gpu_and_report_each_stage(tmp_path, load_
         "    'visible': os.environ.get('CUDA_VISIBLE_DEVICES')}))\n")
     monkeypatch.setattr(bench, "_train_command",
                         lambda args, data, run, world: [sys.executable, str(fake), str(run), str(world)])
-    args = argparse.Namespace(learner="tailornet", gpus=[2, 4], pack=True, host_gpus=4, train_device="cuda",
-                              out=tmp_path / "out", epochs=None, config=None)
+    args = argparse.Namespace(learner="tailornet", gpus=[2, 4], processes=[5], pack=True, host_gpus=4,
+                              train_device="cuda", out=tmp_path / "out", epochs=None, config=None)
     args.out.mkdir()
     result = bench.bench_train(args, tmp_path)
-    info = {w: __import__("json").loads((args.out / f"train-w{w}" / "run.json").read_text()) for w in (1, 2, 4)}
-    assert [info[w]["visible"] for w in (1, 2, 4)] == ["0", "1,2", "0,1,2,3"]
+    info = {w: __import__("json").loads((args.out / f"train-w{w}" / "run.json").read_text()) for w in (1, 2, 4, 5)}
+    assert [info[w]["visible"] for w in (1, 2, 4, 5)] == ["0", "1,2", "0,1,2,3", "0,1,2,3"]
     assert info[1]["start"] < info[2]["end"] and info[2]["start"] < info[1]["end"], "1 and 2 side by side"
     assert info[4]["start"] >= max(info[1]["end"], info[2]["end"]), "4 after both"
+    assert info[5]["start"] >= info[4]["end"], "5 processes on the 4 GPUs after 4"
     runs = result["world_sizes"]
     assert runs[1]["stage_epoch_s"] == {"hf": 0.6, "lf": 2.0} and runs[1]["beside"] == [2] and runs[4]["beside"] == []
-    assert result["speedup_of"] == "run_s" and result["speedup"] == {1: 1.0, 2: 2.0, 4: 4.0}
+    assert result["speedup_of"] == "run_s" and result["speedup"] == {1: 1.0, 2: 2.0, 4: 4.0, 5: 5.0}
+
+
+def test_more_processes_than_gpus_only_for_tailornet(load_bench, capsys):
+    bench = load_bench("bench_scale_out")
+    with pytest.raises(SystemExit):
+        bench.main(["--device", "cpu", "--skip-generate", "--gpus", "2", "--processes", "3", "--learner", "baseline"])
+    assert "--processes is for --learner tailornet" in capsys.readouterr().err

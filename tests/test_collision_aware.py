@@ -440,6 +440,45 @@ def test_projection_quality_names_the_one_failed_frame() -> None:
     assert report["reconstruction_rms_mm"]["median"] < 1e-3
 
 
+def test_posed_term_on_reconstructions_joins_the_vae_loss_with_its_weight() -> None:
+    """vae.posed_collision: the loss with the posed term differs from the loss without it by the
+    weight times the term of the reconstructions, and its gradient reaches the decoder. The
+    stand-in for the posed body is a sphere larger than the canonical one, so garments clear in
+    the canonical space collide in it (as where an arm lies on the torso)."""
+    from learn.collision_aware.sdf import collision_penalty
+    from learn.collision_aware.vae import vae_loss
+    from learn.common.mesh import uniform_laplacian_torch
+
+    sdf, posed_body = SphereSDF(0.2), SphereSDF(0.25)
+    garments, faces = _patch_on_sphere(0.2, np.full((8, 100), 0.02))  # 2 cm outside the canonical sphere
+    torch.manual_seed(0)
+    vae = GarmentVAE(100, garments.mean(0).numpy(), 0.01, latent_size=4, hidden_size=16)
+    laplacian = uniform_laplacian_torch(faces, 100, boundary_aware=False)
+    seen = []
+
+    def posed(reconstruction: torch.Tensor) -> torch.Tensor:
+        seen.append(reconstruction.shape)
+        return collision_penalty(posed_body(reconstruction), 1e-3).mean()
+
+    results = {}
+    for w in (100.0, 0.0):
+        torch.manual_seed(1)
+        terms = vae_loss(vae, garments, laplacian=laplacian, sdf=sdf, weights={"laplacian": 1.0, "collision": 10.0,
+                         "kl": 1e-3, "random_collision": 0.0, "posed_collision": w}, epsilon_m=2e-3,
+                         random_samples=0, posed=posed)
+        vae.zero_grad()
+        terms["loss"].backward()
+        results[w] = (float(terms["loss"].detach()), float(terms["posed_collision"].detach()),
+                      [q.grad.clone() for q in vae.decoder.parameters()])
+    assert seen[0] == garments.shape, "the term sees the batch's reconstructions"
+    assert results[100.0][1] > 0.02, "the reconstructions lie inside the posed stand-in"
+    assert results[100.0][0] == pytest.approx(results[0.0][0] + 100.0 * results[100.0][1], rel=1e-5)
+    assert sum(float((a - b).abs().sum()) for a, b in zip(results[100.0][2], results[0.0][2])) > 0
+    terms = vae_loss(vae, garments, laplacian=laplacian, sdf=sdf, weights={"laplacian": 1.0, "collision": 10.0,
+                     "kl": 1e-3}, epsilon_m=2e-3, random_samples=0)
+    assert float(terms["posed_collision"]) == 0.0, "no posed term without posed="
+
+
 def test_self_supervised_term_pushes_random_samples_out_of_the_body() -> None:
     """The term on decoded random latents is what trains the decoder away from the body where
     there is no data: with training garments outside the body and a decoder whose random samples
@@ -539,7 +578,7 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     headers = {stage: (run / f"{stage}_loss.csv").read_text().splitlines()[0] for stage in ("fields", "vae", "regressor")}
     assert headers == {"fields": "epoch,train_l1,seconds", "vae": "epoch,train_l1_m,seconds",
                        "regressor": "epoch,train_l1_m,seconds"}, headers
-    # the posed-space collision term: the regressor alone retrained on the run's fields, SDF and VAE
+    # the posed-space collision term: the VAE and the regressor retrained with it on the run's fields and SDF
     import shutil
 
     import yaml
@@ -547,15 +586,19 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     posed_run = tmp_path / "posed"
     posed_run.mkdir()
     for path in run.iterdir():
-        if path.name.split(".")[0] in ("fields", "sdf", "vae"):
+        if path.name.split(".")[0] in ("fields", "sdf"):
             shutil.copy(path, posed_run / path.name)
     posed = yaml.safe_load(open(config))
     posed["regressor"]["posed_collision"] = 100.0
+    posed["vae"]["posed_collision"] = 100.0
     (tmp_path / "posed.yaml").write_text(yaml.safe_dump(posed))
     assert main(["train", "collision-aware", "--data", str(data), "--out", str(posed_run), "--config",
                  str(tmp_path / "posed.yaml"), "--epochs", "2", "--no-progress"]) == 0
     assert (posed_run / "regressor_loss.csv").read_text().splitlines()[0] == "epoch,train_loss_m,seconds"
     assert (posed_run / "fields.pt").read_bytes() == (run / "fields.pt").read_bytes(), "the copied stages are kept"
+    vae_terms = json.loads((posed_run / "vae_terms.json").read_text())
+    assert np.isfinite(vae_terms["posed_collision"]) and vae_terms["posed_collision"] >= 0.0, vae_terms
+    assert json.loads((run / "vae_terms.json").read_text())["posed_collision"] == 0.0, "off by default"
 
     coarser = yaml.safe_load(open(config))
     coarser["sdf"]["voxel_m"] = 0.04

@@ -82,7 +82,7 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     "vae": {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 32, "epochs": 300, "hidden_size": 512,
             "latent_size": LATENT_SIZE, "laplacian": 1.0, "collision": 100.0, "random_collision": 1.0, "kl": 1e-5,
             "epsilon_m": 2e-3, "random_samples": 32, "random_latents": "prior", "lr_schedule": "constant",
-            "lr_final": 0.01},
+            "lr_final": 0.01, "posed_collision": 0.0, "posed_epsilon_m": 1.0e-3},
     # kind: auto | gru | mlp. target: auto | latent (seed Eq. 18) | canonical (mlp only: L1 of the
     # decoded garment against the projection); auto is canonical for the mlp (4-8 % lower error at
     # scale, docs/learners/collision_aware.md "The defaults at scale") and latent for the gru.
@@ -213,13 +213,28 @@ def _frozen(module: torch.nn.Module) -> torch.nn.Module:
 
 def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: str | Path,
               hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None, device: str = "cpu",
-              seed: int = 0, progress: bool = True, checkpoint_interval_s: float = 60.0) -> GarmentVAE:
+              seed: int = 0, progress: bool = True, checkpoint_interval_s: float = 60.0,
+              posed: PosedCollision | None = None, pose: np.ndarray | None = None,
+              shape: np.ndarray | None = None) -> GarmentVAE:
     """Fit the garment VAE (stage ``vae``) to canonical garments [m] (N, V, 3) on ``faces``;
-    ``sdf``: points (..., 3) -> signed distance of the canonical body [m] (frozen)."""
+    ``sdf``: points (..., 3) -> signed distance of the canonical body [m] (frozen). With
+    ``hyperparameters["posed_collision"]`` = w > 0, w times the posed-space collision hinge [m]
+    of each reconstruction, posed by ``posed`` with its frame's ``pose`` (N, P) and ``shape``
+    (N, S), joins the loss: the decoder learns garments that stay clear of the body where its
+    parts touch, which no canonical-space term sees."""
     hyper = dict(hyperparameters)
     x = torch.as_tensor(np.asarray(canonical, np.float32), device=device)
     if x.ndim != 3 or x.shape[0] == 0:
         raise ValueError(f"canonical garments must have shape (N, V, 3) with N >= 1, got {tuple(x.shape)}")
+    posed_weight = float(hyper.get("posed_collision", 0.0))
+    if posed_weight > 0 and (posed is None or pose is None or shape is None):
+        raise ValueError("vae.posed_collision poses the reconstructions: it needs a PosedCollision and the frames' "
+                         "poses and shapes")
+    if posed_weight > 0:
+        pose_t, shape_t = (torch.as_tensor(np.asarray(a, np.float32), device=device) for a in (pose, shape))
+        if pose_t.shape[0] != x.shape[0] or shape_t.shape[0] != x.shape[0]:
+            raise ValueError(f"pose and shape need one row per canonical garment ({x.shape[0]}), "
+                             f"got {pose_t.shape[0]} and {shape_t.shape[0]}")
     mean = x.mean(0)
     scale = float((x - mean).std()) or 1e-3
     torch.manual_seed(seed)
@@ -227,6 +242,7 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
                      hidden_size=int(hyper["hidden_size"]))
     laplacian = uniform_laplacian_torch(faces, x.shape[1], boundary_aware=False, device=device)
     weights = {k: float(hyper[k]) for k in ("laplacian", "collision", "random_collision", "kl")}
+    weights["posed_collision"] = posed_weight
     batch_size = int(hyper["batch_size"])
     log_rows: list[dict[str, float]] = []
 
@@ -235,9 +251,11 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
         sums: dict[str, torch.Tensor] = {}  # on the device: one read per epoch, not a sync per step
         for begin in range(0, x.shape[0], batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
+            posed_term = None if posed_weight <= 0 else (
+                lambda garment, rows=batch: posed(garment, pose_t[rows], shape_t[rows]))
             terms = vae_loss(net, x[batch], laplacian=laplacian, sdf=sdf, weights=weights,
                              epsilon_m=float(hyper["epsilon_m"]), random_samples=int(hyper["random_samples"]),
-                             latents=str(hyper["random_latents"]))
+                             latents=str(hyper["random_latents"]), posed=posed_term)
             optimizer.zero_grad(set_to_none=True)
             terms["loss"].backward()
             optimizer.step()
@@ -521,8 +539,11 @@ def fit_collision_aware(
             f"max {rms['max']:.1f} mm; {quality['frames_over_50mm']} of {quality['frames']} frames over 50 mm")
         (run_dir / "projection.json").write_text(json.dumps({**info, "quality": quality}, indent=2))
 
+    vae_posed = None
+    if float(hyper["vae"]["posed_collision"]) > 0:
+        vae_posed = PosedCollision(body, fields, epsilon_m=float(hyper["vae"]["posed_epsilon_m"]), device=device)
     vae = train_vae(canonical, faces, sdf, hyperparameters=hyper["vae"], seed=seed + 2, checkpoint_interval_s=interval,
-                    **common)
+                    posed=vae_posed, pose=data.pose, shape=data.shape, **common)
     vae = _frozen(vae)
     with torch.no_grad():
         latent = torch.cat([vae.encode(torch.as_tensor(canonical[i:i + 256], device=device))[0]

@@ -99,7 +99,8 @@ def random_latents(mu: torch.Tensor, count: int, source: str) -> torch.Tensor:
 
 def vae_loss(vae: GarmentVAE, canonical: torch.Tensor, *, laplacian: torch.Tensor,
              sdf: Callable[[torch.Tensor], torch.Tensor], weights: dict[str, float], epsilon_m: float,
-             random_samples: int, latents: str = "prior") -> dict[str, torch.Tensor]:
+             random_samples: int, latents: str = "prior",
+             posed: Callable[[torch.Tensor], torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
     """Terms of Eq. 13 on a batch X [m] (B, V, 3) and their weighted sum ``loss``.
 
     laplacian: uniform Laplacian, sparse (V, V); sdf: points (..., 3) -> signed distance (...);
@@ -107,6 +108,9 @@ def vae_loss(vae: GarmentVAE, canonical: torch.Tensor, *, laplacian: torch.Tenso
     (the self-supervised term's weight relative to lambda_2; 0 turns it off);
     random_samples: latents decoded per batch for it, drawn as ``latents`` says
     (:func:`random_latents`: ``prior`` or ``batch``).
+    posed: reconstructions (B, V, 3) -> the posed-space collision hinge [m] of the batch's frames
+    (:class:`learn.collision_aware.posed_collision.PosedCollision` with their poses and shapes),
+    added with weight ``weights["posed_collision"]``; None: the term is 0.
     Reconstruction, Laplacian and collision terms are in metres (L1 per vertex, mean over
     vertices and frames), KL in nats per frame.
     """
@@ -126,6 +130,8 @@ def vae_loss(vae: GarmentVAE, canonical: torch.Tensor, *, laplacian: torch.Tenso
         terms["random_collision"] = collision_penalty(sdf(vae.decode(z)), epsilon_m).mean()
     else:
         terms["random_collision"] = torch.zeros((), device=canonical.device)
+    terms["posed_collision"] = posed(reconstruction) if posed is not None else torch.zeros((), device=canonical.device)
     terms["loss"] = (rec + weights["laplacian"] * lap_term + weights["kl"] * kl
-                     + weights["collision"] * (collision + weights.get("random_collision", 1.0) * terms["random_collision"]))
+                     + weights["collision"] * (collision + weights.get("random_collision", 1.0) * terms["random_collision"])
+                     + weights.get("posed_collision", 0.0) * terms["posed_collision"])
     return terms
