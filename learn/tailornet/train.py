@@ -861,13 +861,11 @@ def train_hf(
     if stacked is None:
         stacked = bool(hyper["hf"]["stacked"])
     stage = "hf" if part is None else hf_part_stage(*part)
+    # a finished stage loads from its checkpoint: no low-frequency split needed
     finished = stacked and stage_finished(run_dir, stage, int(hyper["hf"]["epochs"]))
-    if finished:
-        pass  # loads from its checkpoint: no low-frequency split needed
-    elif is_streamed(data):
-        if not data.low_frequency_ready:
-            raise ValueError("the streamed split's low-frequency cache is not prepared: call data.prepare_low_frequency()")
-    elif data.low_frequency is None:
+    if not finished and is_streamed(data) and not data.low_frequency_ready:
+        raise ValueError("the streamed split's low-frequency cache is not prepared: call data.prepare_low_frequency()")
+    if not finished and not is_streamed(data) and data.low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     frames_per_prototype = []
     for pair in np.asarray(prototype_pairs).reshape(-1):
@@ -1181,12 +1179,10 @@ def fit_tailornet(
         epochs = int(hyper["lf" if stage == "lf" else "hf"]["epochs"])
         # trained before, or by another process: it loads from its checkpoint, no split to prepare
         ready = (stage == "lf" or bool(hyper["hf"]["stacked"])) and stage_finished(run_dir, stage, epochs)
-        if ready:
-            pass
-        elif is_streamed(data):
+        if not ready and is_streamed(data):
             if not data.low_frequency_ready:
                 data.prepare_low_frequency(device)
-        elif data.low_frequency is None:
+        elif not ready and data.low_frequency is None:
             add_low_frequency(
                 data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
                 iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
