@@ -219,9 +219,9 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     # generated on N GPUs with Ray (generate_full; LEARN_DATA=DIR: an existing dataset), with GPU_TESTS
     # (pytest paths, e.g. the CUDA cases of tests/test_collision_aware.py) on GPU 0 beside it; then
     # bench_scale_out.py --pack over TRAIN_GPUS (default 2,N) and TRAIN_PROCESSES (tailornet: process
-    # counts above N, sharing the GPUs) with LEARNER (default tailornet): 1 and
-    # 2 processes side by side on GPUs 0 and 1-2, then N; then each run evaluated, the runs side by
-    # side on their own GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json.
+    # counts above N, sharing the GPUs) with LEARNER (default tailornet): 1 and 2 processes side by
+    # side on GPUs 0 and 1-2, then N; then each run evaluated, the runs side by side on their own
+    # GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json.
     gpus=${2:-4}
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
     if [ -z "${LEARN_DATA:-}" ]; then
