@@ -152,13 +152,18 @@ def ray_from_dataset(ray_out: Path, local_out: Path, local: dict) -> dict:
     return {run["gpus"]: run}
 
 
+def _logged_seconds(path: Path) -> list[float]:
+    """The ``seconds`` column of a stage's loss log: one value per epoch."""
+    with path.open() as fh:
+        return [float(row["seconds"]) for row in csv.DictReader(fh)]
+
+
 def _epoch_seconds(run: Path, stage: str) -> list[float]:
     """Seconds of each epoch of ``stage`` (of its first part where hf was split over processes)."""
     path = run / f"{stage}_loss.csv"
     if not path.is_file():
         path = min(run.glob(f"{stage}_1of*_loss.csv"))
-    with path.open() as fh:
-        return [float(row["seconds"]) for row in csv.DictReader(fh)]
+    return _logged_seconds(path)
 
 
 def stage_epoch_seconds(run: Path) -> dict[str, float]:
@@ -166,8 +171,7 @@ def stage_epoch_seconds(run: Path) -> dict[str, float]:
     (or hf part) that logged a ``<stage>_loss.csv`` into ``run``."""
     means = {}
     for path in sorted(run.glob("*_loss.csv")):
-        with path.open() as fh:
-            seconds = [float(row["seconds"]) for row in csv.DictReader(fh)]
+        seconds = _logged_seconds(path)
         timed = seconds[1:] or seconds
         if timed:
             means[path.name[: -len("_loss.csv")]] = round(sum(timed) / len(timed), 4)

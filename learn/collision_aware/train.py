@@ -227,10 +227,10 @@ def train_vae(canonical: np.ndarray, faces: np.ndarray, sdf: Any, *, run_dir: st
     if x.ndim != 3 or x.shape[0] == 0:
         raise ValueError(f"canonical garments must have shape (N, V, 3) with N >= 1, got {tuple(x.shape)}")
     posed_weight = float(hyper.get("posed_collision", 0.0))
-    if posed_weight > 0 and (posed is None or pose is None or shape is None):
-        raise ValueError("vae.posed_collision poses the reconstructions: it needs a PosedCollision and the frames' "
-                         "poses and shapes")
     if posed_weight > 0:
+        if posed is None or pose is None or shape is None:
+            raise ValueError("vae.posed_collision poses the reconstructions: it needs a PosedCollision and the "
+                             "frames' poses and shapes")
         pose_t, shape_t = (torch.as_tensor(np.asarray(a, np.float32), device=device) for a in (pose, shape))
         if pose_t.shape[0] != x.shape[0] or shape_t.shape[0] != x.shape[0]:
             raise ValueError(f"pose and shape need one row per canonical garment ({x.shape[0]}), "
@@ -539,11 +539,15 @@ def fit_collision_aware(
             f"max {rms['max']:.1f} mm; {quality['frames_over_50mm']} of {quality['frames']} frames over 50 mm")
         (run_dir / "projection.json").write_text(json.dumps({**info, "quality": quality}, indent=2))
 
-    vae_posed = None
-    if float(hyper["vae"]["posed_collision"]) > 0:
-        vae_posed = PosedCollision(body, fields, epsilon_m=float(hyper["vae"]["posed_epsilon_m"]), device=device)
+    def posed_term(stage: str) -> PosedCollision | None:
+        # the posed-space collision term of a stage whose posed_collision weight is on
+        settings = hyper[stage]
+        if float(settings["posed_collision"]) <= 0:
+            return None
+        return PosedCollision(body, fields, epsilon_m=float(settings["posed_epsilon_m"]), device=device)
+
     vae = train_vae(canonical, faces, sdf, hyperparameters=hyper["vae"], seed=seed + 2, checkpoint_interval_s=interval,
-                    posed=vae_posed, pose=data.pose, shape=data.shape, **common)
+                    posed=posed_term("vae"), pose=data.pose, shape=data.shape, **common)
     vae = _frozen(vae)
     with torch.no_grad():
         latent = torch.cat([vae.encode(torch.as_tensor(canonical[i:i + 256], device=device))[0]
@@ -553,12 +557,9 @@ def fit_collision_aware(
                                               hyperparameters=hyper["regressor"], seed=seed + 3,
                                               checkpoint_interval_s=interval, **common)
     else:
-        posed = None
-        if float(hyper["regressor"]["posed_collision"]) > 0:
-            posed = PosedCollision(body, fields, epsilon_m=float(hyper["regressor"]["posed_epsilon_m"]), device=device)
         regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
-                                    checkpoint_interval_s=interval, vae=vae, canonical=canonical, posed=posed,
-                                    **common)
+                                    checkpoint_interval_s=interval, vae=vae, canonical=canonical,
+                                    posed=posed_term("regressor"), **common)
     spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
     model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
     save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})

@@ -1065,16 +1065,21 @@ def stage_finished(run_dir: str | os.PathLike[str], stage: str, epochs: int) -> 
         return False
 
 
-def wait_for_stage(run_dir: str | os.PathLike[str], stage: str, epochs: int, timeout_s: float,
-                   poll_s: float = 1.0) -> bool:
-    """Wait until ``stage`` has finished ``epochs`` epochs in ``run_dir`` (:func:`stage_finished`;
-    another process trains it), at most ``timeout_s`` seconds. Returns whether it finished."""
+def _wait_until(done: Callable[[], bool], timeout_s: float, poll_s: float = 1.0) -> bool:
+    """Poll ``done`` every ``poll_s`` seconds for at most ``timeout_s``; whether it came true."""
     deadline = time.monotonic() + max(0.0, timeout_s)
-    while not stage_finished(run_dir, stage, epochs):
+    while not done():
         if time.monotonic() >= deadline:
             return False
         time.sleep(min(poll_s, max(0.0, deadline - time.monotonic())))
     return True
+
+
+def wait_for_stage(run_dir: str | os.PathLike[str], stage: str, epochs: int, timeout_s: float,
+                   poll_s: float = 1.0) -> bool:
+    """Wait until ``stage`` has finished ``epochs`` epochs in ``run_dir`` (:func:`stage_finished`;
+    another process trains it), at most ``timeout_s`` seconds. Returns whether it finished."""
+    return _wait_until(lambda: stage_finished(run_dir, stage, epochs), timeout_s, poll_s)
 
 
 def fit_tailornet(
@@ -1219,11 +1224,8 @@ def fit_tailornet(
 
     markers = [marker for unit in units if unit not in trained for marker in unit_markers(unit)]
     waited = time.monotonic()
-    deadline = waited + max(0.0, wait_timeout_s)
-    while not all(m.exists() for m in markers):
-        if time.monotonic() >= deadline:
-            return None
-        time.sleep(min(1.0, max(0.0, deadline - time.monotonic())))
+    if not _wait_until(lambda: all(m.exists() for m in markers), wait_timeout_s):
+        return None
     if markers:
         print(f"{who}tailornet: waited {time.monotonic() - waited:.1f} s for the other processes' stages", flush=True)
     assembling = time.perf_counter()
