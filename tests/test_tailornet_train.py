@@ -378,6 +378,8 @@ def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -
     with pytest.raises(ValueError, match="unknown TailorNet stages"):
         fit_tailornet(train, faces, run_dir=tmp_path / "bad", stages=["hf_1of3"], hf_parts=2, **fit)
     assert fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["hf_2of2"], hf_parts=2, **fit) is None
+    # the part smoothed its own prototypes' frames, not the whole split's (which LF needs, not it)
+    assert train.low_frequency is None, "an hf part computed the low-frequency split of every frame"
     model = fit_tailornet(train, faces, run_dir=tmp_path / "ranks", stages=["shape_style", "lf", "hf_1of2"],
                           hf_parts=2, **fit)
     # a process other than rank 0 never writes the model, even with every stage finished (ranks
@@ -526,6 +528,43 @@ def test_crash_resumes_from_last_checkpoint(tmp_path: Path, interval_s: float, e
     rows = (tmp_path / "stage_loss.csv").read_text().strip().splitlines()[1:]
     assert [r.split(",")[0] for r in rows] == ["1", "2", "3", "4"], rows
     assert load_checkpoint(path)["epoch"] == 4 and (tmp_path / "stage.done").exists()
+
+
+def test_finished_stage_loads_its_weights_without_the_optimizer_state(tmp_path: Path, monkeypatch) -> None:
+    """Loading a finished stage (as rank 0 does with the stages other processes trained) gives
+    the trained weights and never reads the optimizer's moments; a stage with epochs left
+    resumes with them."""
+    from learn.tailornet.train import run_epochs
+
+    def fresh() -> torch.nn.Module:
+        torch.manual_seed(0)
+        return low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
+
+    hyper = {"lr": 1e-2, "weight_decay": 0.0, "batch_size": 1, "epochs": 3, "checkpoint_interval_s": 0.0}
+    trained = run_epochs("stage", fresh(), lambda m, o, g: _one_step(m, o), run_dir=tmp_path, hyperparameters=hyper,
+                         fingerprint=None, progress=False)
+    loaded_optimizer_states = []
+    original = torch.optim.Adam.load_state_dict
+
+    def recording(self: torch.optim.Optimizer, state: dict) -> None:
+        loaded_optimizer_states.append(state)
+        original(self, state)
+
+    monkeypatch.setattr(torch.optim.Adam, "load_state_dict", recording)
+
+    def no_epoch(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        raise AssertionError("a finished stage ran an epoch")
+
+    loaded = run_epochs("stage", fresh(), no_epoch, run_dir=tmp_path, hyperparameters=hyper, fingerprint=None,
+                        progress=False)
+    for name, value in trained.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], value), name
+    assert not all(torch.equal(value, fresh().state_dict()[name]) for name, value in trained.state_dict().items()), \
+        "the training changed no weight: the comparison would not tell loaded from fresh"
+    assert loaded_optimizer_states == [], "a finished stage read its optimizer's state"
+    run_epochs("stage", fresh(), lambda m, o, g: _one_step(m, o), run_dir=tmp_path,
+               hyperparameters={**hyper, "epochs": 4}, fingerprint=None, progress=False)
+    assert len(loaded_optimizer_states) == 1 and loaded_optimizer_states[0]["state"], "the resume lost Adam's moments"
 
 
 def test_slow_checkpoints_are_spaced_by_their_own_duration(tmp_path: Path, monkeypatch) -> None:

@@ -370,12 +370,15 @@ def atomic_save(obj: Any, path: Path) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: str | os.PathLike[str], *, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Read a checkpoint written by this module."""
+def load_checkpoint(path: str | os.PathLike[str], *, map_location: str | torch.device = "cpu",
+                    mmap: bool = False) -> dict[str, Any]:
+    """Read a checkpoint written by this module. ``mmap``: the tensors stay in the file (mapped,
+    ``map_location`` must then be the CPU) and are read only where used, e.g. a finished stage's
+    weights without its optimizer's moments (two thirds of an Adam checkpoint)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    return torch.load(path, map_location=map_location, weights_only=True)
+    return torch.load(path, map_location=map_location, weights_only=True, mmap=mmap)
 
 
 def autocast(device: str | torch.device, enabled: bool) -> torch.autocast:
@@ -483,7 +486,9 @@ def run_epochs(
     )
     start_epoch = 0
     if checkpoint_path.exists():
-        checkpoint = load_checkpoint(checkpoint_path, map_location=device)
+        # mapped, not read: a finished stage (e.g. trained by another process, loaded to assemble
+        # the model) reads its weights only; the optimizer's state is read when epochs are left
+        checkpoint = load_checkpoint(checkpoint_path, mmap=True)
         check_fingerprint(checkpoint.get("fingerprint"), fingerprint, source=str(checkpoint_path))
         if checkpoint["model_config"] != model.config:
             raise ValueError(
@@ -491,9 +496,11 @@ def run_epochs(
                 f"not {model.config}: use a new run directory for a new configuration"
             )
         model.load_state_dict(checkpoint["model_state"])
-        optimizer.load_state_dict(checkpoint["optimizer_state"])
-        _set_rng_state(checkpoint["rng_state"], generator)
         start_epoch = int(checkpoint["epoch"])
+        if start_epoch < epochs:
+            optimizer.load_state_dict(checkpoint["optimizer_state"])  # moved to the parameters' device
+        _set_rng_state(checkpoint["rng_state"], generator)
+        del checkpoint  # unmaps the file
     if start_epoch > epochs:
         raise ValueError(f"{checkpoint_path} already holds {start_epoch} epochs, more than epochs={epochs}")
     parallel = distributed.active()
@@ -839,6 +846,7 @@ def train_hf(
     progress: bool = True,
     stacked: bool | None = None,
     part: tuple[int, int] | None = None,
+    fill_low_frequency: Callable[[FrameArrays], Any] | None = None,
 ) -> HighFrequencyPrototypes:
     """Train one D_HF(pose) per prototype pair on that pair's frames, target D - D_LF.
 
@@ -851,6 +859,10 @@ def train_hf(
     (:func:`hf_part_members`), stacked as stage ``hf_<i+1>of<P>`` (:func:`hf_part_stage`) with
     the batches the whole stage would give them, or as their own ``hf_kk`` stages; the P parts,
     trained by different processes, make the K prototypes (``HighFrequencyPrototypes.cat``).
+
+    ``fill_low_frequency(frames)`` (e.g. :func:`add_low_frequency` with the model's smoothing)
+    fills ``low_frequency`` of in-memory frames that have none, called on the frames this call
+    trains on only (a part's prototypes' frames: the smoothing of the others' is not needed).
 
     A streamed split (:class:`learn.streamed_split.StreamedSplit`, after its
     ``prepare_low_frequency``) gives the prototype pairs' frames only, read into memory: every
@@ -865,7 +877,7 @@ def train_hf(
     finished = stacked and stage_finished(run_dir, stage, int(hyper["hf"]["epochs"]))
     if not finished and is_streamed(data) and not data.low_frequency_ready:
         raise ValueError("the streamed split's low-frequency cache is not prepared: call data.prepare_low_frequency()")
-    if not finished and not is_streamed(data) and data.low_frequency is None:
+    if not finished and not is_streamed(data) and data.low_frequency is None and fill_low_frequency is None:
         raise ValueError("data.low_frequency is None: call add_low_frequency(data, faces) first")
     frames_per_prototype = []
     for pair in np.asarray(prototype_pairs).reshape(-1):
@@ -893,6 +905,8 @@ def train_hf(
             # their lengths (their random orders are still drawn, so the members see the batches
             # the whole stage gives them) but point nowhere they are read
             data, frames_per_prototype = _member_frames(data, frames_per_prototype, members)
+        if not finished and not is_streamed(data) and data.low_frequency is None:
+            fill_low_frequency(data)
         return train_stacked_prototypes(
             HighFrequencyPrototypes.from_mlps([initial[k] for k in members]), data,
             None if finished else data.displacements - data.low_frequency, frames_per_prototype, run_dir=run_dir,
@@ -903,6 +917,8 @@ def train_hf(
     for k in members:
         frames, model = frames_per_prototype[k], initial[k]
         subset = data.subset(frames)
+        if subset.low_frequency is None:
+            fill_low_frequency(subset)
         models.append(
             train_stage(
                 f"hf_{k:02d}", model, subset, subset.displacements - subset.low_frequency, run_dir=run_dir,
@@ -1178,6 +1194,10 @@ def fit_tailornet(
         run_dir=run_dir, hyperparameters=hyperparameters, fingerprint=fingerprint, device=device, progress=progress
     )
 
+    def smooth(frames: FrameArrays) -> FrameArrays:
+        return add_low_frequency(frames, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
+                                 iterations=int(hyper["model"]["smoothing_iterations"]), device=device)
+
     def train(stage: str) -> torch.nn.Module:
         if stage == "shape_style":
             return train_shape_style(data, canonical_pose=canonical_pose, canonical=canonical, seed=seed, **common)
@@ -1187,17 +1207,16 @@ def fit_tailornet(
         if not ready and is_streamed(data):
             if not data.low_frequency_ready:
                 data.prepare_low_frequency(device)
-        elif not ready and data.low_frequency is None:
-            add_low_frequency(
-                data, faces, smoothness=float(hyper["model"]["smoothing_lambda"]),
-                iterations=int(hyper["model"]["smoothing_iterations"]), device=device,
-            )
         if stage == "lf":
+            if not ready and not is_streamed(data) and data.low_frequency is None:
+                smooth(data)
             lf_data = data if ready or is_streamed(data) else with_canonical_frames(data, canonical, repeat, faces,
                                                                                     hyper, device)
             return train_lf(lf_data, pose_indices, seed=seed + 1000, **common)
         part = None if stage == "hf" else (parts.index(stage), hf_parts)
-        return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, part=part, **common)
+        # in memory, an hf part smooths its own prototypes' frames only (when LF has not smoothed them all)
+        return train_hf(data, pose_indices, choice.indices, seed=seed + 2000, part=part, fill_low_frequency=smooth,
+                        **common)
 
     units = [s for s in TAILORNET_STAGES if s != "hf"] + (parts or ["hf"])
     who = f"[rank {distributed.rank()}] " if distributed.env_world_size() > 1 else ""
