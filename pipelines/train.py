@@ -174,9 +174,8 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, entry) -> int:
     from data_manifest.reader import DatasetReader
     from learn.data import DrapeDataset
-    from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_baseline, fit_tailornet,
-                                       frame_arrays_from_dataset, garment_pose_indices, hf_parts_for,
-                                       merged_hyperparameters, stages_for_rank, wait_for_stage)
+    from learn.tailornet.train import (DEFAULT_HYPERPARAMETERS, dataset_fingerprint, fit_tailornet_process,
+                                       frame_arrays_from_dataset, garment_pose_indices)
     from simulate.body import load_body_model
 
     check_number(args.seed, "--seed", minimum=0, integer=True)
@@ -241,21 +240,8 @@ def _run(args: argparse.Namespace, entry) -> int:
     common = dict(run_dir=out, pose_indices=pose_indices, canonical_pose=body.canonical_pose, hyperparameters=hyper,
                   fingerprint=fingerprint, device=args.device, seed=args.seed, progress=not args.no_progress)
     if args.learner == "tailornet":
-        # the stages (hf possibly in parts of its prototypes) spread over the processes
-        stages = stages_for_rank(rank, world, hyper) if world > 1 else None
-        tn_stages = None if stages is None else [s for s in stages if s != "baseline"]
-        if tn_stages is None or tn_stages or rank == 0:
-            fit_tailornet(data, template["faces"], stages=tn_stages, wait_timeout_s=3600.0 if world > 1 else 0.0,
-                          hf_parts=hf_parts_for(world, hyper) if world > 1 else 1, canonical=canonical,
-                          assemble=rank == 0, **common)
-        if stages is None or "baseline" in stages:
-            begun = time.perf_counter()
-            fit_baseline(data, template["faces"], canonical=canonical, **common)
-            who = f"[rank {rank}] " if world > 1 else ""
-            print(f"{who}baseline: {time.perf_counter() - begun:.1f} s", flush=True)
-        elif rank == 0:
-            # run.json's time covers every process's stages: rank 0 waits for the baseline trained elsewhere
-            wait_for_stage(out, "baseline", int(merged_hyperparameters(hyper)["baseline"]["epochs"]), timeout_s=3600.0)
+        # the stages (hf possibly in parts of its prototypes) spread over the processes; rank 0 assembles
+        fit_tailornet_process(data, template["faces"], rank=rank, world_size=world, canonical=canonical, **common)
     else:
         extra = {} if entry.context is None else entry.context(
             reader=reader, dataset=dataset, body=body, body_spec={"backend": body.name, "path": body_spec.get("path")},

@@ -34,6 +34,7 @@ from learn.tailornet.train import (
     file_sha256,
     fit_baseline,
     fit_tailornet,
+    fit_tailornet_process,
     frame_arrays_from_split,
     load_learner,
     merged_hyperparameters,
@@ -400,6 +401,46 @@ def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -
     test, _ = make_frames(1, 6, _pairs())
     np.testing.assert_allclose(predict_displacements(model, test.pose, test.shape, test.style),
                                predict_displacements(alone, test.pose, test.shape, test.style), atol=1e-5, rtol=0)
+
+
+def test_rank_zero_trains_its_baseline_before_it_waits(tmp_path: Path) -> None:
+    """With the paper's epoch ratios on 2 processes rank 0 has half of hf and the baseline. It
+    trains both while the other process has not even started, and only then waits for the other's
+    stages and assembles (waiting first would leave it idle, then train the baseline alone: ~60 s
+    of the 2-GPU run on the full t-shirt spec). The other rank writes no model; rank 0's equals one
+    process's."""
+    import threading
+
+    train, faces = make_frames(0, 12, _pairs())
+    hyper = {"lf": {**HYPER["lf"], "epochs": 2}, "hf": {**HYPER["hf"], "epochs": 16},
+             "shape_style": {**HYPER["shape_style"], "epochs": 8}, "baseline": {**HYPER["baseline"], "epochs": 2},
+             "model": HYPER["model"]}
+    hyper = {k: {**v, "dropout": 0.0} if k != "model" else v for k, v in hyper.items()}
+    assert stages_for_rank(0, 2, hyper) == ["hf_1of2", "baseline"], stages_for_rank(0, 2, hyper)
+    common = dict(run_dir=tmp_path / "run", hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False)
+    result: dict = {}
+    rank0 = threading.Thread(target=lambda: result.update(
+        model=fit_tailornet_process(train, faces, rank=0, world_size=2, wait_timeout_s=120.0, **common)))
+    rank0.start()
+    assert _wait_for(lambda: (tmp_path / "run" / "baseline.done").exists(), 60.0), "rank 0 never trained its baseline"
+    assert rank0.is_alive() and not (tmp_path / "run" / "tailornet_model.pt").exists()
+    assert fit_tailornet_process(train, faces, rank=1, world_size=2, **common) is None
+    rank0.join(120.0)
+    assert not rank0.is_alive() and result["model"] is not None
+    alone = fit_tailornet_process(train, faces, rank=0, world_size=1, **{**common, "run_dir": tmp_path / "alone"})
+    assert (tmp_path / "alone" / "baseline.done").exists()
+    test, _ = make_frames(1, 6, _pairs())
+    np.testing.assert_allclose(predict_displacements(result["model"], test.pose, test.shape, test.style),
+                               predict_displacements(alone, test.pose, test.shape, test.style), atol=1e-5, rtol=0)
+
+
+def _wait_for(condition, timeout_s: float) -> bool:
+    end = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.05)
+    return True
 
 
 def test_stages_split_over_processes_assemble_the_same_model(trained: dict, tmp_path: Path) -> None:

@@ -1296,6 +1296,52 @@ def fit_baseline(
     )
 
 
+def fit_tailornet_process(
+    data: FrameArrays,
+    faces: np.ndarray,
+    *,
+    rank: int,
+    world_size: int,
+    wait_timeout_s: float = 3600.0,
+    canonical: FrameArrays | None = None,
+    **common: Any,
+) -> TailorNet | None:
+    """What process ``rank`` of a stage-parallel run of ``world_size`` processes trains: its
+    stages (:func:`stages_for_rank`) of TailorNet and, where it has it, the baseline. Rank 0 then
+    assembles and saves the model once every stage is done, waiting for the others' (and for the
+    baseline, so that the run's time covers every process); the others return None.
+
+    A process trains all its own stages before it waits: rank 0 with the baseline trains it first,
+    rather than idle while the others finish and then alone. ``common``: :func:`fit_tailornet`'s
+    keyword arguments (``run_dir``, ``hyperparameters``, ``device``, ...). ``world_size`` 1 trains
+    everything in one process: TailorNet (assembled) then the baseline."""
+    hyper = common.get("hyperparameters")
+    stages = stages_for_rank(rank, world_size, hyper)
+    parallel = dict(hf_parts=hf_parts_for(world_size, hyper), canonical=canonical, wait_timeout_s=wait_timeout_s)
+    who = f"[rank {rank}] " if world_size > 1 else ""
+    model = None
+    if world_size == 1:
+        model = fit_tailornet(data, faces, canonical=canonical, **common)
+    elif [s for s in stages if s != "baseline"]:
+        model = fit_tailornet(data, faces, stages=[s for s in stages if s != "baseline"], assemble=False,
+                              **parallel, **common)
+    if "baseline" in stages:
+        begun = time.perf_counter()
+        fit_baseline(data, faces, canonical=canonical, **common)
+        print(f"{who}baseline: {time.perf_counter() - begun:.1f} s", flush=True)
+    if rank != 0 or world_size == 1:
+        return model if world_size == 1 else None
+    # every stage is now another process's or finished here: they load from their checkpoints
+    model = fit_tailornet(data, faces, stages=[], **parallel, **common)
+    if model is None:
+        raise TimeoutError(f"the stages of the other processes did not finish within {wait_timeout_s} s")
+    if "baseline" not in stages:
+        epochs = int(merged_hyperparameters(hyper)["baseline"]["epochs"])
+        if not wait_for_stage(common["run_dir"], "baseline", epochs, timeout_s=wait_timeout_s):
+            raise TimeoutError(f"the baseline trained by another process did not finish within {wait_timeout_s} s")
+    return model
+
+
 def save_learner(
     model: TailorNet | DisplacementMLP,
     learner: str,
