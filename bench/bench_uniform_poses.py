@@ -7,7 +7,7 @@ one device.
                                         [--garment pants] [--stepping 10x3] [--poses-per-task 8]
 
 Poses: the dataset's sampler (``simulate.poses.PoseSampler``: the garment type's joints (upper body
-for tops, lower for bottoms, ``pipelines.dataset_plan.default_pose_joints``), limb joints
+for tops, lower for bottoms, ``simulate.poses.default_pose_joints``), limb joints
 uniform within ``JOINT_LIMITS``, spine and neck half-normal about the centre line) with the
 dataset's pruning of poses whose body intersects itself, seeded. Each pose is one task of
 ``run_sequences`` (``--poses-per-task N``: N consecutive poses a task, visited in order, as a
@@ -31,7 +31,7 @@ import time
 import numpy as np
 
 from bench_self_contact import arms_lowered_scene, canonical_drape, parse_stepping, run_settings
-from pipelines.dataset_plan import default_pose_joints
+from simulate.poses import default_pose_joints
 from simulate.garment.drape import COLLISION_PARTS
 from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, sample_poses
 from simulate.quasi_static import WorldStatus

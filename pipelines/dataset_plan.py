@@ -66,21 +66,13 @@ class Plan:
     on the neutral shape; with it one per pair, sized for the pair's shape + tau."""
 
 
-def default_pose_joints(garment_type: str) -> str:
-    """The joints a garment type's sampled poses move by default: lower for bottoms, all for the
-    full-body dress and jumpsuit, upper for tops."""
-    if garment_type in ("pants", "shorts", "skirt"):
-        return "lower"
-    return "all" if garment_type in ("dress", "jumpsuit") else "upper"
-
-
 def _rng(seed: int, *stream: int) -> np.random.Generator:
     return np.random.default_rng([seed, *stream])
 
 
 def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     from simulate.garment.style import StyleParams, sample_styles
-    from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, greedy_order, load_pose_file, sample_poses
+    from simulate.poses import greedy_order, load_pose_file, sample_poses, spec_pose_sampling
 
     seed = int(spec["seed"])
     gtype = spec["garment"]["type"]
@@ -156,8 +148,6 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
     if spec["poses"]["source"] == "motion":
         return attach_garments(spec, body, plan_motions(spec, body, Plan(all_styles, style_vectors, all_shapes, pairs, {},
                                                                          np.zeros((0, body.pose_size), np.float32))))
-    joints = spec["poses"]["joints"] or default_pose_joints(gtype)
-    joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
     n_train, n_test = int(spec["poses"]["train_count"]), int(spec["poses"]["test_count"])
     n_regularization = int(spec["poses"].get("regularization_count", 0))
     total = n_train + n_test + n_regularization
@@ -170,14 +160,10 @@ def plan_dataset(spec: dict, body: BodyModel) -> Plan:
         pruned = np.zeros((0, all_poses.shape[1]), np.float32)
         reasons: list[str] = []
     else:
-        sampler = PoseSampler(joints=joints, range_scale=float(spec["poses"]["range_scale"]), base_pose=body.canonical_pose)
-        kind = spec["poses"]["joints"] if spec["poses"]["joints"] in ("upper", "lower", "all") else \
-            default_pose_joints(gtype)
-        min_clearance = spec["poses"]["min_clearance"]
+        sampler, pruning = spec_pose_sampling(spec["poses"], gtype, body)
         reasons = []
-        all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42),
-                                         min_clearance=None if min_clearance is None else float(min_clearance),
-                                         clearance_pairs=kind, reasons=reasons)
+        all_poses, pruned = sample_poses(body, body.shape_default, total, sampler, _rng(seed, 42), reasons=reasons,
+                                         **pruning)
     # regularization poses come after train and test, so a spec without them samples as before
     pose_sets = {"train": all_poses[:n_train], "test": all_poses[n_train:n_train + n_test]}
     sources, counts = dict(SPLIT_SOURCES), dict(spec["splits"])

@@ -132,6 +132,28 @@ def sample_poses(
     return poses, (np.concatenate(pruned) if pruned else np.zeros((0, POSE_SIZE), np.float32))
 
 
+def default_pose_joints(garment_type: str) -> str:
+    """The joints a garment type's sampled poses move by default: lower for bottoms, all for the
+    full-body dress and jumpsuit, upper for tops."""
+    if garment_type in ("pants", "shorts", "skirt"):
+        return "lower"
+    return "all" if garment_type in ("dress", "jumpsuit") else "upper"
+
+
+def spec_pose_sampling(poses: dict, garment_type: str, body: BodyModel) -> tuple[PoseSampler, dict]:
+    """How a dataset spec samples its poses: the :class:`PoseSampler` of its ``poses`` section
+    (``joints``, default :func:`default_pose_joints`; ``range_scale``; the body's canonical pose for
+    the other joints) and :func:`sample_poses`'s pruning keywords (``min_clearance``,
+    ``clearance_pairs``). ``sample_poses(body, shape, n, *spec_pose_sampling(...)[:1], rng,
+    **pruning)`` draws poses as the dataset's are drawn."""
+    joints = poses["joints"] or default_pose_joints(garment_type)
+    joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
+    sampler = PoseSampler(joints=joints, range_scale=float(poses["range_scale"]), base_pose=body.canonical_pose)
+    kind = poses["joints"] if poses["joints"] in ("upper", "lower", "all") else default_pose_joints(garment_type)
+    min_clearance = poses.get("min_clearance")
+    return sampler, {"min_clearance": None if min_clearance is None else float(min_clearance), "clearance_pairs": kind}
+
+
 def load_pose_file(path: str | Path, *, key: str = "poses") -> np.ndarray:
     """Reads poses from an .npz: ``poses`` of shape (N, 60) or (N, 20, 3), axis-angle [rad]."""
     path = Path(path)

@@ -241,7 +241,7 @@ def test_style_vectors_carry_the_width_profile_only_where_styles_use_it():
 def test_every_shipped_spec_validates():
     from pathlib import Path
 
-    from pipelines.dataset_plan import default_pose_joints
+    from simulate.poses import default_pose_joints
     from pipelines.spec import load_spec, type_specs
 
     names = sorted(p.stem for p in (Path(__file__).parents[1] / "pipelines" / "configs").glob("*.yaml"))

@@ -599,6 +599,14 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
     vae_terms = json.loads((posed_run / "vae_terms.json").read_text())
     assert np.isfinite(vae_terms["posed_collision"]) and vae_terms["posed_collision"] >= 0.0, vae_terms
     assert json.loads((run / "vae_terms.json").read_text())["posed_collision"] == 0.0, "off by default"
+    # sampled poses are drawn as the dataset's spec draws them: this dataset's spec samples none
+    posed["regressor"]["sampled_poses"] = 4
+    (tmp_path / "sampled.yaml").write_text(yaml.safe_dump(posed))
+    capsys.readouterr()
+    assert main(["train", "collision-aware", "--data", str(data), "--out", str(tmp_path / "sampled"), "--config",
+                 str(tmp_path / "sampled.yaml"), "--epochs", "2", "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "regressor.sampled_poses = 4" in err and "poses.source: sampled" in err and "Traceback" not in err, err
 
     coarser = yaml.safe_load(open(config))
     coarser["sdf"]["voxel_m"] = 0.04
@@ -691,3 +699,102 @@ def test_regressor_with_the_canonical_target_fits_the_decoded_garment_not_the_la
     assert _regressor_target({"target": "auto"}, "gru") == "latent"
     with pytest.raises(ValueError, match="regressor.target 'auto' trains against the decoded garment"):
         train_regressor(data, zeros, np.arange(poses), run_dir=tmp_path / "none", progress=False, hyperparameters=hyper)
+
+
+def test_sampled_poses_join_the_regressors_posed_term(tmp_path) -> None:
+    """regressor.sampled_poses: every step the posed term also sees that many poses of the bank,
+    each with a training frame's shape; the term changes what the regressor learns. Without the
+    posed term, or without sampled poses to draw from, the setting is refused by name."""
+    from learn.collision_aware.train import train_regressor
+    from learn.data import FrameArrays
+
+    torch.manual_seed(0)
+    vae = GarmentVAE(20, np.zeros((20, 3)), 0.05, latent_size=4, hidden_size=16)
+    for p in vae.parameters():
+        p.requires_grad_(False)
+    rng = np.random.default_rng(0)
+    n, poses = 48, 6
+    pose = rng.uniform(-1, 0, (n, poses)).astype(np.float32)  # the training poses: all entries <= 0
+    shape = np.repeat(rng.normal(size=(3, 2)).astype(np.float32), n // 3, axis=0)
+    with torch.no_grad():
+        canonical = vae.decode(torch.as_tensor(pose[:, :4])).numpy()
+    data = FrameArrays(pose=pose, shape=shape, style=np.zeros((n, 2), np.float32),
+                       displacements=np.zeros((n, 20, 3), np.float32), pair_id=np.zeros(n, np.int64))
+    bank = rng.uniform(0.5, 1.0, (32, poses)).astype(np.float32)  # poses no frame has: all entries > 0
+    seen: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def posed(garment: torch.Tensor, pose_batch: torch.Tensor, shape_batch: torch.Tensor) -> torch.Tensor:
+        seen.append((pose_batch.detach().numpy().copy(), shape_batch.detach().numpy().copy()))
+        return torch.relu(0.05 - garment[..., 1]).mean()  # a stand-in: every vertex above y = 0.05
+
+    hyper = {"lr": 1e-2, "weight_decay": 0.0, "batch_size": 16, "epochs": 30, "hidden_size": 32, "dropout": 0.0,
+             "target": "canonical", "posed_collision": 10.0}
+
+    def fit(sampled: int) -> torch.nn.Module:
+        seen.clear()
+        return train_regressor(data, np.zeros((n, 4), np.float32), np.arange(poses), run_dir=tmp_path / str(sampled),
+                               seed=0, progress=False, hyperparameters={**hyper, "sampled_poses": sampled}, vae=vae,
+                               canonical=canonical, posed=posed, sampled_pose=bank if sampled else None)
+
+    fit(0)
+    assert all((p <= 0).all() for p, _ in seen), "without sampled poses the term sees the training poses only"
+    plain = fit(0)
+    sampled = fit(8)
+    from_bank = [(p, s) for p, s in seen if (p > 0).all()]
+    assert len(from_bank) == 30 * 3 and all(len(p) == 8 for p, _ in from_bank), len(from_bank)
+    assert all(any(np.array_equal(row, b) for b in bank) for p, _ in from_bank for row in p)
+    assert all(any(np.array_equal(row, s) for s in shape) for _, s in from_bank for row in s), "shapes of the frames"
+
+    def violation(model: torch.nn.Module) -> float:
+        with torch.no_grad():
+            garment = vae.decode(model(torch.as_tensor(bank), torch.as_tensor(shape[:32]), torch.zeros(32, 2)))
+        return float(torch.relu(0.05 - garment[..., 1]).mean())
+
+    assert violation(sampled) < violation(plain), "the sampled poses' term did not reach the regressor"
+    with pytest.raises(ValueError, match="regressor.sampled_poses adds sampled poses"):
+        train_regressor(data, np.zeros((n, 4), np.float32), np.arange(poses), run_dir=tmp_path / "bad", progress=False,
+                        hyperparameters={**hyper, "sampled_poses": 8, "posed_collision": 0.0}, vae=vae,
+                        canonical=canonical, posed=posed, sampled_pose=bank)
+
+
+def test_sampled_poses_are_drawn_as_the_spec_draws_them_and_refused_by_name(anny_body, tmp_path) -> None:
+    """The bank follows the spec's sampling (its joints move, the others keep the canonical pose,
+    within the limits), from a seed of its own; fit_collision_aware refuses sampled_poses without
+    the posed term, for a dataset whose poses are not sampled, and a non-integer count."""
+    from learn.collision_aware.train import fit_collision_aware, spec_poses
+    from learn.data import FrameArrays
+    from simulate.body.base import POSE_JOINTS
+    from simulate.poses import GARMENT_POSE_JOINTS
+
+    spec = {"poses": {"source": "sampled", "joints": "upper", "range_scale": 0.5, "min_clearance": None},
+            "garment": {"type": "tshirt"}}
+    a, b = spec_poses(spec, anny_body, 16, seed=3), spec_poses(spec, anny_body, 16, seed=3)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, spec_poses(spec, anny_body, 16, seed=4))
+    per_joint = a.reshape(16, len(POSE_JOINTS), 3)
+    canonical = np.asarray(anny_body.canonical_pose, np.float32).reshape(len(POSE_JOINTS), 3)
+    moved = set(GARMENT_POSE_JOINTS["upper"])
+    for k, joint in enumerate(POSE_JOINTS):
+        if joint not in moved:
+            np.testing.assert_allclose(per_joint[:, k], np.broadcast_to(canonical[k], (16, 3)), err_msg=joint)
+    assert np.abs(per_joint[:, [POSE_JOINTS.index(j) for j in moved]]).max() > 0.05, "no joint moved"
+    wider = spec_poses({**spec, "poses": {**spec["poses"], "range_scale": 1.0}}, anny_body, 64, seed=3)
+    assert np.abs(wider - anny_body.canonical_pose).mean() > 1.5 * np.abs(
+        spec_poses(spec, anny_body, 64, seed=3) - anny_body.canonical_pose).mean(), "the spec's range_scale is ignored"
+
+    n = 4
+    data = FrameArrays(pose=np.zeros((n, 60), np.float32), shape=np.zeros((n, 2), np.float32),
+                       style=np.zeros((n, 2), np.float32), displacements=np.zeros((n, 5, 3), np.float32),
+                       pair_id=np.zeros(n, np.int64), posed_vertices=np.zeros((n, 5, 3), np.float32))
+    args = dict(run_dir=tmp_path, body=anny_body, template={"faces": np.zeros((1, 3), np.int64)}, progress=False)
+    cases = [({"regressor": {"sampled_poses": 8}}, spec, "which is off: set regressor.posed_collision > 0"),
+             ({"regressor": {"sampled_poses": 8, "posed_collision": 10.0}}, {**spec, "poses": {"source": "file"}},
+              "needs a dataset whose spec samples its poses"),
+             ({"regressor": {"sampled_poses": 2.5, "posed_collision": 10.0}}, spec,
+              r"regressor.sampled_poses must be an integer \(got 2.5\)"),
+             ({"regressor": {"sampled_poses": -1, "posed_collision": 10.0}}, spec,
+              r"regressor.sampled_poses must be >= 0 \(got -1\)")]
+    for hyper, dataset_spec, message in cases:
+        with pytest.raises(ValueError, match=message):
+            fit_collision_aware(data, np.zeros((1, 3), np.int64), hyperparameters=hyper, dataset_spec=dataset_spec,
+                                **args)

@@ -88,11 +88,12 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
     # scale, docs/learners/collision_aware.md "The defaults at scale") and latent for the gru.
     # batch_size counts frames (mlp) or windows (gru); layers, window (frames), stride (frames
     # between window starts), velocity_weight and acceleration_weight (rho_1, rho_2 of seed Eq. 18)
-    # are the GRU's
+    # are the GRU's. sampled_poses: poses per step, drawn as the dataset's spec draws its poses,
+    # that join the posed collision term with no simulated garment (self-supervised; 0: off)
     "regressor": {"kind": "auto", "lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "epochs": 300,
                   "hidden_size": 256, "dropout": 0.0, "layers": 2, "window": 32, "stride": 16,
                   "velocity_weight": 1.0, "acceleration_weight": 1.0, "lr_schedule": "constant", "lr_final": 0.01,
-                  "target": "auto", "posed_collision": 0.0, "posed_epsilon_m": 1.0e-3},
+                  "target": "auto", "posed_collision": 0.0, "posed_epsilon_m": 1.0e-3, "sampled_poses": 0},
     "model": {"checkpoint_interval_s": 60.0},
 }
 
@@ -277,13 +278,18 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
                     hyperparameters: Mapping[str, Any], fingerprint: DatasetFingerprint | None = None,
                     device: str = "cpu", seed: int = 0, progress: bool = True,
                     checkpoint_interval_s: float = 60.0, vae: GarmentVAE | None = None,
-                    canonical: np.ndarray | None = None, posed: PosedCollision | None = None) -> LatentRegressor:
+                    canonical: np.ndarray | None = None, posed: PosedCollision | None = None,
+                    sampled_pose: np.ndarray | None = None) -> LatentRegressor:
     """Fit R(pose, shape, style) -> latent (N, L) (stage ``regressor``). ``target: latent``: L1
     against the encoded frames ``latent`` (seed Eq. 18's position term); ``target: canonical``:
     L1 per vertex [m] of the frozen ``vae``'s decoding against the projected frames ``canonical``
     (N, V, 3), so the latent dimensions count by what they change in the garment. With ``posed``
     and ``hyperparameters["posed_collision"]`` = w > 0, w times the posed-space collision hinge
-    [m] of the decoded garment (:class:`PosedCollision`) is added."""
+    [m] of the decoded garment (:class:`PosedCollision`) is added. With ``hyperparameters
+    ["sampled_poses"]`` = S > 0 the hinge also covers S poses per step drawn from ``sampled_pose``
+    (M, P), each with the shape and style of a random training frame: poses no simulated frame
+    has, where the regressor must still choose a garment clear of the body (self-supervised: the
+    seed's sampling of the inputs, in the posed space)."""
     hyper = dict(hyperparameters)
     decoded = _regressor_target(hyper, "mlp") == "canonical"
     if decoded and (vae is None or canonical is None):
@@ -292,6 +298,10 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
     collision_weight = float(hyper.get("posed_collision", 0.0))
     if collision_weight > 0 and (posed is None or vae is None):
         raise ValueError("regressor.posed_collision poses the decoded garment: it needs the VAE and a PosedCollision")
+    sampled_count = int(hyper.get("sampled_poses", 0))
+    if sampled_count > 0 and (collision_weight <= 0 or sampled_pose is None or len(sampled_pose) == 0):
+        raise ValueError("regressor.sampled_poses adds sampled poses to the posed collision term: it needs "
+                         "regressor.posed_collision > 0 and the sampled poses")
     mean, scale = input_normalisation(data.pose, data.shape, data.style, pose_indices)
     torch.manual_seed(seed)
     regressor = LatentRegressor(np.asarray(pose_indices).tolist(), data.shape.shape[1], data.style.shape[1],
@@ -300,6 +310,15 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
     pose, shape, style = (torch.as_tensor(a, dtype=torch.float32, device=device) for a in (data.pose, data.shape, data.style))
     target = torch.as_tensor(canonical if decoded else latent, dtype=torch.float32, device=device)
     batch_size = int(hyper["batch_size"])
+    bank = None if sampled_count <= 0 else torch.as_tensor(sampled_pose, dtype=torch.float32, device=device)
+
+    def sampled_term(net: LatentRegressor, generator: torch.Generator) -> torch.Tensor:
+        # S poses of the bank, each with a random training frame's shape and style (drawn on every
+        # rank from the shared generator, then dealt out like the frames)
+        poses = distributed.shard(torch.randint(bank.shape[0], (sampled_count,), generator=generator).to(device))
+        frames = distributed.shard(torch.randint(pose.shape[0], (sampled_count,), generator=generator).to(device))
+        garment = vae.decode(net(bank[poses], shape[frames], style[frames]))
+        return collision_weight * posed(garment, bank[poses], shape[frames])
 
     def error(predicted: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
         garment = vae.decode(predicted) if decoded or collision_weight > 0 else None
@@ -317,6 +336,8 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
         for begin in range(0, target.shape[0], batch_size):
             batch = distributed.shard(order[begin:begin + batch_size])  # this rank's frames (all in one process)
             loss = error(net(pose[batch], shape[batch], style[batch]), batch)
+            if bank is not None:
+                loss = loss + sampled_term(net, generator)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -412,15 +433,31 @@ def regressor_kind(requested: str, fps: float | None) -> str:
     return requested
 
 
+#: Poses drawn once for ``regressor.sampled_poses``; each step takes its poses from them.
+POSE_BANK = 4096
+
+
+def spec_poses(spec: Mapping[str, Any], body: Any, count: int, seed: int) -> np.ndarray:
+    """``count`` poses (count, P) drawn as the dataset's spec draws its sampled poses (its joints,
+    range and pruning, on the body's default shape; ``simulate.poses.spec_pose_sampling``), from a
+    seed of their own: the same distribution as the dataset's train and test poses, not the same
+    poses."""
+    from simulate.poses import sample_poses, spec_pose_sampling
+
+    sampler, pruning = spec_pose_sampling(spec["poses"], spec["garment"]["type"], body)
+    return sample_poses(body, body.shape_default, count, sampler, np.random.default_rng(seed), **pruning)[0]
+
+
 def collision_aware_context(*, body: Any, body_spec: Mapping[str, Any], template: Mapping[str, np.ndarray],
                             dataset: Any, reader: Any = None, **_: Any) -> dict:
     """Extra ``fit`` arguments of :func:`fit_collision_aware` for ``drape train`` (see
     :mod:`learn.registry`): the body model, its ``{"backend", "path"}``, the shards'
-    template arrays, the training split's ``DrapeDataset`` and the dataset's frame rate
-    (``motion_fps``: None unless its spec has ``poses.source: motion``), as the command has them."""
+    template arrays, the training split's ``DrapeDataset``, the dataset's frame rate (``motion_fps``:
+    None unless its spec has ``poses.source: motion``) and its spec (``dataset_spec``), as the command
+    has them."""
     spec = reader.manifest.spec if reader is not None else None
     return {"body": body, "body_spec": body_spec, "template": template, "dataset": dataset,
-            "motion_fps": motion_fps(spec)}
+            "motion_fps": motion_fps(spec), "dataset_spec": spec}
 
 
 def fit_collision_aware(
@@ -440,6 +477,7 @@ def fit_collision_aware(
     template: Mapping[str, np.ndarray] | None = None,
     dataset: Any = None,
     motion_fps: float | None = None,
+    dataset_spec: Mapping[str, Any] | None = None,
     log: Any = print,
 ) -> CollisionAwareModel:
     """Train every stage on ``data`` (training frames with ``posed_vertices``) and save the model.
@@ -452,6 +490,8 @@ def fit_collision_aware(
     style-shape pair and not cached. motion_fps: the frame rate [1/s] of a motion dataset (its
     frames in sequences, ``data.sequence`` and ``data.frame_index`` set), None for a
     quasi-static one; with ``regressor.kind`` it picks the regressor (:func:`regressor_kind`).
+    dataset_spec: the dataset's spec, whose ``poses`` and ``garment.type`` say how the poses of
+    ``regressor.sampled_poses`` are drawn (needed only then).
     ``canonical_pose`` is unused: the canonical space is the body model's pose 0 and default shape.
     """
     del canonical_pose
@@ -479,6 +519,13 @@ def fit_collision_aware(
     if float(hyper["regressor"]["posed_collision"]) > 0 and kind == "gru":
         raise ValueError("regressor.posed_collision is for the mlp regressor (quasi-static data); the gru's "
                          "sequences train without it")
+    sampled = int(hyper["regressor"]["sampled_poses"])  # an integer >= 0: merged_hyperparameters checks it
+    if sampled and float(hyper["regressor"]["posed_collision"]) <= 0:
+        raise ValueError(f"regressor.sampled_poses = {sampled} adds poses to the posed collision term, which is off: "
+                         "set regressor.posed_collision > 0")
+    if sampled and (dataset_spec is None or dataset_spec.get("poses", {}).get("source") != "sampled"):
+        raise ValueError(f"regressor.sampled_poses = {sampled} draws poses as the dataset's spec draws them: it needs a "
+                         "dataset whose spec samples its poses (poses.source: sampled)")
     settings, batch_sequences = _projection_settings(hyper["projection"])
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -559,7 +606,9 @@ def fit_collision_aware(
     else:
         regressor = train_regressor(data, latent, pose_indices, hyperparameters=hyper["regressor"], seed=seed + 3,
                                     checkpoint_interval_s=interval, vae=vae, canonical=canonical,
-                                    posed=posed_term("regressor"), **common)
+                                    posed=posed_term("regressor"),
+                                    sampled_pose=spec_poses(dataset_spec, body, POSE_BANK, seed + 11) if sampled else None,
+                                    **common)
     spec = dict(body_spec) if body_spec is not None else {"backend": getattr(body, "name", "anny"), "path": None}
     model = CollisionAwareModel(regressor, vae, fields, template, spec, body=body).to(device).eval()
     save_learner(model, LEARNER, run_dir / MODEL_FILE, fingerprint=fingerprint, extra={"hyperparameters": hyper})
