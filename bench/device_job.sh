@@ -46,12 +46,14 @@ train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS f
 }
 ca_variant() {  # DIR GPU VARIANT DATA [COPY]: collision_aware with VARIANT (YAML overrides of CA_CONFIG)
   # into DIR on GPU, then evaluated; COPY=1: on $JOB/ca's SDF and, unless VARIANT sets fields, its
-  # fields (and so its cached projections); train_variants.log gets a summary line
+  # fields (and so its cached projections), and unless it sets fields or vae, its VAE (a variant of
+  # the regressor alone trains only the regressor); train_variants.log gets a summary line
   local dir=$1 variant=$3
   mkdir -p "$dir"
   if [ "${5:-0}" = 1 ]; then
     cp "$JOB"/ca/sdf.* "$dir/"
     printf %s "$variant" | grep -q 'fields:' || cp "$JOB"/ca/fields.* "$dir/"
+    printf %s "$variant" | grep -q -E 'fields:|vae:' || cp "$JOB"/ca/vae.* "$JOB"/ca/vae_* "$dir/" 2>/dev/null
   fi
   python -c "import sys, yaml; base = yaml.safe_load(sys.argv[1]) or {}; over = yaml.safe_load(sys.argv[2]) or {}
 for stage, values in over.items(): base.setdefault(stage, {}).update(values)

@@ -657,6 +657,15 @@ def test_cli_train_evaluate_predict_on_a_tiny_anny_dataset(tmp_path, anny_body, 
         assert len(trimesh.load(out, process=False).vertices) == len(template["rest_vertices"])
 
 
+def _frozen_tiny_vae() -> GarmentVAE:
+    """A seeded 20-vertex VAE with frozen weights: a fixed decoder for the regressor's tests."""
+    torch.manual_seed(0)
+    vae = GarmentVAE(20, np.zeros((20, 3)), 0.05, latent_size=4, hidden_size=16)
+    for p in vae.parameters():
+        p.requires_grad_(False)
+    return vae
+
+
 def test_regressor_with_the_canonical_target_fits_the_decoded_garment_not_the_latents(tmp_path) -> None:
     """``regressor.target: canonical`` trains through the frozen decoder against the projected
     frames: given latents that carry nothing (all zero), it still fits the garments, where the
@@ -664,10 +673,7 @@ def test_regressor_with_the_canonical_target_fits_the_decoded_garment_not_the_la
     from learn.collision_aware.train import _regressor_target, train_regressor
     from learn.data import FrameArrays
 
-    torch.manual_seed(0)
-    vae = GarmentVAE(20, np.zeros((20, 3)), 0.05, latent_size=4, hidden_size=16)
-    for p in vae.parameters():
-        p.requires_grad_(False)
+    vae = _frozen_tiny_vae()
     rng = np.random.default_rng(0)
     n, poses = 64, 6
     pose = rng.uniform(-1, 1, (n, poses)).astype(np.float32)
@@ -708,10 +714,7 @@ def test_sampled_poses_join_the_regressors_posed_term(tmp_path) -> None:
     from learn.collision_aware.train import train_regressor
     from learn.data import FrameArrays
 
-    torch.manual_seed(0)
-    vae = GarmentVAE(20, np.zeros((20, 3)), 0.05, latent_size=4, hidden_size=16)
-    for p in vae.parameters():
-        p.requires_grad_(False)
+    vae = _frozen_tiny_vae()
     rng = np.random.default_rng(0)
     n, poses = 48, 6
     pose = rng.uniform(-1, 0, (n, poses)).astype(np.float32)  # the training poses: all entries <= 0
