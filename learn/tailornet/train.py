@@ -1319,20 +1319,21 @@ def fit_tailornet_process(
     stages = stages_for_rank(rank, world_size, hyper)
     parallel = dict(hf_parts=hf_parts_for(world_size, hyper), canonical=canonical, wait_timeout_s=wait_timeout_s)
     who = f"[rank {rank}] " if world_size > 1 else ""
+    own = [s for s in stages if s != "baseline"]
+    # rank 0 assembles in the call that trains its stages, unless the baseline must come before its
+    # wait (the assembling call waits for the others); alone, nothing is waited for
+    assemble_now = rank == 0 and (world_size == 1 or "baseline" not in stages)
     model = None
-    if world_size == 1:
-        model = fit_tailornet(data, faces, canonical=canonical, **common)
-    elif [s for s in stages if s != "baseline"]:
-        model = fit_tailornet(data, faces, stages=[s for s in stages if s != "baseline"], assemble=False,
-                              **parallel, **common)
+    if own or assemble_now:
+        model = fit_tailornet(data, faces, stages=own, assemble=assemble_now, **parallel, **common)
     if "baseline" in stages:
         begun = time.perf_counter()
         fit_baseline(data, faces, canonical=canonical, **common)
         print(f"{who}baseline: {time.perf_counter() - begun:.1f} s", flush=True)
-    if rank != 0 or world_size == 1:
-        return model if world_size == 1 else None
-    # every stage is now another process's or finished here: they load from their checkpoints
-    model = fit_tailornet(data, faces, stages=[], **parallel, **common)
+    if rank != 0:
+        return None
+    if not assemble_now:  # its own stages are finished now and load from their checkpoints
+        model = fit_tailornet(data, faces, stages=[], **parallel, **common)
     if model is None:
         raise TimeoutError(f"the stages of the other processes did not finish within {wait_timeout_s} s")
     if "baseline" not in stages:
