@@ -144,8 +144,8 @@ def spec_pose_sampling(poses: dict, garment_type: str, body: BodyModel) -> tuple
     """How a dataset spec samples its poses: the :class:`PoseSampler` of its ``poses`` section
     (``joints``, default :func:`default_pose_joints`; ``range_scale``; the body's canonical pose for
     the other joints) and :func:`sample_poses`'s pruning keywords (``min_clearance``,
-    ``clearance_pairs``). ``sample_poses(body, shape, n, *spec_pose_sampling(...)[:1], rng,
-    **pruning)`` draws poses as the dataset's are drawn."""
+    ``clearance_pairs``): ``sample_poses(body, shape, n, sampler, rng, **pruning)`` draws poses as
+    the dataset's are drawn."""
     joints = poses["joints"] or default_pose_joints(garment_type)
     joints = GARMENT_POSE_JOINTS[joints] if isinstance(joints, str) else tuple(joints)
     sampler = PoseSampler(joints=joints, range_scale=float(poses["range_scale"]), base_pose=body.canonical_pose)

@@ -315,10 +315,10 @@ def train_regressor(data: FrameArrays, latent: np.ndarray, pose_indices: np.ndar
     def sampled_term(net: LatentRegressor, generator: torch.Generator) -> torch.Tensor:
         # S poses of the bank, each with a random training frame's shape and style (drawn on every
         # rank from the shared generator, then dealt out like the frames)
-        poses = distributed.shard(torch.randint(bank.shape[0], (sampled_count,), generator=generator).to(device))
+        poses = bank[distributed.shard(torch.randint(bank.shape[0], (sampled_count,), generator=generator).to(device))]
         frames = distributed.shard(torch.randint(pose.shape[0], (sampled_count,), generator=generator).to(device))
-        garment = vae.decode(net(bank[poses], shape[frames], style[frames]))
-        return collision_weight * posed(garment, bank[poses], shape[frames])
+        garment = vae.decode(net(poses, shape[frames], style[frames]))
+        return collision_weight * posed(garment, poses, shape[frames])
 
     def error(predicted: torch.Tensor, batch: torch.Tensor) -> torch.Tensor:
         garment = vae.decode(predicted) if decoded or collision_weight > 0 else None
