@@ -223,7 +223,8 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     # bench_scale_out.py --pack over TRAIN_GPUS (default 2,N) and TRAIN_PROCESSES (tailornet: process
     # counts above N, sharing the GPUs) with LEARNER (default tailornet): 1 and 2 processes side by
     # side on GPUs 0 and 1-2, then N; then each run evaluated, the runs side by side on their own
-    # GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json.
+    # GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json. TRAIN_BESIDE:
+    # a command on GPU N-1 while 1 and 2 processes train (e.g. python bench/bench_hf_epoch.py --device cuda).
     gpus=${2:-4}
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
     if [ -z "${LEARN_DATA:-}" ]; then
@@ -237,6 +238,10 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     fi
     echo "$(date +%T) training"
     scale=/root/jobs/scale-train
+    # TRAIN_BESIDE: a short command on the last GPU, which the pack leaves free while 1 and 2
+    # processes train (cut at 300 s so that it never overlaps the N-GPU run); output in $JOB/beside.log
+    [ -z "${TRAIN_BESIDE:-}" ] || (CUDA_VISIBLE_DEVICES=$((gpus - 1)) timeout 300 bash -c "$TRAIN_BESIDE" \
+      > "$JOB/beside.log" 2>&1) &
     python bench/bench_scale_out.py --skip-generate --data $ds --gpus "${TRAIN_GPUS:-2,$gpus}" --pack \
       ${TRAIN_PROCESSES:+--processes "$TRAIN_PROCESSES"} --learner "${LEARNER:-tailornet}" --out $scale \
       > "$JOB/scale_train.json" 2> "$JOB/scale_train.err"
