@@ -889,16 +889,16 @@ def train_hf(
         data = data.subset(np.concatenate(frames_per_prototype))
         ends = np.cumsum([f.size for f in frames_per_prototype])
         frames_per_prototype = [np.arange(end - f.size, end) for f, end in zip(frames_per_prototype, ends)]
-    initial = []
-    for k in range(len(frames_per_prototype)):
+    count = len(frames_per_prototype)
+    members = list(range(count)) if part is None else hf_part_members(count, *part).tolist()
+    hidden, dropout = int(hyper["hf"]["hidden_size"]), float(hyper["hf"]["dropout"])
+    initial: dict[int, DisplacementMLP] = {}
+    # prototype k's initial weights come from its own seed, so building the members' alone gives
+    # each the weights it has in the whole stage; a finished stage reads its weights from its
+    # checkpoint and draws none (at K = 20 and 7.7k vertices, 20 x 25 M parameters: seconds)
+    for k in [] if finished else members:
         torch.manual_seed(seed + 1 + k)  # deterministic initial weights, same in both modes
-        initial.append(
-            high_frequency_model(
-                data.vertex_count, pose_indices, hidden_size=int(hyper["hf"]["hidden_size"]),
-                dropout=float(hyper["hf"]["dropout"]),
-            )
-        )
-    members = list(range(len(initial))) if part is None else hf_part_members(len(initial), *part).tolist()
+        initial[k] = high_frequency_model(data.vertex_count, pose_indices, hidden_size=hidden, dropout=dropout)
     if stacked:
         if part is not None and not finished and not is_streamed(data):
             # a part needs only its prototypes' frames on the device; the others' index lists keep
@@ -907,8 +907,11 @@ def train_hf(
             data, frames_per_prototype = _member_frames(data, frames_per_prototype, members)
         if not finished and not is_streamed(data) and data.low_frequency is None:
             fill_low_frequency(data)
+        model = (HighFrequencyPrototypes(len(members), data.vertex_count, pose_indices, hidden_size=hidden,
+                                         dropout=dropout) if finished
+                 else HighFrequencyPrototypes.from_mlps([initial[k] for k in members]))
         return train_stacked_prototypes(
-            HighFrequencyPrototypes.from_mlps([initial[k] for k in members]), data,
+            model, data,
             None if finished else data.displacements - data.low_frequency, frames_per_prototype, run_dir=run_dir,
             hyperparameters=stage_hyper(hyper["hf"], hyper["model"]), fingerprint=fingerprint, device=device,
             seed=seed + 1, progress=progress, stage=stage, members=members,
