@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from collections.abc import Collection
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .integrity import IntegrityChecker
-from .reader import DatasetReader
+from .reader import DatasetReader, _per_vertex_names
 from .schema import QUALITY_GROUP, CorruptShardError, MissingShardError
 
 #: Below this many bytes of shards a split is read in the calling process: starting the
@@ -55,12 +56,12 @@ def _open_reader(root: str) -> None:
     _READER[root] = DatasetReader(root, integrity=False)
 
 
-def _read_task(root: str, task_id: str) -> dict[str, np.ndarray]:
+def _read_task(root: str, task_id: str, per_vertex: tuple[str, ...] | None = None) -> dict[str, np.ndarray]:
     """One shard's arrays (``DatasetReader.load_task``), in a pool process; its file is closed
     after the read (a process reads many shards, one at a time)."""
     reader = _READER[root]
     try:
-        return reader.load_task(task_id)
+        return reader.load_task(task_id, per_vertex)
     finally:
         reader.close()
 
@@ -79,10 +80,11 @@ def check_integrity(root: str | os.PathLike[str], entries: list[dict[str, Any]],
 
 
 def load_split_parallel(root: str | os.PathLike[str], split: str, *, workers: int | None = None,
-                        min_parallel_bytes: int = MIN_PARALLEL_BYTES, integrity: bool = True) -> dict[str, np.ndarray]:
-    """``DatasetReader(root).load_split(split)``, same keys, shapes, dtypes and values, with the
-    shards read by ``workers`` processes (default :func:`default_workers`). Splits of fewer than
-    ``min_parallel_bytes`` bytes of shards, or of one shard, are read in this process.
+                        min_parallel_bytes: int = MIN_PARALLEL_BYTES, integrity: bool = True,
+                        per_vertex: Collection[str] | None = None) -> dict[str, np.ndarray]:
+    """``DatasetReader(root).load_split(split, per_vertex)``, same keys, shapes, dtypes and values,
+    with the shards read by ``workers`` processes (default :func:`default_workers`). Splits of fewer
+    than ``min_parallel_bytes`` bytes of shards, or of one shard, are read in this process.
     Errors are the reader's (unknown split: ValueError listing the available ones)."""
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ValueError(f"workers must be an integer >= 1 (got {workers!r})")
@@ -91,15 +93,16 @@ def load_split_parallel(root: str | os.PathLike[str], split: str, *, workers: in
     entries = [entry for entry in reader.shard_entries if split in entry["splits"] and entry["frame_count"] > 0]
     workers = default_workers() if workers is None else workers
     total_bytes = sum(int(entry["bytes"]) for entry in entries)
+    per_vertex = None if per_vertex is None else _per_vertex_names(per_vertex)
     if workers == 1 or len(entries) < 2 or total_bytes < min_parallel_bytes:
         with reader:
-            return reader.load_split(split)
+            return reader.load_split(split, per_vertex)
     if integrity:
         check_integrity(root, entries, threads=workers)
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=min(workers, len(entries)), mp_context=context,
                              initializer=_open_reader, initargs=(str(Path(root)),)) as pool:
-        futures = [pool.submit(_read_task, str(Path(root)), entry["task_id"]) for entry in entries]
+        futures = [pool.submit(_read_task, str(Path(root)), entry["task_id"], per_vertex) for entry in entries]
         return _stack([future.result() for future in futures], entries, split)
 
 

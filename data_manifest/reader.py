@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections import OrderedDict
+from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,19 @@ from .schema import (
 )
 from .integrity import IntegrityChecker
 from .shard import decode_positions, read_dropped_log, read_template
+
+#: The per-vertex arrays of a frame, (V, 3) each: ``load_split``'s ``per_vertex`` chooses among them.
+PER_VERTEX_ARRAYS = ("posed_vertices", "unposed_displacements", "velocities")
+
+
+def _per_vertex_names(per_vertex: Collection[str] | None) -> tuple[str, ...]:
+    if per_vertex is None:
+        return PER_VERTEX_ARRAYS
+    names = tuple(per_vertex)
+    unknown = sorted(set(names) - set(PER_VERTEX_ARRAYS))
+    if unknown or isinstance(per_vertex, str):
+        raise ValueError(f"per_vertex must name arrays among {', '.join(PER_VERTEX_ARRAYS)}; got {per_vertex!r}")
+    return names
 
 #: What h5py and numpy raise on damaged HDF5 (a flipped byte in a header, chunk index or
 #: attribute can surface as any of these); the reader reports each as CorruptShardError.
@@ -276,7 +290,8 @@ class DatasetReader:
             raise self._corrupt(number, error) from None
         return item
 
-    def _read_shard(self, number: int) -> dict[str, np.ndarray]:
+    def _read_shard(self, number: int, per_vertex: Collection[str] | None = None) -> dict[str, np.ndarray]:
+        per_vertex = _per_vertex_names(per_vertex)
         handle = self._open(number)
         try:
             frames = handle[POSED_VERTICES].shape[0]
@@ -285,16 +300,18 @@ class DatasetReader:
                 "pose": np.asarray(handle[POSE][()], dtype=np.float32),
                 "shape": np.repeat(np.asarray(handle[SHAPE][()], dtype=np.float32)[None], frames, axis=0),
                 "style": np.repeat(np.asarray(handle[STYLE][()], dtype=np.float32)[None], frames, axis=0),
-                "posed_vertices": decode_positions(handle[POSED_VERTICES][()], origin),
-                "unposed_displacements": np.asarray(handle[UNPOSED_DISPLACEMENTS][()], dtype=np.float32),
                 "shard_no": np.full(frames, number, dtype=np.int64),
                 "frame_index": np.asarray(handle[FRAME_INDEX][()], dtype=np.int64),
             }
+            if "posed_vertices" in per_vertex:
+                arrays["posed_vertices"] = decode_positions(handle[POSED_VERTICES][()], origin)
+            if "unposed_displacements" in per_vertex:
+                arrays["unposed_displacements"] = np.asarray(handle[UNPOSED_DISPLACEMENTS][()], dtype=np.float32)
             for name, dataset in handle[QUALITY_GROUP].items():
                 arrays[f"{QUALITY_GROUP}/{name}"] = np.asarray(dataset[()], dtype=np.float32)
             if BODY_TRANSLATION in handle:
                 arrays["body_translation"] = np.asarray(handle[BODY_TRANSLATION][()], dtype=np.float32)
-            if VELOCITIES in handle:
+            if VELOCITIES in handle and "velocities" in per_vertex:
                 arrays["velocities"] = np.asarray(handle[VELOCITIES][()], dtype=np.float32)
             if ROOT_JOINT in handle:
                 arrays["root_joint"] = np.asarray(handle[ROOT_JOINT][()], dtype=np.float32)
@@ -321,17 +338,21 @@ class DatasetReader:
                 raise self._corrupt(number, error) from None
         return self._task_info[number]
 
-    def load_task(self, task_id: str) -> dict[str, np.ndarray]:
+    def load_task(self, task_id: str, per_vertex: Collection[str] | None = None) -> dict[str, np.ndarray]:
         """Every frame of one task, with the keys and shapes of ``load_split``."""
-        return self._read_shard(self.shard_no(task_id))
+        return self._read_shard(self.shard_no(task_id), per_vertex)
 
-    def load_split(self, split: str) -> dict[str, np.ndarray]:
+    def load_split(self, split: str, per_vertex: Collection[str] | None = None) -> dict[str, np.ndarray]:
         """All frames of ``split`` stacked, in ``index(split)`` order: ``pose`` (N, P),
         ``shape`` (N, S), ``style`` (N, G), ``posed_vertices`` (N, V, 3) [m],
         ``unposed_displacements`` (N, V, 3) [m], ``quality/<metric>`` (N,) as float32;
         ``body_translation`` (N, 3), ``root_joint`` (N, 3) [m], ``velocities`` (N, V, 3) [m/s],
         ``tightness`` (N, T) and ``sized_shape`` (N, S) where every shard has them;
-        ``shard_no`` and ``frame_index`` (N,) as int64."""
+        ``shard_no`` and ``frame_index`` (N,) as int64.
+
+        ``per_vertex``: which of the (N, V, 3) arrays (:data:`PER_VERTEX_ARRAYS`) to read; default
+        all. They are nearly all of a split's bytes: a learner that needs only the displacements
+        reads a third to a half of them."""
         parts: dict[str, list[np.ndarray]] = {}
         keys: set[str] | None = None
         # each shard is checked against the manifest as it is read; new digests are cached once
@@ -339,7 +360,7 @@ class DatasetReader:
             for number in self._split_shards(split):
                 if self._entries[number]["frame_count"] == 0:
                     continue  # a task whose frames were all filtered out: nothing to stack
-                arrays = self._read_shard(number)
+                arrays = self._read_shard(number, per_vertex)
                 metrics = sorted(key for key in arrays if key.startswith(f"{QUALITY_GROUP}/"))
                 if keys is not None:
                     known = sorted(key for key in keys if key.startswith(f"{QUALITY_GROUP}/"))

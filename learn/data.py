@@ -141,7 +141,8 @@ class DrapeDataset(torch.utils.data.Dataset):
     """Frames of one split as tensors: ``pose (P,)``, ``shape (S,)``, ``style (G,)``,
     ``displacements (V, 3)`` [m] (unposed, TailorNet Eq. 5), ``low_frequency (V, 3)``
     and ``high_frequency (V, 3)`` (when ``frequencies=True``), ``pair`` (int: which
-    style-shape pair), ``posed_vertices (V, 3)``. Attributes ``sequence`` and ``frame_index`` (N,)
+    style-shape pair), ``posed_vertices (V, 3)`` (unless ``posed=False``: training that needs only
+    the displacements reads half the bytes; the attribute is then None). Attributes ``sequence`` and ``frame_index`` (N,)
     int64 give each frame's shard (one task: one sequence) and its index in it; ``root_joint``
     (N, 3) [m] is set where every shard stores it (motion datasets), else None.
 
@@ -154,19 +155,21 @@ class DrapeDataset(torch.utils.data.Dataset):
 
     def __init__(self, root: str | os.PathLike, split: str, *, frequencies: bool = True,
                  cache_dir: str | os.PathLike | None = None, device: str | torch.device = "cpu",
-                 workers: int | None = None) -> None:
+                 workers: int | None = None, posed: bool = True) -> None:
         self.reader = DatasetReader(root)
         if split not in self.reader.splits:
             raise ValueError(f"unknown split {split!r}; this dataset has {', '.join(sorted(self.reader.splits))}")
         self.split = split
-        arrays = load_split_parallel(root, split, workers=workers)
+        # the (N, V, 3) arrays are nearly all of the bytes: read those used (velocities never are)
+        wanted = ("posed_vertices", "unposed_displacements") if posed else ("unposed_displacements",)
+        arrays = load_split_parallel(root, split, workers=workers, per_vertex=wanted)
 
         def tensor(name: str) -> torch.Tensor:
             return torch.from_numpy(np.ascontiguousarray(arrays[name], dtype=np.float32))
 
         self.pose, self.shape, self.style = tensor("pose"), tensor("shape"), tensor("style")
         self.displacements = tensor("unposed_displacements")
-        self.posed_vertices = tensor("posed_vertices")
+        self.posed_vertices = tensor("posed_vertices") if posed else None
         _, pair = np.unique(np.concatenate([arrays["shape"], arrays["style"]], axis=1), axis=0, return_inverse=True)
         self.pair = torch.from_numpy(pair.reshape(-1).astype(np.int64))
         self.sequence = torch.from_numpy(np.asarray(arrays["shard_no"], dtype=np.int64))
@@ -185,7 +188,9 @@ class DrapeDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         item = {"pose": self.pose[i], "shape": self.shape[i], "style": self.style[i],
-                "displacements": self.displacements[i], "posed_vertices": self.posed_vertices[i], "pair": self.pair[i]}
+                "displacements": self.displacements[i], "pair": self.pair[i]}
+        if self.posed_vertices is not None:
+            item["posed_vertices"] = self.posed_vertices[i]
         if self.low_frequency is not None:
             item["low_frequency"] = self.low_frequency[i]
             item["high_frequency"] = self.displacements[i] - self.low_frequency[i]

@@ -40,6 +40,27 @@ def test_parallel_read_equals_the_reader(dataset):
         load_split_parallel(dataset, "val", workers=2, min_parallel_bytes=0)
 
 
+def test_a_read_of_some_per_vertex_arrays_equals_the_whole_read_without_the_others(dataset):
+    """``per_vertex`` leaves the unnamed (N, V, 3) arrays on disk and changes nothing else, in this
+    process and in the pool; ``DrapeDataset(posed=False)`` (TailorNet's and the baseline's
+    training) reads the displacements alone; a name that is no per-vertex array is refused."""
+    whole = DatasetReader(dataset).load_split("train")
+    assert "posed_vertices" in whole and "unposed_displacements" in whole
+    for workers in (1, 2):
+        got = load_split_parallel(dataset, "train", workers=workers, min_parallel_bytes=0,
+                                  per_vertex=("unposed_displacements",))
+        assert sorted(got) == sorted(k for k in whole if k not in ("posed_vertices", "velocities")), workers
+        for key, value in got.items():
+            np.testing.assert_array_equal(value, whole[key], err_msg=key)
+    for bad in (("posed",), "posed_vertices"):
+        with pytest.raises(ValueError, match="per_vertex must name arrays among posed_vertices"):
+            load_split_parallel(dataset, "train", workers=2, min_parallel_bytes=0, per_vertex=bad)
+    lean, full = DrapeDataset(dataset, "train", workers=1, posed=False), DrapeDataset(dataset, "train", workers=1)
+    assert lean.posed_vertices is None and full.posed_vertices is not None
+    assert torch.equal(lean.displacements, full.displacements) and torch.equal(lean.low_frequency, full.low_frequency)
+    assert "posed_vertices" not in lean[0] and torch.equal(full[0]["posed_vertices"], full.posed_vertices[0])
+
+
 def test_parallel_read_checks_integrity(dataset, tmp_path):
     import shutil
 
