@@ -4,10 +4,9 @@ epoch, and the kernels that take the most time, printed as one JSON line.
 
     python bench/bench_hf_epoch.py --device cuda [--prototypes 1,6,7,10,20] [--frames-per-prototype 1097]
 
-On 4 x H200 an hf part paid ~0.04 s per epoch whatever its K (0.355 s for 20 prototypes, 0.153 for
-7, 0.138 for 6; docs/scale-out.md): ~30 s of each third of the stage on four GPUs. A fixed cost
-that the GPU's kernel time shares is work on the GPU that does not grow with K; one it does not
-share is time the GPU waits for the host. Synthetic frames of the shipped t-shirt's size (7,744
+A fixed cost that the GPU's kernel time shares is work on the GPU that does not grow with K; one
+it does not share is time the GPU waits for the host (docs/scale-out.md has the H200's figures:
+with CUDA graphs the whole epoch is work on the GPU). Synthetic frames of the shipped t-shirt's size (7,744
 vertices, ``--frames-per-prototype`` frames per prototype, a 60-entry pose); the stage's
 defaults (batch 32, hidden 1024, dropout 0.2, CUDA graphs unless ``--no-cuda-graphs``). The first
 epoch (allocation, graph recording) is not timed.
@@ -42,7 +41,6 @@ def measure(prototypes: int, *, per_prototype: int, vertices: int, pose_size: in
             cuda_graphs: bool) -> dict:
     """One stacked hf stage of ``prototypes`` prototypes trained ``epochs`` + 1 epochs, the last
     ``epochs`` of them profiled."""
-    import torch
     from torch.profiler import ProfilerActivity, profile
 
     from learn.tailornet.train import train_hf
@@ -63,19 +61,23 @@ def measure(prototypes: int, *, per_prototype: int, vertices: int, pose_size: in
     def duration_us(event) -> float:
         return float(getattr(event, "device_time", None) or getattr(event, "cuda_time", 0.0))
 
-    kernel_us = sum(duration_us(e) for e in events)
+    # copies: nearly all the checkpoint's load and save (GBs), outside the epochs; kernels per epoch without them
+    copies = [e for e in events if e.name.startswith("Memcpy")]
+    kernels = [e for e in events if not e.name.startswith("Memcpy")]
+    kernel_us = sum(duration_us(e) for e in kernels)
     by_name: Counter = Counter()
-    for e in events:
+    for e in kernels:
         by_name[e.name] += duration_us(e)
     steps = -(-per_prototype // 32)
     epoch_s = statistics.median(seconds)
     return {
         "prototypes": prototypes, "steps_per_epoch": steps, "epoch_s": round(epoch_s, 5),
         "ms_per_step": round(1e3 * epoch_s / steps, 4),
-        # the profiled run also loads its checkpoint and saves one at its end: kernel time per epoch
-        # is an upper bound of the epochs' own
+        # the profiled run also loads its checkpoint and saves one at its end (their few kernels
+        # stay in): kernel time per epoch is an upper bound of the epochs' own
         "gpu_kernel_ms_per_epoch": round(kernel_us / 1e3 / epochs, 3) if events else None,
-        "kernels_per_step": round(len(events) / epochs / steps, 1) if events else None,
+        "memcpy_ms_total": round(sum(duration_us(e) for e in copies) / 1e3, 1) if events else None,
+        "kernels_per_step": round(len(kernels) / epochs / steps, 1) if events else None,
         "top_kernels_ms_per_epoch": {name[:80]: round(us / 1e3 / epochs, 3) for name, us in by_name.most_common(8)},
     }
 
