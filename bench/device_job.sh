@@ -27,12 +27,14 @@
 #   AFTER=/root/jobs/learn/out/training.started bash bench/device_job.sh start ratio bash bench/device_job.sh ratio
 # Training's 1-vs-2-vs-4 GPU epoch rate (TailorNet) on the whole t-shirt spec made on 4 GPUs:
 #   GPU_TESTS="tests/test_collision_aware.py" bash bench/device_job.sh start scale bash bench/device_job.sh scale-train 4
+# Generation of one cloth3d garment type (C3_TYPE, default top) on 1, 2 and 4 GPUs:
+#   bash bench/device_job.sh start c3 bash bench/device_job.sh type-scale 4
 # collision_aware alone on a reduced t-shirt spec (one GPU):
 #   bash bench/device_job.sh start ca bash bench/device_job.sh ca-small
 # Solver settings side by side on the 7.7k t-shirt slice (240 targets), one after another on one GPU:
 #   SLICES="; --sim solver=vbd --sim substeps=20 --sim iterations=3" bash bench/device_job.sh start sl bash bench/device_job.sh slices
 set -uo pipefail
-cmd=${1:?start|wait|collect|learners-full|learners-ca|scale-train|ca-variants|ca-small|ratio|slices}; name=${2:-}
+cmd=${1:?start|wait|collect|learners-full|learners-ca|scale-train|type-scale|ca-variants|ca-small|ratio|slices}; name=${2:-}
 stamp() { while IFS= read -r line; do printf '%s %s\n' "$(date +%T)" "$line"; done; }  # lines with the clock time
 train_ca() {  # DATA DEVICE [TIMEOUT]: collision_aware into $JOB/ca, CA_EPOCHS for every stage (default:
   # each stage's own, or CA_CONFIG's), CA_CONFIG as YAML overrides, stopped after TIMEOUT seconds (no model then), its lines stamped;
@@ -295,6 +297,28 @@ PY
     echo "$(date +%T) evaluating"
     python -m pipelines.cli evaluate "$JOB/ca" --data "$ds" --device "$dev" --renders 0 > "$JOB/evaluate.log" 2>&1
     grep -E "collision_aware|evaluation:" "$JOB/evaluate.log"
+    ;;
+  type-scale)
+    # (inside a job) generation on 1, 2 and N GPUs (default 4) of one garment type of the shipped
+    # `cloth3d` spec (C3_TYPE, default top: 500 motion sequences of 60 frames, 2,000 vertices), its
+    # plan in N batches, audit off: bench_scale_out.py --gpus 2,N --skip-train, JSON in $JOB/type_scale.json
+    gpus=${2:-4}
+    python - "$JOB/type_spec.yaml" "${C3_TYPE:-top}" "$gpus" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+from simulate.garment.cloth3d import allowed_fabrics
+spec = load_spec("cloth3d")
+kind = sys.argv[2]
+spec["name"] = f"cloth3d-{kind}"
+spec["garment"]["type"] = kind
+spec["garment"]["fabric"] = list(allowed_fabrics(kind, spec["garment"]["fabric"]))  # tops: cotton or silk
+spec["audit"]["samples"] = 0
+spec["simulation"]["batches"] = int(sys.argv[3])
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+    python bench/bench_scale_out.py --spec "$JOB/type_spec.yaml" --gpus "2,$gpus" --skip-train --out /root/jobs/type-scale \
+      > "$JOB/type_scale.json" 2> "$JOB/type_scale.err"
+    tail -n 3 "$JOB/type_scale.err"; grep -o -E '"(kept_frames_per_s|speedup|simulation_s)": [0-9.]+' "$JOB/type_scale.json"
     ;;
   ratio)
     # (inside a job) the 1-vs-N GPU generation ratio on a GPU other work leaves free: once AFTER exists
