@@ -670,6 +670,85 @@ def test_slow_checkpoints_are_spaced_by_their_own_duration(tmp_path: Path, monke
         assert saved == expected, (interval_s, saved)
 
 
+def test_checkpoints_are_written_while_training_goes_on(tmp_path: Path, monkeypatch) -> None:
+    """A save snapshots the state and writes it on a background thread: epochs go on during the
+    write, the file holds the state of the epoch it was taken at (training changes the weights in
+    place meanwhile), the stage returns with its last checkpoint and .done on disk; a write that
+    fails raises in the training; an epoch that fails leaves the write in flight finished."""
+    import learn.tailornet.train as train
+
+    original = train.atomic_save
+    events: list[tuple[str, int]] = []
+    fail_writes: list[bool] = []
+
+    def slow_save(payload: dict, path: Path) -> None:
+        events.append(("write", payload["epoch"]))
+        time.sleep(0.2)
+        if fail_writes:
+            raise OSError(28, "No space left on device")
+        original(payload, path)
+        events.append(("written", payload["epoch"]))
+
+    monkeypatch.setattr(train, "atomic_save", slow_save)
+    weights_after: dict[int, torch.Tensor] = {}
+
+    def epoch_fn(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        time.sleep(0.01)
+        with torch.no_grad():
+            for p in model.parameters():
+                p.add_(1.0)  # in place, as an optimizer step does
+        epoch = sum(1 for kind, _ in events if kind == "epoch") + 1
+        weights_after[epoch] = next(model.parameters()).detach().clone()
+        events.append(("epoch", epoch))
+        return 0.0
+
+    def model() -> torch.nn.Module:
+        torch.manual_seed(0)
+        return low_frequency_model(4, list(range(POSE_SIZE)), shape_components=0, style_components=0, hidden_size=8)
+
+    hyper = {"lr": 1e-3, "weight_decay": 0.0, "batch_size": 1, "epochs": 12, "checkpoint_interval_s": 1e-3}
+    train.run_epochs("stage", model(), epoch_fn, run_dir=tmp_path / "run", hyperparameters=hyper, fingerprint=None,
+                     progress=False)
+    first = events.index(("write", 1))
+    assert ("epoch", 2) in events[first:events.index(("written", 1))], f"no epoch ran during the write: {events}"
+    assert events[-1] == ("written", 12) and (tmp_path / "run" / "stage.done").exists()
+    saved = train.load_checkpoint(tmp_path / "run" / "stage.pt")
+    assert saved["epoch"] == 12
+    first_weight = next(name for name, _ in model().named_parameters())
+    assert torch.equal(saved["model_state"][first_weight], weights_after[12])
+
+    # the snapshot: epoch 1's write holds epoch 1's weights though epochs 2+ changed them in place
+    captured = []
+    monkeypatch.setattr(train, "atomic_save", lambda payload, path: (captured.append(payload), slow_save(payload, path)))
+    events.clear()
+    weights_after.clear()
+    train.run_epochs("snap", model(), epoch_fn, run_dir=tmp_path / "snap", hyperparameters={**hyper, "epochs": 4},
+                     fingerprint=None, progress=False)
+    assert captured[0]["epoch"] == 1
+    assert torch.equal(captured[0]["model_state"][first_weight], weights_after[1])
+    assert not torch.equal(weights_after[1], weights_after[4])
+
+    monkeypatch.setattr(train, "atomic_save", slow_save)
+    fail_writes.append(True)
+    events.clear()
+    with pytest.raises(OSError, match="No space left"):
+        train.run_epochs("full", model(), epoch_fn, run_dir=tmp_path / "full", hyperparameters=hyper,
+                         fingerprint=None, progress=False)
+    assert not (tmp_path / "full" / "full.done").exists()
+    fail_writes.clear()
+    events.clear()
+
+    def failing(model: torch.nn.Module, optimizer: torch.optim.Optimizer, generator: torch.Generator) -> float:
+        if sum(1 for kind, _ in events if kind == "epoch") == 2:
+            raise RuntimeError("epoch 3 failed")
+        return epoch_fn(model, optimizer, generator)
+
+    with pytest.raises(RuntimeError, match="epoch 3 failed"):
+        train.run_epochs("crash", model(), failing, run_dir=tmp_path / "crash", hyperparameters=hyper,
+                         fingerprint=None, progress=False)
+    assert ("written", 1) in events and train.load_checkpoint(tmp_path / "crash" / "crash.pt")["epoch"] == 1
+
+
 def test_evaluate_says_why_there_is_no_speed_up(tmp_path: Path) -> None:
     """A dataset whose generate-dataset run did not finish has no simulation time in its manifest:
     evaluate reports no speed-up and says why, instead of a silent null."""

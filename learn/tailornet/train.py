@@ -35,6 +35,7 @@ import csv
 import json
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
@@ -67,9 +68,9 @@ if TYPE_CHECKING:
 CHECKPOINT_FORMAT = 1
 DEFAULT_CHECKPOINT_INTERVAL_S = 60.0
 SAVE_SHARE_INVERSE = 20.0
-"""A checkpoint waits at least this many times the last save's duration: the stacked HF checkpoint
-of the 7.7k t-shirt (K = 20, ~6 GB with Adam's moments) took ~12 s to write on an H200 host, and
-at one save a minute saves were ~15 % of the stage."""
+"""A checkpoint waits at least this many times the last one's write: the stacked HF checkpoint of
+the 7.7k t-shirt (K = 20, ~6 GB with Adam's moments) took ~12 s to write on an H200 host; written
+in the background, saves still keep the disk busy at most ~5 % of the time."""
 
 # The authors' settings (REFERENCE.md): Adam, batch 32, L1 loss.
 DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
@@ -359,6 +360,56 @@ def _set_rng_state(state: Mapping[str, Any], generator: torch.Generator) -> None
         torch.cuda.set_rng_state_all([s.cpu() for s in state["cuda"]])
 
 
+def _host_copy(obj: Any) -> Any:
+    """``obj`` (nested dicts, lists, tuples of tensors and plain values) with every tensor copied to
+    host memory: a snapshot that training may go on changing in place."""
+    if isinstance(obj, torch.Tensor):
+        return obj.detach().to("cpu", copy=True)
+    if isinstance(obj, dict):
+        return {key: _host_copy(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_host_copy(value) for value in obj)
+    return copy.deepcopy(obj)
+
+
+class CheckpointWriter:
+    """Writes checkpoints (:func:`atomic_save`) on a background thread, one at a time, so that
+    training goes on while GBs go to disk; ``last_write_s`` is the last write's duration.
+    ``wait()`` joins the write in flight and raises its error, if any."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self.last_write_s = 0.0
+
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def submit(self, payload: Any, path: Path) -> None:
+        """Write ``payload`` (a host snapshot, :func:`_host_copy`) to ``path`` in the background,
+        after the write in flight."""
+        self.wait()
+
+        def write() -> None:
+            started = time.monotonic()
+            try:
+                atomic_save(payload, path)
+            except BaseException as error:  # raised by wait() in the training thread
+                self._error = error
+            self.last_write_s = time.monotonic() - started
+
+        self._thread = threading.Thread(target=write, name=f"checkpoint {path.name}", daemon=True)
+        self._thread.start()
+
+    def wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+
 def atomic_save(obj: Any, path: Path) -> None:
     """``torch.save`` to a temporary file renamed onto ``path``: a crash leaves the previous file or
     none, never half of one. In a data-parallel run (:mod:`learn.distributed`) only rank 0 writes:
@@ -441,10 +492,12 @@ def run_epochs(
     ``train_<loss_name>``). The model, optimizer, epoch count and RNG states go to
     ``<run_dir>/<stage>.pt`` after an epoch when ``checkpoint_interval_s`` seconds have
     passed since the last save (0: after every epoch), or, with a positive interval,
-    :data:`SAVE_SHARE_INVERSE` times the last save's duration if longer (saves then take at most
-    ~5 % of the stage), and always after the last epoch; then ``<stage>.done`` (JSON) is written. Saving every epoch would dominate short
-    epochs: the stacked HF checkpoint of a 7.7k-vertex garment (K = 20) is about 6 GB
-    with Adam's moments. An existing checkpoint is resumed after checking the
+    :data:`SAVE_SHARE_INVERSE` times the last write's duration if longer, and always after the last
+    epoch; then ``<stage>.done`` (JSON) is written. A save copies the state to host memory and,
+    but for the last, writes it on a background thread while the epochs go on
+    (:class:`CheckpointWriter`; the stacked HF checkpoint of a 7.7k-vertex garment, K = 20, is
+    about 6 GB with Adam's moments); the next save waits for it, and the function returns (or
+    raises) only once every write is on disk. An existing checkpoint is resumed after checking the
     fingerprint and the model configuration. ``after_epoch(model, epoch)`` (epoch counted
     from 1), when given, runs on every rank after each epoch's log row and before its
     checkpoint (e.g. a held-out loss). Returns the model in eval mode.
@@ -527,6 +580,35 @@ def run_epochs(
     )
     last_save = time.monotonic()
     interval_s = checkpoint_interval_s
+    writer = CheckpointWriter()
+    try:  # a checkpoint in flight reaches the disk before the stage returns or raises
+        _epoch_loop(bar, epochs, model, optimizer, epoch_fn, generator, writer, run_dir=run_dir, stage=stage,
+                    seed=seed, schedule=schedule, lr=lr, lr_final=lr_final, parallel=parallel, writes=writes,
+                    log_path=log_path, loss_name=loss_name, after_epoch=after_epoch, last_save=last_save,
+                    interval_s=interval_s, checkpoint_interval_s=checkpoint_interval_s,
+                    checkpoint_path=checkpoint_path, hyperparameters=hyperparameters, fingerprint=fingerprint)
+    except BaseException:
+        try:
+            writer.wait()
+        except Exception:  # noqa: BLE001 - the loop's error is the one to report
+            pass
+        raise
+    writer.wait()
+    bar.close()
+    if writes:
+        (run_dir / f"{stage}.done").write_text(json.dumps({"stage": stage, "epochs": epochs}))
+    if parallel:
+        distributed.barrier()  # every rank sees the finished stage's files
+    return model.eval()
+
+
+def _epoch_loop(bar, epochs: int, model: torch.nn.Module, optimizer, epoch_fn: EpochFn, generator: torch.Generator,
+                writer: CheckpointWriter, *, run_dir: Path, stage: str, seed: int, schedule: str, lr: float,
+                lr_final: float, parallel: bool, writes: bool, log_path: Path, loss_name: str,
+                after_epoch: Callable[[torch.nn.Module, int], None] | None, last_save: float, interval_s: float,
+                checkpoint_interval_s: float, checkpoint_path: Path, hyperparameters: Mapping[str, Any],
+                fingerprint: DatasetFingerprint | None) -> None:
+    """:func:`run_epochs`'s loop: the epochs, their log rows and the checkpoints."""
     for epoch in bar:
         model.train()
         started = time.perf_counter()
@@ -544,35 +626,36 @@ def run_epochs(
         bar.set_postfix(shown, refresh=False)  # redrawn at tqdm's pace, not per epoch
         if after_epoch is not None:
             after_epoch(model, epoch + 1)
-        if epoch + 1 < epochs and time.monotonic() - last_save < interval_s:
+        last = epoch + 1 == epochs
+        if checkpoint_interval_s > 0.0 and not writer.busy():  # spaced by the last write's duration
+            interval_s = max(checkpoint_interval_s, SAVE_SHARE_INVERSE * writer.last_write_s)
+        if not last and (writer.busy() or time.monotonic() - last_save < interval_s):
+            continue  # a write in flight: training goes on, the next save comes after it
+        if not writes:  # another rank writes the same state (data parallelism)
+            last_save = time.monotonic()
             continue
-        save_started = time.monotonic()
-        atomic_save(
-            {
-                "format": CHECKPOINT_FORMAT,
-                "stage": stage,
-                "epoch": epoch + 1,
-                "epochs": epochs,
-                "model_config": model.config,
-                "model_state": model.state_dict(),
-                "optimizer_state": optimizer.state_dict(),
-                "rng_state": _rng_state(generator),
-                "hyperparameters": dict(hyperparameters),
-                "seed": seed,
-                "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
-                f"train_{loss_name}": mean_loss,
-            },
-            checkpoint_path,
-        )
+        payload = {
+            "format": CHECKPOINT_FORMAT,
+            "stage": stage,
+            "epoch": epoch + 1,
+            "epochs": epochs,
+            "model_config": model.config,
+            "model_state": model.state_dict(),
+            "optimizer_state": optimizer.state_dict(),
+            "rng_state": _rng_state(generator),
+            "hyperparameters": dict(hyperparameters),
+            "seed": seed,
+            "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
+            f"train_{loss_name}": mean_loss,
+        }
+        if last:  # written here: the .done marker follows it
+            writer.wait()
+            atomic_save(payload, checkpoint_path)
+        else:
+            writer.submit(_host_copy(payload), checkpoint_path)
+            if checkpoint_interval_s == 0.0:
+                writer.wait()  # every epoch saved: one write at a time, none skipped
         last_save = time.monotonic()
-        if checkpoint_interval_s > 0.0:
-            interval_s = max(checkpoint_interval_s, SAVE_SHARE_INVERSE * (last_save - save_started))
-    bar.close()
-    if writes:
-        (run_dir / f"{stage}.done").write_text(json.dumps({"stage": stage, "epochs": epochs}))
-    if parallel:
-        distributed.barrier()  # every rank sees the finished stage's files
-    return model.eval()
 
 
 def train_stage(
