@@ -349,15 +349,20 @@ def test_stages_and_prototype_parts_are_spread_over_processes() -> None:
         hf_part_members(2, 0, 3)
 
 
+def _three_prototypes(epochs: int) -> tuple[FrameArrays, dict, np.ndarray]:
+    """Frames of 3 pairs with their low-frequency split, ``train_hf``'s keyword arguments (no
+    dropout, ``epochs`` epochs) and the prototype pairs."""
+    data, faces = make_frames(4, 8, _pairs()[:3])
+    add_low_frequency(data, faces, iterations=10)
+    hyper = {"hf": {"lr": 1e-3, "epochs": epochs, "batch_size": 4, "hidden_size": 16, "dropout": 0.0}}
+    return data, dict(hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False, seed=7), np.array([2, 0, 1])
+
+
 def test_prototype_parts_trained_apart_equal_the_stacked_stage(tmp_path: Path) -> None:
     """hf split into parts (one per process): each part sees the batches the whole stage gives
     its prototypes, so without dropout the parts, put together, are the stacked stage up to
     float rounding; split over 'ranks' sharing a run directory they assemble the model."""
-    data, faces = make_frames(4, 8, _pairs()[:3])
-    add_low_frequency(data, faces, iterations=10)
-    hyper = {"hf": {"lr": 1e-3, "epochs": 5, "batch_size": 4, "hidden_size": 16, "dropout": 0.0}}
-    args = dict(hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False, seed=7)
-    pairs = np.array([2, 0, 1])
+    data, args, pairs = _three_prototypes(epochs=5)
     whole = train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "whole", **args)
     parts = [train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "parts", part=(i, 2), **args)
              for i in range(2)]
@@ -417,11 +422,7 @@ def test_a_part_draws_only_its_prototypes_initial_weights(tmp_path: Path, monkey
         return original(*args, **kwargs)
 
     monkeypatch.setattr(train_module, "high_frequency_model", counting)
-    data, faces = make_frames(4, 8, _pairs()[:3])
-    add_low_frequency(data, faces, iterations=10)
-    hyper = {"hf": {"lr": 1e-3, "epochs": 2, "batch_size": 4, "hidden_size": 16, "dropout": 0.0}}
-    args = dict(hyperparameters=hyper, fingerprint=FINGERPRINT, progress=False, seed=7)
-    pairs = np.array([2, 0, 1])
+    data, args, pairs = _three_prototypes(epochs=2)
     whole = train_hf(data, np.arange(POSE_SIZE), pairs, run_dir=tmp_path / "whole", **args)
     assert len(drawn) == 3
     drawn.clear()
