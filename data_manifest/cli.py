@@ -59,7 +59,7 @@ def _cmd_validate(args: argparse.Namespace) -> int:
         for gtype, path in parts:
             print(f"== {gtype}: {path}")
             if not (path / "manifest.json").is_file():
-                print(f"  not generated yet (no manifest.json; rerun generate-dataset to finish it)")
+                print("  not generated yet (no manifest.json; rerun generate-dataset to finish it)")
                 status = EXIT_PROBLEMS
                 continue
             report = validate_dataset(path, check_sha256=not args.no_checksum)

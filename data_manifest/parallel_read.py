@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .integrity import IntegrityChecker
-from .reader import DatasetReader, _per_vertex_names
+from .reader import DatasetReader, per_vertex_names
 from .schema import QUALITY_GROUP, CorruptShardError, MissingShardError
 
 #: Below this many bytes of shards a split is read in the calling process: starting the
@@ -93,7 +93,7 @@ def load_split_parallel(root: str | os.PathLike[str], split: str, *, workers: in
     entries = [entry for entry in reader.shard_entries if split in entry["splits"] and entry["frame_count"] > 0]
     workers = default_workers() if workers is None else workers
     total_bytes = sum(int(entry["bytes"]) for entry in entries)
-    per_vertex = None if per_vertex is None else _per_vertex_names(per_vertex)
+    per_vertex = None if per_vertex is None else per_vertex_names(per_vertex)
     if workers == 1 or len(entries) < 2 or total_bytes < min_parallel_bytes:
         with reader:
             return reader.load_split(split, per_vertex)

@@ -45,7 +45,9 @@ from .shard import decode_positions, read_dropped_log, read_template
 PER_VERTEX_ARRAYS = ("posed_vertices", "unposed_displacements", "velocities")
 
 
-def _per_vertex_names(per_vertex: Collection[str] | None) -> tuple[str, ...]:
+def per_vertex_names(per_vertex: Collection[str] | None) -> tuple[str, ...]:
+    """``per_vertex`` checked against :data:`PER_VERTEX_ARRAYS` (None: all of them); a ValueError
+    names the value and the choices."""
     if per_vertex is None:
         return PER_VERTEX_ARRAYS
     names = tuple(per_vertex)
@@ -291,7 +293,7 @@ class DatasetReader:
         return item
 
     def _read_shard(self, number: int, per_vertex: Collection[str] | None = None) -> dict[str, np.ndarray]:
-        per_vertex = _per_vertex_names(per_vertex)
+        per_vertex = per_vertex_names(per_vertex)
         handle = self._open(number)
         try:
             frames = handle[POSED_VERTICES].shape[0]
