@@ -582,11 +582,55 @@ def run_epochs(
     interval_s = checkpoint_interval_s
     writer = CheckpointWriter()
     try:  # a checkpoint in flight reaches the disk before the stage returns or raises
-        _epoch_loop(bar, epochs, model, optimizer, epoch_fn, generator, writer, run_dir=run_dir, stage=stage,
-                    seed=seed, schedule=schedule, lr=lr, lr_final=lr_final, parallel=parallel, writes=writes,
-                    log_path=log_path, loss_name=loss_name, after_epoch=after_epoch, last_save=last_save,
-                    interval_s=interval_s, checkpoint_interval_s=checkpoint_interval_s,
-                    checkpoint_path=checkpoint_path, hyperparameters=hyperparameters, fingerprint=fingerprint)
+        for epoch in bar:
+            model.train()
+            started = time.perf_counter()
+            if parallel:
+                torch.manual_seed(distributed.epoch_seed(seed, epoch))
+            if schedule != "constant":
+                _set_lr(optimizer, scheduled_lr(lr, epoch, epochs, schedule, lr_final))
+            mean_loss = epoch_fn(model, optimizer, generator)
+            if parallel:
+                mean_loss = distributed.sum_over_ranks(mean_loss)
+            if writes:
+                with log_path.open("a", newline="") as handle:
+                    csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}",
+                                                 f"{time.perf_counter() - started:.4f}"])
+            shown = ({f"{loss_name}m": f"{mean_loss * 1000:.3f}"} if loss_name.endswith("_m")
+                     else {loss_name: f"{mean_loss:.4g}"})
+            bar.set_postfix(shown, refresh=False)  # redrawn at tqdm's pace, not per epoch
+            if after_epoch is not None:
+                after_epoch(model, epoch + 1)
+            last = epoch + 1 == epochs
+            if checkpoint_interval_s > 0.0 and not writer.busy():  # spaced by the last write's duration
+                interval_s = max(checkpoint_interval_s, SAVE_SHARE_INVERSE * writer.last_write_s)
+            if not last and (writer.busy() or time.monotonic() - last_save < interval_s):
+                continue  # a write in flight: training goes on, the next save comes after it
+            if not writes:  # another rank writes the same state (data parallelism)
+                last_save = time.monotonic()
+                continue
+            payload = {
+                "format": CHECKPOINT_FORMAT,
+                "stage": stage,
+                "epoch": epoch + 1,
+                "epochs": epochs,
+                "model_config": model.config,
+                "model_state": model.state_dict(),
+                "optimizer_state": optimizer.state_dict(),
+                "rng_state": _rng_state(generator),
+                "hyperparameters": dict(hyperparameters),
+                "seed": seed,
+                "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
+                f"train_{loss_name}": mean_loss,
+            }
+            if last:  # written here: the .done marker follows it
+                writer.wait()
+                atomic_save(payload, checkpoint_path)
+            else:
+                writer.submit(_host_copy(payload), checkpoint_path)
+                if checkpoint_interval_s == 0.0:
+                    writer.wait()  # every epoch saved: one write at a time, none skipped
+            last_save = time.monotonic()
     except BaseException:
         try:
             writer.wait()
@@ -600,62 +644,6 @@ def run_epochs(
     if parallel:
         distributed.barrier()  # every rank sees the finished stage's files
     return model.eval()
-
-
-def _epoch_loop(bar, epochs: int, model: torch.nn.Module, optimizer, epoch_fn: EpochFn, generator: torch.Generator,
-                writer: CheckpointWriter, *, run_dir: Path, stage: str, seed: int, schedule: str, lr: float,
-                lr_final: float, parallel: bool, writes: bool, log_path: Path, loss_name: str,
-                after_epoch: Callable[[torch.nn.Module, int], None] | None, last_save: float, interval_s: float,
-                checkpoint_interval_s: float, checkpoint_path: Path, hyperparameters: Mapping[str, Any],
-                fingerprint: DatasetFingerprint | None) -> None:
-    """:func:`run_epochs`'s loop: the epochs, their log rows and the checkpoints."""
-    for epoch in bar:
-        model.train()
-        started = time.perf_counter()
-        if parallel:
-            torch.manual_seed(distributed.epoch_seed(seed, epoch))
-        if schedule != "constant":
-            _set_lr(optimizer, scheduled_lr(lr, epoch, epochs, schedule, lr_final))
-        mean_loss = epoch_fn(model, optimizer, generator)
-        if parallel:
-            mean_loss = distributed.sum_over_ranks(mean_loss)
-        if writes:
-            with log_path.open("a", newline="") as handle:
-                csv.writer(handle).writerow([epoch + 1, f"{mean_loss:.8g}", f"{time.perf_counter() - started:.4f}"])
-        shown = {f"{loss_name}m": f"{mean_loss * 1000:.3f}"} if loss_name.endswith("_m") else {loss_name: f"{mean_loss:.4g}"}
-        bar.set_postfix(shown, refresh=False)  # redrawn at tqdm's pace, not per epoch
-        if after_epoch is not None:
-            after_epoch(model, epoch + 1)
-        last = epoch + 1 == epochs
-        if checkpoint_interval_s > 0.0 and not writer.busy():  # spaced by the last write's duration
-            interval_s = max(checkpoint_interval_s, SAVE_SHARE_INVERSE * writer.last_write_s)
-        if not last and (writer.busy() or time.monotonic() - last_save < interval_s):
-            continue  # a write in flight: training goes on, the next save comes after it
-        if not writes:  # another rank writes the same state (data parallelism)
-            last_save = time.monotonic()
-            continue
-        payload = {
-            "format": CHECKPOINT_FORMAT,
-            "stage": stage,
-            "epoch": epoch + 1,
-            "epochs": epochs,
-            "model_config": model.config,
-            "model_state": model.state_dict(),
-            "optimizer_state": optimizer.state_dict(),
-            "rng_state": _rng_state(generator),
-            "hyperparameters": dict(hyperparameters),
-            "seed": seed,
-            "fingerprint": None if fingerprint is None else fingerprint.as_dict(),
-            f"train_{loss_name}": mean_loss,
-        }
-        if last:  # written here: the .done marker follows it
-            writer.wait()
-            atomic_save(payload, checkpoint_path)
-        else:
-            writer.submit(_host_copy(payload), checkpoint_path)
-            if checkpoint_interval_s == 0.0:
-                writer.wait()  # every epoch saved: one write at a time, none skipped
-        last_save = time.monotonic()
 
 
 def train_stage(
