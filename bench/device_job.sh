@@ -95,6 +95,22 @@ yaml.safe_dump(spec, open(sys.argv[1], "w"))
 PY
   python -m pipelines.cli generate-dataset "$JOB/spec.yaml" --out "$2" --executor ray --no-progress > "$JOB/generate.log" 2>&1
 }
+type_spec() {  # FILE TYPE BATCHES: one garment type of the shipped cloth3d spec (500 motion sequences of
+  # 60 frames, 2,000 vertices), its plan in BATCHES batches, audit off
+  python - "$1" "$2" "$3" <<'PY'
+import sys, yaml
+from pipelines.spec import load_spec
+from simulate.garment.cloth3d import allowed_fabrics
+spec = load_spec("cloth3d")
+kind = sys.argv[2]
+spec["name"] = f"cloth3d-{kind}"
+spec["garment"]["type"] = kind
+spec["garment"]["fabric"] = list(allowed_fabrics(kind, spec["garment"]["fabric"]))  # tops: cotton or silk
+spec["audit"]["samples"] = 0
+spec["simulation"]["batches"] = int(sys.argv[3])
+yaml.safe_dump(spec, open(sys.argv[1], "w"))
+PY
+}
 root=/root/jobs/$name
 case $cmd in
   start)
@@ -227,6 +243,8 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
     # side on GPUs 0 and 1-2, then N; then each run evaluated, the runs side by side on their own
     # GPUs (the N-GPU model should match the 1-GPU one). JSON in $JOB/scale_train.json. TRAIN_BESIDE:
     # a command on GPU N-1 while 1 and 2 processes train (e.g. python bench/bench_hf_epoch.py --device cuda).
+    # C3_TYPE=top: also the cloth3d type's generation on N GPUs, and its first batch on one GPU beside
+    # the pack ($JOB/c3_ratio.json).
     gpus=${2:-4}
     ds=${LEARN_DATA:-/root/jobs/data-tshirt}
     if [ -z "${LEARN_DATA:-}" ]; then
@@ -238,12 +256,25 @@ print(max(1, min(100, int(float(sys.argv[2]) / s))))" "$JOB/uv_probe/uvimage_los
       wait $gen
       grep -E "kept|wall" "$JOB/generate.log" | tail -n 4
     fi
+    beside=${TRAIN_BESIDE:-}
+    if [ -n "${C3_TYPE:-}" ]; then
+      # the cloth3d type on N GPUs with Ray now, and beside the 1+2 pack its plan's first batch on
+      # the last GPU alone (bench_scale_out --ray-data: the 1-vs-N ratio of the type-scale mode)
+      echo "$(date +%T) cloth3d $C3_TYPE on $gpus GPUs"
+      type_spec "$JOB/type_spec.yaml" "$C3_TYPE" "$gpus"
+      python -m pipelines.cli generate-dataset "$JOB/type_spec.yaml" --out "/root/jobs/c3-ray$gpus" --executor ray \
+        --no-progress > "$JOB/c3_generate.log" 2>&1
+      grep -E "kept|wall" "$JOB/c3_generate.log" | tail -n 2
+      beside=${beside:-"python bench/bench_scale_out.py --spec $JOB/type_spec.yaml --gpus $gpus --local-batches 1 \
+        --ray-data /root/jobs/c3-ray$gpus --skip-train --out /root/jobs/c3-ratio > $JOB/c3_ratio.json"}
+    fi
     echo "$(date +%T) training"
     scale=/root/jobs/scale-train
-    # TRAIN_BESIDE: a short command on the last GPU, which the pack leaves free while 1 and 2
-    # processes train (cut at 300 s so that it never overlaps the N-GPU run); output in $JOB/beside.log
-    [ -z "${TRAIN_BESIDE:-}" ] || (CUDA_VISIBLE_DEVICES=$((gpus - 1)) timeout 300 bash -c "$TRAIN_BESIDE" \
-      > "$JOB/beside.log" 2>&1) &
+    # TRAIN_BESIDE: a command on the last GPU, which the pack leaves free while 1 and 2 processes
+    # train, cut at BESIDE_TIMEOUT s (default 300; 450 with C3_TYPE: one process trains ~470 s) so
+    # that it never overlaps the N-GPU run; output in $JOB/beside.log
+    [ -z "$beside" ] || (CUDA_VISIBLE_DEVICES=$((gpus - 1)) timeout "${BESIDE_TIMEOUT:-$([ -n "${C3_TYPE:-}" ] \
+      && echo 450 || echo 300)}" bash -c "$beside" > "$JOB/beside.log" 2>&1) &
     python bench/bench_scale_out.py --skip-generate --data $ds --gpus "${TRAIN_GPUS:-2,$gpus}" --pack \
       ${TRAIN_PROCESSES:+--processes "$TRAIN_PROCESSES"} --learner "${LEARNER:-tailornet}" --out $scale \
       > "$JOB/scale_train.json" 2> "$JOB/scale_train.err"
@@ -303,19 +334,7 @@ PY
     # `cloth3d` spec (C3_TYPE, default top: 500 motion sequences of 60 frames, 2,000 vertices), its
     # plan in N batches, audit off: bench_scale_out.py --gpus 2,N --skip-train, JSON in $JOB/type_scale.json
     gpus=${2:-4}
-    python - "$JOB/type_spec.yaml" "${C3_TYPE:-top}" "$gpus" <<'PY'
-import sys, yaml
-from pipelines.spec import load_spec
-from simulate.garment.cloth3d import allowed_fabrics
-spec = load_spec("cloth3d")
-kind = sys.argv[2]
-spec["name"] = f"cloth3d-{kind}"
-spec["garment"]["type"] = kind
-spec["garment"]["fabric"] = list(allowed_fabrics(kind, spec["garment"]["fabric"]))  # tops: cotton or silk
-spec["audit"]["samples"] = 0
-spec["simulation"]["batches"] = int(sys.argv[3])
-yaml.safe_dump(spec, open(sys.argv[1], "w"))
-PY
+    type_spec "$JOB/type_spec.yaml" "${C3_TYPE:-top}" "$gpus"
     python bench/bench_scale_out.py --spec "$JOB/type_spec.yaml" --gpus "2,$gpus" --skip-train --out /root/jobs/type-scale \
       > "$JOB/type_scale.json" 2> "$JOB/type_scale.err"
     tail -n 3 "$JOB/type_scale.err"; grep -o -E '"(kept_frames_per_s|speedup|simulation_s)": [0-9.]+' "$JOB/type_scale.json"
