@@ -387,7 +387,7 @@ class CheckpointWriter:
 
     def submit(self, payload: Any, path: Path) -> None:
         """Write ``payload`` (a host snapshot, :func:`_host_copy`) to ``path`` in the background,
-        after the write in flight."""
+        once the write in flight (if any) is done."""
         self.wait()
 
         def write() -> None:
@@ -496,8 +496,8 @@ def run_epochs(
     epoch; then ``<stage>.done`` (JSON) is written. A save copies the state to host memory and,
     but for the last, writes it on a background thread while the epochs go on
     (:class:`CheckpointWriter`; the stacked HF checkpoint of a 7.7k-vertex garment, K = 20, is
-    about 6 GB with Adam's moments); the next save waits for it, and the function returns (or
-    raises) only once every write is on disk. An existing checkpoint is resumed after checking the
+    about 6 GB with Adam's moments); no save starts while one is in flight, and the function
+    returns (or raises) only once every write is on disk. An existing checkpoint is resumed after checking the
     fingerprint and the model configuration. ``after_epoch(model, epoch)`` (epoch counted
     from 1), when given, runs on every rank after each epoch's log row and before its
     checkpoint (e.g. a held-out loss). Returns the model in eval mode.
