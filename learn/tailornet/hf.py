@@ -47,6 +47,7 @@ class HighFrequencyPrototypes(nn.Module):
         hidden_size: hidden width H of each MLP.
         dropout: dropout after the first hidden layer, applied by :meth:`forward_each`
             in train mode.
+        device: where the (zero) parameters are made (default: torch's default device).
     """
 
     def __init__(
@@ -57,6 +58,7 @@ class HighFrequencyPrototypes(nn.Module):
         *,
         hidden_size: int = 1024,
         dropout: float = 0.2,
+        device: str | torch.device | None = None,
     ) -> None:
         super().__init__()
         if prototype_count < 1:
@@ -69,13 +71,15 @@ class HighFrequencyPrototypes(nn.Module):
         self.vertex_count = int(vertex_count)
         self.hidden_size = int(h)
         self.dropout = float(dropout)
-        self.register_buffer("pose_indices", pose_index)
-        self.weight1 = nn.Parameter(torch.zeros(k, p, h))
-        self.bias1 = nn.Parameter(torch.zeros(k, h))
-        self.weight2 = nn.Parameter(torch.zeros(k, h, h))
-        self.bias2 = nn.Parameter(torch.zeros(k, h))
-        self.weight3 = nn.Parameter(torch.zeros(k * h, out))
-        self.bias3 = nn.Parameter(torch.zeros(k, out))
+        self.register_buffer("pose_indices", pose_index.to(device))
+        # zeros where they are used (K = 20 at 7.7k vertices is 2 GB: made on the host and copied
+        # over, assembling a model cost seconds); the weights come from from_mlps, cat or a checkpoint
+        self.weight1 = nn.Parameter(torch.zeros(k, p, h, device=device))
+        self.bias1 = nn.Parameter(torch.zeros(k, h, device=device))
+        self.weight2 = nn.Parameter(torch.zeros(k, h, h, device=device))
+        self.bias2 = nn.Parameter(torch.zeros(k, h, device=device))
+        self.weight3 = nn.Parameter(torch.zeros(k * h, out, device=device))
+        self.bias3 = nn.Parameter(torch.zeros(k, out, device=device))
 
     @property
     def config(self) -> dict[str, Any]:
@@ -131,7 +135,7 @@ class HighFrequencyPrototypes(nn.Module):
                     or not torch.equal(m.pose_indices.cpu(), first.pose_indices.cpu()):
                 raise ValueError(f"prototype part {i} differs from part 0 in inputs, width, dropout or vertex count")
         joined = cls(sum(m.prototype_count for m in parts), first.vertex_count, first.pose_indices.tolist(),
-                     hidden_size=first.hidden_size, dropout=first.dropout).to(first.weight1.device)
+                     hidden_size=first.hidden_size, dropout=first.dropout, device=first.weight1.device)
         with torch.no_grad():
             for name in ("weight1", "bias1", "weight2", "bias2", "weight3", "bias3"):
                 getattr(joined, name).copy_(torch.cat([getattr(m, name) for m in parts], dim=0))

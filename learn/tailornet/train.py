@@ -979,7 +979,7 @@ def train_hf(
         if not finished and not is_streamed(data) and data.low_frequency is None:
             fill_low_frequency(data)
         model = (HighFrequencyPrototypes(len(members), data.vertex_count, pose_indices, hidden_size=hidden,
-                                         dropout=dropout) if finished
+                                         dropout=dropout, device=device) if finished
                  else HighFrequencyPrototypes.from_mlps([initial[k] for k in members]))
         return train_stacked_prototypes(
             model, data,
