@@ -24,6 +24,9 @@ Each ``LearnerEntry`` gives:
   a motion dataset: its dynamic variant (learn/gcvae/dynamic_set.py, ``drape train --dynamic``).
 - ``streams``: whether ``fit`` takes a :class:`learn.streamed_split.StreamedSplit` for ``data``
   (``drape train --data-mode stream``, docs/streaming.md); ``context`` then gets ``dataset=None``.
+- ``posed``: whether ``fit`` reads the training frames' posed garments (``posed_vertices``);
+  ``drape train`` leaves them on disk for a learner of the unposed displacements alone (half of
+  the split's bytes).
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ class LearnerEntry:
     context: Callable[..., dict] | None = None
     data: str = "dataset"
     streams: bool = True
+    posed: bool = True
 
     def __post_init__(self) -> None:
         if self.data not in DATA_KINDS:
@@ -62,12 +66,12 @@ LEARNERS: dict[str, LearnerEntry] = {
     "tailornet": LearnerEntry(
         "tailornet", fit_tailornet, "tailornet_model.pt", load_learner,
         "TailorNet mixture: low-frequency MLP + kernel mixture of prototype high-frequency MLPs",
-        ("lf", "hf", "shape_style", "baseline"),
+        ("lf", "hf", "shape_style", "baseline"), posed=False,
     ),
     "baseline": LearnerEntry(
         "baseline", fit_baseline, "baseline_model.pt", load_learner,
         "TailorNet's baseline: one MLP of (pose, shape, style)",
-        ("baseline",),
+        ("baseline",), posed=False,
     ),
     "uvimage": LearnerEntry(
         "uvimage", fit_uvimage, "uvimage_model.pt", load_uvimage,

@@ -216,9 +216,8 @@ def _run(args: argparse.Namespace, entry) -> int:
             data.prepare_low_frequency(args.device, rank=distributed.rank(), world_size=distributed.world_size())
             distributed.barrier()
     else:
-        # TailorNet and the baseline learn the unposed displacements: the posed garments stay on disk
         dataset = DrapeDataset(args.data, split, frequencies=args.learner == "tailornet", device=args.device,
-                               posed=args.learner not in ("tailornet", "baseline"))
+                               posed=entry.posed)
         data = frame_arrays_from_dataset(dataset)
     pairs = int(np.unique(data.pair_id).size)
     read_s = time.perf_counter() - t0
