@@ -6,8 +6,8 @@ epoch, and the kernels that take the most time, printed as one JSON line.
 
 A fixed cost that the GPU's kernel time shares is work on the GPU that does not grow with K; one
 it does not share is time the GPU waits for the host (docs/scale-out.md has the H200's figures:
-with CUDA graphs the whole epoch is work on the GPU). Synthetic frames of the shipped t-shirt's size (7,744
-vertices, ``--frames-per-prototype`` frames per prototype, a 60-entry pose); the stage's
+with CUDA graphs the whole epoch is work on the GPU). Synthetic frames of the shipped t-shirt's
+size (7,744 vertices, ``--frames-per-prototype`` frames per prototype, a 60-entry pose); the stage's
 defaults (batch 32, hidden 1024, dropout 0.2, CUDA graphs unless ``--no-cuda-graphs``). The first
 epoch (allocation, graph recording) is not timed.
 """

@@ -31,9 +31,8 @@ import time
 import numpy as np
 
 from bench_self_contact import arms_lowered_scene, canonical_drape, parse_stepping, run_settings
-from simulate.poses import default_pose_joints
 from simulate.garment.drape import COLLISION_PARTS
-from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, sample_poses
+from simulate.poses import GARMENT_POSE_JOINTS, PoseSampler, default_pose_joints, sample_poses
 from simulate.quasi_static import WorldStatus
 from simulate.sequence import SequenceTask, run_sequences
 
